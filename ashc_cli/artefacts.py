@@ -1,0 +1,262 @@
+"""HDF5 artefacts: one file per stage, written atomically, with provenance. The only module using h5py.
+
+Layout of ``<out>/<stage>.h5``::
+
+    /                 attrs: schema_version, stage, spec_sha256, spec_name, upstream (JSON {stage: sha256}),
+                             packages (JSON), created (UTC ISO 8601), ashc_version, meta (JSON: solver,
+                             tolerances, integrator, ...)
+    /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
+    /exprs/<name>     attrs shape; datasets srepr (exact, read back by a whitelist) and text (readable)
+    /checks/<name>    attrs value (float), passed (bool), description (str)
+
+A write goes to a temporary file in the same folder and is renamed over the target only once complete,
+so an interrupted run leaves the previous artefact intact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import sympy as sp
+
+from . import __version__
+from .errors import ArtefactError
+from .expr import from_srepr
+
+__all__ = ["SCHEMA_VERSION", "Artefact", "Check", "write_artefact", "read_artefact", "file_sha256", "package_versions"]
+
+#: Bumped whenever the layout or the meaning of a stored value changes; older artefacts are stale.
+SCHEMA_VERSION = 1
+
+_PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic")
+_STR = h5py.string_dtype()
+
+
+@dataclass(frozen=True)
+class Check:
+    """A stage's check of its own result: a measured number and whether it passed.
+
+    Attributes
+    ----------
+    value : float
+        The measured number (a residual, a margin, a singular value, ...).
+    passed : bool
+        Whether the number meets the condition.
+    description : str
+        What was measured and against what threshold.
+    """
+
+    value: float
+    passed: bool
+    description: str
+
+
+@dataclass
+class Artefact:
+    """What a stage produces: plain data, independent of how it is stored.
+
+    Attributes
+    ----------
+    stage : str
+        The stage's name.
+    values : dict
+        Numbers, strings and arrays; keys may contain '/' to group them.
+    exprs : dict of str to sympy Matrix
+        Symbolic results (with parameters as symbols).
+    checks : dict of str to Check
+        The stage's self-checks.
+    meta : dict
+        JSON-able facts about how the result was obtained (solver, tolerances, grids).
+    provenance : dict
+        Filled when written or read: spec_sha256, upstream hashes, created, packages, sha256 of the file.
+    """
+
+    stage: str
+    values: dict[str, Any] = field(default_factory=dict)
+    exprs: dict[str, sp.Matrix] = field(default_factory=dict)
+    checks: dict[str, Check] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def expr(self, name: str) -> sp.Matrix:
+        """A stored expression matrix by name (an :class:`ArtefactError` if it is not there)."""
+        try:
+            return self.exprs[name]
+        except KeyError:
+            raise ArtefactError(self.stage, f"artefact holds no expression '{name}'", f"one of {sorted(self.exprs)}") from None
+
+    def value(self, name: str):
+        """A stored value by name (an :class:`ArtefactError` if it is not there)."""
+        try:
+            return self.values[name]
+        except KeyError:
+            raise ArtefactError(self.stage, f"artefact holds no value '{name}'", "an artefact written by this ashc version") from None
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of the numerical packages a result depends on."""
+    out = {}
+    for name in _PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:  # pragma: no cover - all are dependencies
+            out[name] = "absent"
+    return out
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, upstream: dict[str, str]) -> str:
+    """Write an artefact atomically and return the new file's SHA-256.
+
+    Parameters
+    ----------
+    path : str or Path
+        Target file; its folder is created if needed.
+    art : Artefact
+        What to store.
+    spec_sha256, spec_name : str
+        The spec it was made from.
+    upstream : dict of str to str
+        SHA-256 of each upstream artefact file it was made from.
+
+    Returns
+    -------
+    str
+        SHA-256 of the written file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as fh:
+            fh.attrs["schema_version"] = SCHEMA_VERSION
+            fh.attrs["stage"] = art.stage
+            fh.attrs["spec_sha256"] = spec_sha256
+            fh.attrs["spec_name"] = spec_name
+            fh.attrs["upstream"] = json.dumps(upstream, sort_keys=True)
+            fh.attrs["packages"] = json.dumps(package_versions(), sort_keys=True)
+            fh.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            fh.attrs["ashc_version"] = __version__
+            fh.attrs["meta"] = json.dumps(art.meta, sort_keys=True, default=_json_default)
+            values = fh.create_group("values")
+            for key, value in art.values.items():
+                _write_value(values, key, value)
+            exprs = fh.create_group("exprs")
+            for name, matrix in art.exprs.items():
+                matrix = sp.Matrix(matrix)
+                grp = exprs.create_group(name)
+                grp.attrs["shape"] = np.array(matrix.shape, dtype=np.int64)
+                grp.create_dataset("srepr", data=np.array([sp.srepr(e) for e in matrix], dtype=object), dtype=_STR)
+                grp.create_dataset("text", data=np.array([str(e) for e in matrix], dtype=object), dtype=_STR)
+            checks = fh.create_group("checks")
+            for name, chk in art.checks.items():
+                grp = checks.create_group(name)
+                grp.attrs["value"] = float(chk.value)
+                grp.attrs["passed"] = bool(chk.passed)
+                grp.attrs["description"] = chk.description
+        sha = file_sha256(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    art.provenance = {"spec_sha256": spec_sha256, "upstream": upstream, "sha256": sha, "schema_version": SCHEMA_VERSION}
+    return sha
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON-able: {type(obj).__name__}")
+
+
+def _write_value(group: h5py.Group, key: str, value: Any) -> None:
+    if isinstance(value, str):
+        group.create_dataset(key, data=value, dtype=_STR)
+    elif isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
+        group.create_dataset(key, data=np.array(value, dtype=object), dtype=_STR)
+    else:
+        group.create_dataset(key, data=np.asarray(value))
+
+
+def read_artefact(path: str | Path) -> Artefact:
+    """Read an artefact written by :func:`write_artefact`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The HDF5 file.
+
+    Returns
+    -------
+    Artefact
+        With ``provenance`` holding the stored attributes and the file's SHA-256.
+
+    Raises
+    ------
+    ArtefactError
+        If the file is missing or is not a readable ashc artefact.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ArtefactError(str(path), "no such artefact", "the output of the stage that writes it")
+    try:
+        with h5py.File(path, "r") as fh:
+            attrs = dict(fh.attrs)
+            art = Artefact(stage=str(attrs["stage"]))
+            art.meta = json.loads(attrs.get("meta", "{}"))
+            fh["values"].visititems(lambda name, obj: _read_value(art.values, name, obj))
+            for name, grp in fh["exprs"].items():
+                shape = tuple(int(s) for s in grp.attrs["shape"])
+                entries = [from_srepr(s.decode() if isinstance(s, bytes) else s, str(path)) for s in grp["srepr"][()]]
+                art.exprs[name] = sp.Matrix(shape[0], shape[1], entries) if entries else sp.zeros(*shape)
+            for name, grp in fh["checks"].items():
+                art.checks[name] = Check(float(grp.attrs["value"]), bool(grp.attrs["passed"]), str(grp.attrs["description"]))
+    except ArtefactError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise ArtefactError(str(path), f"not a readable ashc artefact ({type(exc).__name__})", "a file written by ashc; rerun its stage") from None
+    art.provenance = {
+        "schema_version": int(attrs.get("schema_version", -1)),
+        "spec_sha256": str(attrs.get("spec_sha256", "")),
+        "spec_name": str(attrs.get("spec_name", "")),
+        "upstream": json.loads(attrs.get("upstream", "{}")),
+        "packages": json.loads(attrs.get("packages", "{}")),
+        "created": str(attrs.get("created", "")),
+        "ashc_version": str(attrs.get("ashc_version", "")),
+        "sha256": file_sha256(path),
+    }
+    return art
+
+
+def _read_value(store: dict, name: str, obj) -> None:
+    if not isinstance(obj, h5py.Dataset):
+        return
+    data = obj[()]
+    if isinstance(data, bytes):
+        data = data.decode()
+    elif isinstance(data, np.ndarray) and data.dtype == object:
+        data = [d.decode() if isinstance(d, bytes) else d for d in data.tolist()]
+    elif isinstance(data, np.generic):
+        data = data.item()
+    store[name] = data

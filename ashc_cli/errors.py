@@ -1,0 +1,86 @@
+"""The exceptions ashc raises, one class per exit code.
+
+Every error the tool means to report derives from :class:`AshcError`.  The CLI turns one into a single
+line on stderr, ``error: <where>: <what>; expected <what>``, and exits with the class's ``exit_code``.
+Anything else that escapes is a bug and exits with code 1 (traceback only with ``--debug``).
+
+=====  ==========================  ==========================================================
+code   class                       meaning
+=====  ==========================  ==========================================================
+1      (any other exception)       an internal bug: please report it with ``--debug`` output
+2      :class:`SpecError`          the spec (or a command-line argument) is malformed
+3      :class:`DesignError`        a design condition of the paper does not hold for this spec
+4      :class:`NumericalError`     a solver or integrator failed, or a self-check did not pass
+5      :class:`ArtefactError`      an artefact is missing, stale, foreign or unreadable
+=====  ==========================  ==========================================================
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AshcError",
+    "SpecError",
+    "DesignError",
+    "NumericalError",
+    "ArtefactError",
+    "EXIT_CODES",
+]
+
+
+class AshcError(Exception):
+    """Base class of every error ashc reports to the user.
+
+    Parameters
+    ----------
+    where : str
+        The place the problem is, e.g. a spec field (``concrete.f_bar[2]``) or a stage name.
+    what : str
+        What is wrong, naming the offending value where there is one.
+    expected : str, optional
+        What would have been right.
+    """
+
+    exit_code = 1
+
+    def __init__(self, where: str, what: str, expected: str | None = None):
+        self.where = where
+        self.what = what
+        self.expected = expected
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        """The one-line message the CLI prints (without the ``error:`` prefix)."""
+        text = f"{self.where}: {self.what}" if self.where else self.what
+        if self.expected:
+            text += f"; expected {self.expected}"
+        return " ".join(text.split())  # one line, whatever the parts held
+
+
+class SpecError(AshcError):
+    """The spec file or a command-line value is malformed (exit code 2)."""
+
+    exit_code = 2
+
+
+class DesignError(AshcError):
+    """A condition of the paper's design procedure does not hold (exit code 3).
+
+    Examples: the LMI is infeasible, p is not injective on V, kappa(V) does not cover Y, delta loses rank.
+    """
+
+    exit_code = 3
+
+
+class NumericalError(AshcError):
+    """A solver or integrator failed, or a stage's own residual check did not pass (exit code 4)."""
+
+    exit_code = 4
+
+
+class ArtefactError(AshcError):
+    """An artefact is missing, stale, made from another spec or schema, or unreadable (exit code 5)."""
+
+    exit_code = 5
+
+
+EXIT_CODES = {cls.__name__: cls.exit_code for cls in (SpecError, DesignError, NumericalError, ArtefactError)}

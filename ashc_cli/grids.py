@@ -1,0 +1,60 @@
+"""Grids over the abstract domain V and samples of the concrete state region X_y = {x : h(x) in Y}.
+
+Every stage that checks a result numerically uses these, so checks are made on the same points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["domain_grid", "sample_output_region"]
+
+
+def domain_grid(V: np.ndarray, points: int) -> np.ndarray:
+    """A tensor grid over the box V with about ``points`` points in all.
+
+    Parameters
+    ----------
+    V : ndarray, shape (n_hat, 2)
+        The box [lo, hi] per abstract state.
+    points : int
+        Total number of points wanted (per axis: points ** (1 / n_hat), at least 3).
+
+    Returns
+    -------
+    ndarray, shape (n_hat, N)
+        One column per grid point, endpoints included.
+    """
+    V = np.asarray(V, dtype=float)
+    per_axis = max(3, int(round(points ** (1.0 / len(V)))))
+    axes = [np.linspace(lo, hi, per_axis) for lo, hi in V]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([m.ravel() for m in mesh], axis=0)
+
+
+def sample_output_region(C: np.ndarray, Y: np.ndarray, box: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Random points x with C x in Y, the other directions uniform in ``box`` (linear h only).
+
+    Parameters
+    ----------
+    C : ndarray, shape (p, n)
+        The output matrix of h(x) = C x.
+    Y : ndarray, shape (p, 2)
+        The output box.
+    box : ndarray, shape (n, 2)
+        Where the unconstrained directions are drawn from.
+    count : int
+        How many points.
+    seed : int
+        Random seed (results are reproducible).
+
+    Returns
+    -------
+    ndarray, shape (n, count)
+    """
+    rng = np.random.default_rng(seed)
+    n = C.shape[1]
+    x = rng.uniform(box[:, 0:1], box[:, 1:2], size=(n, count))
+    y = rng.uniform(Y[:, 0:1], Y[:, 1:2], size=(len(Y), count))
+    # Move x along C's row space so that C x = y exactly: x <- x + C^+ (y - C x).
+    return x + np.linalg.pinv(C) @ (y - C @ x)

@@ -1,0 +1,238 @@
+"""The concrete and abstract systems of a spec, symbolic (sympy) and numeric (lambdified).
+
+:func:`build_model` parses every expression of a :class:`~ashc_cli.spec.Spec` through the whitelist
+parser and returns a :class:`Model`: the concrete system x' = f_bar(x) + g(x) u, y = h(x) (eq.
+concreteAffine) and the abstract system's design choices xi' = phi_bar(xi) + delta(xi) v with l(xi)
+(eq. abstractAffine).  Parameters stay symbols in the formulas (so results read like the paper's);
+:func:`lambdify` substitutes their values and compiles an expression matrix for numpy, with common
+subexpressions eliminated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import sympy as sp
+
+from .errors import SpecError
+from .expr import NUMERIC_MODULES, parse_expression
+from .spec import Spec
+
+__all__ = ["Model", "build_model", "lambdify", "parameter_symbol", "state_symbol", "TIME"]
+
+#: The time symbol of spec signals.
+TIME = sp.Symbol("t", real=True)
+
+
+def parameter_symbol(name: str, value: float) -> sp.Symbol:
+    """The symbol of a parameter, carrying the sign of its value so sympy can simplify sqrt and abs."""
+    if value > 0:
+        return sp.Symbol(name, positive=True)
+    if value < 0:
+        return sp.Symbol(name, negative=True)
+    return sp.Symbol(name, real=True)
+
+
+def state_symbol(name: str) -> sp.Symbol:
+    """The symbol of a state or input (real)."""
+    return sp.Symbol(name, real=True)
+
+
+def lambdify(
+    exprs: sp.MatrixBase | Sequence[sp.Expr],
+    args: Sequence[sp.Symbol],
+    values: Mapping[sp.Symbol, float] | None = None,
+) -> Callable[..., np.ndarray]:
+    """Compile an expression matrix for numpy, broadcasting over its arguments.
+
+    Parameters
+    ----------
+    exprs : sympy Matrix or sequence of expressions
+        What to evaluate; a sequence is treated as a column.
+    args : sequence of Symbol
+        The arguments of the compiled function, in order.
+    values : mapping of Symbol to float, optional
+        Values substituted first (the spec's parameters).
+
+    Returns
+    -------
+    callable
+        ``f(*arrays)`` returning an array of shape ``exprs.shape + broadcast(arrays).shape``.
+        Entries that are not real (e.g. sqrt of a negative number) come out as NaN.
+    """
+    matrix = sp.Matrix(exprs) if not isinstance(exprs, sp.MatrixBase) else exprs
+    shape = matrix.shape
+    subs = {k: sp.Float(v) for k, v in (values or {}).items()}
+    flat = [sp.sympify(e).xreplace(subs) for e in matrix]
+    compiled = sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=True)
+
+    def evaluate(*arrays):
+        arrs = [np.asarray(a, dtype=float) for a in arrays]
+        bshape = np.broadcast_shapes(*(a.shape for a in arrs)) if arrs else ()
+        with np.errstate(all="ignore"):
+            out = compiled(*arrs)
+            cols = [np.broadcast_to(np.real_if_close(np.asarray(o)), bshape) for o in out]
+        stacked = np.stack([np.where(np.iscomplex(c), np.nan, np.real(c)).astype(float) for c in cols], axis=0)
+        return stacked.reshape(shape + bshape)
+
+    return evaluate
+
+
+@dataclass(frozen=True)
+class Model:
+    """A spec turned into symbols and expressions.
+
+    Attributes
+    ----------
+    spec : Spec
+        The spec it was built from.
+    params : dict of str to Symbol
+        The parameter symbols; ``values`` maps them to their numbers.
+    x, u, xi, v : sympy Matrix
+        Column vectors of the concrete state and input and the abstract state and input.
+    f_bar, g, h : sympy Matrix
+        The concrete drift (n x 1), input matrix (n x m) and output map (p x 1).
+    phi_bar, l : sympy Matrix
+        The abstract drift (n_hat x 1) and the concrete input on the manifold l(xi) (m x 1).
+    delta : sympy Matrix or None
+        The abstract input matrix (n_hat x m_hat); None for ``flatten`` (designed by a stage).
+    U, Y : ndarray
+        Input box (m x 2) and output region (p x 2).
+    V : ndarray or None
+        The domain box of xi (n_hat x 2); None for ``auto``.
+    """
+
+    spec: Spec
+    params: dict[str, sp.Symbol]
+    values: dict[sp.Symbol, float]
+    x: sp.Matrix
+    u: sp.Matrix
+    xi: sp.Matrix
+    v: sp.Matrix
+    f_bar: sp.Matrix
+    g: sp.Matrix
+    h: sp.Matrix
+    phi_bar: sp.Matrix
+    l: sp.Matrix
+    delta: sp.Matrix | None
+    U: np.ndarray
+    Y: np.ndarray
+    V: np.ndarray | None
+    names: dict[str, sp.Symbol] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def m(self) -> int:
+        return self.u.shape[0]
+
+    @property
+    def p(self) -> int:
+        return self.h.shape[0]
+
+    @property
+    def n_hat(self) -> int:
+        return self.xi.shape[0]
+
+    @property
+    def m_hat(self) -> int:
+        return self.v.shape[0]
+
+    @cached_property
+    def f(self) -> sp.Matrix:
+        """f(x, u) = f_bar(x) + g(x) u (eq. concreteAffine)."""
+        return self.f_bar + self.g * self.u
+
+    @cached_property
+    def C(self) -> np.ndarray | None:
+        """The matrix C of a linear output map h(x) = C x, or None if h is not linear in x."""
+        jac = self.h.jacobian(self.x)
+        if any(e.free_symbols & set(self.x) for e in jac) or any(sp.simplify(e) != 0 for e in self.h - jac * self.x):
+            return None
+        return np.array(jac.xreplace({k: sp.Float(v) for k, v in self.values.items()}), dtype=float)
+
+    def numeric(self, exprs, args: Sequence[sp.Symbol]) -> Callable[..., np.ndarray]:
+        """:func:`lambdify` with this model's parameter values."""
+        return lambdify(exprs, args, self.values)
+
+    def substitute(self, expr):
+        """An expression with the parameter values put in (for numbers, never for shown formulas)."""
+        return sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.values.items()})
+
+
+def _matrix(rows, names, field_name, shape) -> sp.Matrix:
+    """Parse a spec list (of expressions, or of rows of expressions) into a matrix of the given shape."""
+    entries = []
+    for i, row in enumerate(rows):
+        if isinstance(row, list):
+            entries.extend(parse_expression(e, names, f"{field_name}[{i}][{j}]") for j, e in enumerate(row))
+        else:
+            entries.append(parse_expression(row, names, f"{field_name}[{i}]"))
+    return sp.Matrix(shape[0], shape[1], entries)
+
+
+def _check_free(expr_matrix: sp.Matrix, allowed: set, field_name: str, what: str) -> None:
+    for k, e in enumerate(expr_matrix):
+        extra = e.free_symbols - allowed
+        if extra:
+            names = ", ".join(sorted(str(s) for s in extra))
+            raise SpecError(f"{field_name}[{k}]", f"uses {names}", f"an expression in {what} and parameters only")
+
+
+def build_model(spec: Spec) -> Model:
+    """Parse a spec's expressions into a :class:`Model`.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    Model
+
+    Raises
+    ------
+    SpecError
+        If an expression does not parse or uses a name it may not (e.g. an abstract state in f_bar).
+    """
+    c, a = spec.concrete, spec.abstract
+    params = {k: parameter_symbol(k, v) for k, v in spec.parameters.items()}
+    values = {params[k]: float(v) for k, v in spec.parameters.items()}
+    x = sp.Matrix([state_symbol(s) for s in c.states])
+    u = sp.Matrix([state_symbol(s) for s in c.inputs])
+    xi = sp.Matrix([state_symbol(s) for s in a.states])
+    v = sp.Matrix([state_symbol(s) for s in a.inputs])
+    names: dict[str, sp.Symbol] = {**params}
+    names.update({str(s): s for s in (*x, *u, *xi, *v)})
+    n, m, nh, mh = len(x), len(u), len(xi), len(v)
+
+    pset = set(params.values())
+    f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1))
+    g = _matrix(c.g, names, "concrete.g", (n, m))
+    h = _matrix(c.h, names, "concrete.h", (len(c.h), 1))
+    for mat, fname in ((f_bar, "concrete.f_bar"), (g, "concrete.g"), (h, "concrete.h")):
+        _check_free(mat, pset | set(x), fname, "the concrete states")
+    phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1))
+    l = _matrix(a.l, names, "abstract.l", (m, 1))
+    for mat, fname in ((phi_bar, "abstract.phi_bar"), (l, "abstract.l")):
+        _check_free(mat, pset | set(xi), fname, "the abstract states")
+    if a.delta == "identity":
+        delta = sp.eye(nh)
+    elif a.delta == "flatten":
+        delta = None
+    else:
+        delta = (_matrix(a.delta, names, "abstract.delta", (nh, mh)) if isinstance(a.delta, list)
+                 else sp.Matrix([[parse_expression(a.delta, names, "abstract.delta")]]))
+        _check_free(delta, pset | set(xi), "abstract.delta", "the abstract states")
+    V = None if a.domain == "auto" else np.array(a.domain, dtype=float)
+    return Model(
+        spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
+        phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
+        Y=np.array(c.output_set, dtype=float), V=V, names=names,
+    )

@@ -1,0 +1,435 @@
+"""The YAML spec contract (``shared/spec-format.md``) as pydantic models, and the loader.
+
+:func:`load_spec` reads a file with a safe YAML loader (no aliases, no duplicate keys), validates it
+against :class:`Spec` (unknown keys are errors, with the closest valid key suggested), checks the
+shapes that relate fields to each other, and returns the model with its SHA-256.  Every problem becomes
+one :class:`~ashc_cli.errors.SpecError` naming the field.  Expressions stay text here; :mod:`ashc_cli.model`
+parses them.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+import keyword
+import re
+import types
+import typing
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError
+
+from .errors import SpecError
+from .expr import RESERVED_NAMES
+
+__all__ = ["Spec", "load_spec", "parse_spec_text", "spec_sha256", "MAX_SPEC_BYTES"]
+
+#: Largest spec file accepted, in bytes.
+MAX_SPEC_BYTES = 1_000_000
+
+_IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def _expression_text(value: Any) -> Any:
+    """Accept a number where an expression is expected (YAML reads ``0`` as an int)."""
+    if isinstance(value, bool):
+        return value  # left for the str check to refuse
+    if isinstance(value, (int, float)):
+        return repr(value)
+    return value
+
+
+def _identifier(value: Any) -> Any:
+    if isinstance(value, str):
+        if not _IDENT.match(value):
+            raise ValueError(f"'{value}' is not a name (letters, digits and _, starting with a letter)")
+        if keyword.iskeyword(value) or value in RESERVED_NAMES:
+            raise ValueError(f"'{value}' is reserved (a keyword, a function name, pi or t)")
+    return value
+
+
+Expr = Annotated[str, BeforeValidator(_expression_text)]
+Name = Annotated[str, BeforeValidator(_identifier)]
+Bounds = Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Concrete(_Strict):
+    """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. ConcreteSystem, concreteAffine)."""
+
+    states: list[Name] = Field(min_length=1)
+    inputs: list[Name] = Field(min_length=1)
+    f_bar: list[Expr]
+    g: list[list[Expr]]
+    h: list[Expr] = Field(min_length=1)
+    input_bounds: list[Bounds]
+    output_set: list[Bounds]
+
+
+class Stabilisability(_Strict):
+    """How the incremental Lyapunov function V(x, z) = (x - z)^T M (x - z) is obtained (eq. egLMI)."""
+
+    method: Literal["polytopic_lmi", "given"]
+    decay_rate: Union[Annotated[float, Field(gt=0, allow_inf_nan=False)], Literal["maximise"]]
+    feedback: Literal["identity"] = "identity"
+    M: list[list[FiniteFloat]] | None = None
+
+
+DeltaSpec = Union[Literal["identity", "flatten"], list[list[Expr]], Expr]
+
+
+class Abstract(_Strict):
+    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. abstractAffine)."""
+
+    states: list[Name] = Field(min_length=1)
+    inputs: list[Name] = Field(min_length=1)
+    phi_bar: list[Expr]
+    l: list[Expr]
+    domain: Union[Literal["auto"], list[Bounds]]
+    delta: DeltaSpec = "identity"
+
+
+class Interface(_Strict):
+    """The interface u_w = l(xi) + q(xi, x) v (eqs. Interface, egInterface, egInterfaceSat)."""
+
+    q: Literal["zero", "least_squares"] = "least_squares"
+    saturate: bool = True
+
+
+class SetpointController(_Strict):
+    """v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max), elementwise."""
+
+    kind: Literal["setpoint"]
+    gain: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    v_max: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class Tracking(_Strict):
+    """The tracking scenario of Figs. Example_BoundedIn/Out."""
+
+    t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    xi0: list[FiniteFloat]
+    x0: Union[Literal["on_manifold"], list[FiniteFloat]] = "on_manifold"
+    reference_levels: list[Union[FiniteFloat, list[FiniteFloat]]] = Field(min_length=1)
+    dwell: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    abstract_controller: SetpointController
+
+
+class MRelation(_Strict):
+    """The m-relation scenario of Figs. Example_mRelationIn/Out: v = b(x) + c(x) u, xi0 = m(x0)."""
+
+    t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    x0: list[FiniteFloat]
+    u: Union[Expr, list[Expr]]
+
+
+class Simulate(_Strict):
+    """The simulation scenarios; either may be left out."""
+
+    tracking: Tracking | None = None
+    m_relation: MRelation | None = None
+
+
+class Spec(_Strict):
+    """A whole ashc spec (``shared/spec-format.md``)."""
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=100)]
+    description: str = ""
+    parameters: dict[Name, FiniteFloat] = Field(default_factory=dict)
+    concrete: Concrete
+    stabilisability: Stabilisability
+    abstract: Abstract
+    interface: Interface = Field(default_factory=Interface)
+    simulate: Simulate = Field(default_factory=Simulate)
+
+    @property
+    def sha256(self) -> str:
+        """SHA-256 of the spec's canonical JSON: comments and layout do not change it."""
+        return spec_sha256(self)
+
+
+def spec_sha256(spec: Spec) -> str:
+    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values)."""
+    text = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# --- YAML ----------------------------------------------------------------------------------------------
+
+
+class _SafeStrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses aliases (no billion-laughs) and duplicate keys (a typo must not hide)."""
+
+    def compose_node(self, parent, index):  # noqa: D401 - PyYAML hook
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.MarkedYAMLError("while composing", None, "aliases (*name) are not allowed in a spec", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"duplicate key '{key}'", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _yaml_load(text: str, source: str) -> Any:
+    try:
+        return yaml.load(text, Loader=_SafeStrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
+        raise SpecError(where, f"malformed YAML ({exc.problem})", "a YAML mapping written to spec-format.md") from None
+    except (yaml.YAMLError, RecursionError) as exc:
+        raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to spec-format.md") from None
+
+
+# --- validation errors to one line -----------------------------------------------------------------------
+
+
+_FIELD = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_TAGS = {"float", "int", "str", "bool", "list", "dict"}  # pydantic's names for Union branches
+
+
+def _path(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "spec"
+
+
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    """The pydantic model that holds the keys at ``loc`` (for suggesting a key), if one does."""
+    model: Any = Spec
+    for part in loc:
+        if isinstance(part, int) or model is None:
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return None
+        model = _first_model(field.annotation)
+    return model
+
+
+def _first_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    origin = typing.get_origin(annotation)
+    if origin in (Union, types.UnionType) or origin is Annotated:
+        for arg in typing.get_args(annotation):
+            found = _first_model(arg)
+            if found is not None:
+                return found
+    return None
+
+
+def _short(value: Any, limit: int = 50) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _validation_to_spec_error(exc: ValidationError) -> SpecError:
+    errors = exc.errors()
+    # An unknown key explains the "missing" errors it causes, so it goes first; otherwise a Union
+    # reports one error per branch and the most specific (longest location) says most.
+    err = max(errors, key=lambda e: (e["type"] == "extra_forbidden", len(e["loc"])))
+    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+    kind = err["type"]
+    where = _path(loc)
+    if kind == "extra_forbidden":
+        model = _model_at(loc[:-1])
+        valid = sorted(model.model_fields) if model else []
+        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+        hint = f"did you mean '{close[0]}'? valid keys: {', '.join(valid)}" if close else f"one of: {', '.join(valid)}"
+        return SpecError(where, f"unknown key '{loc[-1]}'", hint)
+    if kind == "missing":
+        return SpecError(where, "missing", "this key (see spec-format.md)")
+    value = err.get("input")
+    msg = err["msg"].replace("Value error, ", "")
+    return SpecError(where, f"{msg} (got {_short(value)})", _expected_for(kind, err))
+
+
+def _expected_for(kind: str, err: dict) -> str:
+    ctx = err.get("ctx") or {}
+    if kind == "literal_error":
+        return ctx.get("expected", "one of the listed values")
+    if kind in ("too_short", "too_long"):
+        return "a pair [lo, hi]" if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 else "the right number of items"
+    if kind.startswith("finite") or "nan" in kind:
+        return "a finite number"
+    if kind.startswith("greater_than"):
+        return f"a number > {ctx.get('gt')}"
+    return "a value of the type spec-format.md gives"
+
+
+# --- shapes across fields ---------------------------------------------------------------------------------
+
+
+def _check_pair(where: str, pair: list[float]) -> None:
+    lo, hi = pair
+    if lo > hi:
+        raise SpecError(where, f"lo = {lo} > hi = {hi}", "a pair [lo, hi] with lo <= hi")
+
+
+def _check_len(where: str, items: list, n: int, what: str) -> None:
+    if len(items) != n:
+        raise SpecError(where, f"has {len(items)} entries", f"{n} ({what})")
+
+
+def check_shapes(spec: Spec) -> None:
+    """Check the dimensions that tie fields together (n, m, p, n_hat, m_hat) and name clashes.
+
+    Raises
+    ------
+    SpecError
+        Naming the first field whose length or contents do not fit.
+    """
+    c, a = spec.concrete, spec.abstract
+    n, m, p = len(c.states), len(c.inputs), len(c.h)
+    nh, mh = len(a.states), len(a.inputs)
+    _check_len("concrete.f_bar", c.f_bar, n, "one per state")
+    _check_len("concrete.g", c.g, n, "one row per state")
+    for i, row in enumerate(c.g):
+        _check_len(f"concrete.g[{i}]", row, m, "one column per input")
+    _check_len("concrete.input_bounds", c.input_bounds, m, "one pair per input")
+    _check_len("concrete.output_set", c.output_set, p, "one pair per output of h")
+    for key, pairs in (("concrete.input_bounds", c.input_bounds), ("concrete.output_set", c.output_set)):
+        for i, pair in enumerate(pairs):
+            _check_pair(f"{key}[{i}]", pair)
+    _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
+    _check_len("abstract.l", a.l, m, "one per concrete input")
+    if a.domain != "auto":
+        _check_len("abstract.domain", a.domain, nh, "one pair per abstract state")
+        for i, pair in enumerate(a.domain):
+            _check_pair(f"abstract.domain[{i}]", pair)
+    if isinstance(a.delta, list):
+        _check_len("abstract.delta", a.delta, nh, "one row per abstract state")
+        for i, row in enumerate(a.delta):
+            _check_len(f"abstract.delta[{i}]", row, mh, "one column per abstract input")
+    elif a.delta == "identity" and nh != mh:
+        raise SpecError("abstract.delta", f"'identity' needs as many abstract inputs as states, got {mh} and {nh}", "an n_hat x m_hat matrix of expressions")
+    elif a.delta not in ("identity", "flatten") and (nh, mh) != (1, 1):
+        raise SpecError("abstract.delta", "a single expression needs one abstract state and one input", f"a {nh} x {mh} matrix of expressions")
+    st = spec.stabilisability
+    if st.method == "given":
+        if st.M is None:
+            raise SpecError("stabilisability.M", "missing for method 'given'", f"an {n} x {n} symmetric matrix")
+        _check_len("stabilisability.M", st.M, n, "one row per state")
+        for i, row in enumerate(st.M):
+            _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")
+    elif st.M is not None:
+        raise SpecError("stabilisability.M", "given with method 'polytopic_lmi'", "method: given, or no M")
+    _check_names(spec)
+    _check_simulate(spec, n, m, p, nh)
+
+
+def _check_names(spec: Spec) -> None:
+    seen: dict[str, str] = {}
+    groups = [
+        ("parameters", list(spec.parameters)),
+        ("concrete.states", spec.concrete.states),
+        ("concrete.inputs", spec.concrete.inputs),
+        ("abstract.states", spec.abstract.states),
+        ("abstract.inputs", spec.abstract.inputs),
+    ]
+    for where, names in groups:
+        for name in names:
+            if name in seen:
+                raise SpecError(where, f"name '{name}' is already used in {seen[name]}", "names unique across parameters, states and inputs")
+            seen[name] = where
+
+
+def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:
+    tr = spec.simulate.tracking
+    if tr is not None:
+        _check_len("simulate.tracking.xi0", tr.xi0, nh, "one per abstract state")
+        if tr.x0 != "on_manifold":
+            _check_len("simulate.tracking.x0", tr.x0, n, "one per concrete state")
+        for i, level in enumerate(tr.reference_levels):
+            size = len(level) if isinstance(level, list) else 1
+            if size != p:
+                raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has {size} values", f"{p} (one per output)")
+    mr = spec.simulate.m_relation
+    if mr is not None:
+        _check_len("simulate.m_relation.x0", mr.x0, n, "one per concrete state")
+        us = mr.u if isinstance(mr.u, list) else [mr.u]
+        _check_len("simulate.m_relation.u", us, m, "one expression in t per concrete input")
+
+
+# --- entry points ---------------------------------------------------------------------------------------
+
+
+def parse_spec_text(text: str, source: str = "spec") -> Spec:
+    """Validate spec text (YAML) into a :class:`Spec`.
+
+    Parameters
+    ----------
+    text : str
+        The YAML text.
+    source : str
+        Where it came from (a path), for error messages.
+
+    Returns
+    -------
+    Spec
+
+    Raises
+    ------
+    SpecError
+        On malformed YAML, a missing or unknown key, a wrong type, length or value.
+    """
+    data = _yaml_load(text, source)
+    if not isinstance(data, dict):
+        raise SpecError(source, f"top level is {type(data).__name__}", "a YAML mapping with keys name, concrete, stabilisability, abstract, ...")
+    try:
+        spec = Spec.model_validate(data)
+    except ValidationError as exc:
+        raise _validation_to_spec_error(exc) from None
+    check_shapes(spec)
+    return spec
+
+
+def load_spec(path: str | Path) -> Spec:
+    """Read and validate a spec file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    Spec
+        The validated spec.
+
+    Raises
+    ------
+    SpecError
+        If the file cannot be read or is not a valid spec.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_SPEC_BYTES:
+            raise SpecError(str(path), f"file is {size} bytes", f"a spec under {MAX_SPEC_BYTES} bytes")
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError(str(path), "no such file", "the path of a YAML spec") from None
+    except IsADirectoryError:
+        raise SpecError(str(path), "is a directory", "the path of a YAML spec") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(str(path), f"cannot be read ({type(exc).__name__})", "a readable UTF-8 YAML file") from None
+    return parse_spec_text(text, str(path))
+

@@ -1,0 +1,123 @@
+"""Stage 5: the abstract input matrix delta and the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).
+
+delta comes from the spec (``identity`` or expressions in xi; eq. egDelta for the converter).  Theorem
+mRelateDelta needs delta of full row rank on V; the stage measures its smallest singular value there.  Then
+
+    b(x) = delta^+(m(x)) (dm/dx f_bar(x) - phi_bar(m(x))),    c(x) = delta^+(m(x)) dm/dx g(x)
+
+solve eqs. mRelatSuffiDiff and mRelatSuffiIn, which the stage re-checks numerically on samples of X_y.
+For the converter b is eq. egMrelateLink (with chi read as a square root, ERRATA item 3) and c = 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import DesignError, NumericalError
+from ..grids import sample_output_region
+from ..model import Model
+
+NAME = "delta"
+UPSTREAM = ("manifold", "inverse")
+
+#: delta counts as full row rank where its smallest singular value exceeds this times max(1, largest).
+RANK_RTOL = 1e-10
+#: The residual of eqs. mRelatSuffiDiff / mRelatSuffiIn must be below this, relative to dm/dx f_bar.
+LINK_RTOL = 1e-9
+SAMPLES = 2000
+
+
+def right_inverse(delta: sp.Matrix) -> sp.Matrix:
+    """delta^+ for a full-row-rank delta: the inverse if square, else delta^T (delta delta^T)^-1."""
+    if delta.shape == (1, 1):
+        return sp.Matrix([[1 / delta[0, 0]]])
+    if delta.is_square:
+        return delta.inv()
+    return delta.T * (delta * delta.T).inv()
+
+
+def singular_values(delta_grid: np.ndarray) -> np.ndarray:
+    """Singular values of delta at each grid point; delta_grid has shape (n_hat, m_hat, N)."""
+    return np.linalg.svd(np.moveaxis(delta_grid, -1, 0), compute_uv=False)
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Check the rank of delta on V and build b, c of Theorem mRelateDelta.
+
+    Returns
+    -------
+    Artefact
+        Expressions delta, b, c; values min_singular_value, link residuals.
+
+    Raises
+    ------
+    DesignError
+        If delta is ``flatten`` (not in this version) or loses row rank on V.
+    NumericalError
+        If b, c do not solve eqs. mRelatSuffiDiff / mRelatSuffiIn to tolerance.
+    """
+    if model.delta is None:
+        raise DesignError("abstract.delta", "'flatten' is not supported by this version", "identity or an n_hat x m_hat matrix of expressions in xi")
+    delta = model.delta
+    man, inv = upstream["manifold"], upstream["inverse"]
+    grid = np.asarray(man.value("xi_grid"))
+    delta_grid = model.numeric(delta, list(model.xi))(*grid)
+    if model.m_hat < model.n_hat:
+        raise DesignError("abstract.inputs", f"delta is {model.n_hat} x {model.m_hat}, which cannot have full row rank", "at least as many abstract inputs as abstract states (Theorem mRelateDelta)")
+    sv = singular_values(delta_grid)
+    smin_each, smax = sv.min(axis=1), float(np.nanmax(sv))
+    k = int(np.nanargmin(smin_each))
+    smin = float(smin_each[k])
+    if not np.isfinite(smin) or smin <= RANK_RTOL * max(1.0, smax):
+        raise DesignError("abstract.delta", f"delta loses row rank on V: smallest singular value {smin:.3g} at xi = {np.round(grid[:, k], 6).tolist()}",
+                          "delta(xi) of full row rank for every xi in V (Theorem mRelateDelta)")
+
+    m = inv.expr("m")
+    dm = inv.expr("dm_dx")
+    xi_to_m = dict(zip(model.xi, m))
+    delta_at_m = delta.xreplace(xi_to_m)
+    pinv = right_inverse(delta_at_m)
+    b = sp.simplify(pinv * (dm * model.f_bar - model.phi_bar.xreplace(xi_to_m)))
+    c = sp.simplify(pinv * dm * model.g)
+
+    # Re-check eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y.
+    p_grid = np.asarray(man.value("p_grid"))
+    box = np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
+    samples = sample_output_region(model.C, model.Y, box, SAMPLES, seed=1)
+    xs = list(model.x)
+    dm_f = model.numeric(dm * model.f_bar, xs)(*samples)[:, 0, :]
+    dm_g = model.numeric(dm * model.g, xs)(*samples)
+    phi_m = model.numeric(model.phi_bar.xreplace(xi_to_m), xs)(*samples)[:, 0, :]
+    d_m = model.numeric(delta_at_m, xs)(*samples)
+    b_s = model.numeric(b, xs)(*samples)[:, 0, :]
+    c_s = model.numeric(c, xs)(*samples)
+    res_diff = np.abs(dm_f - phi_m - np.einsum("ijk,jk->ik", d_m, b_s)).max(axis=0)
+    res_in = np.abs(dm_g - np.einsum("ijk,jlk->ilk", d_m, c_s)).reshape(-1, samples.shape[1]).max(axis=0)
+    scale = float(max(1.0, np.abs(dm_f).max(), np.abs(dm_g).max()))
+    link_residual = float(max(res_diff.max(), res_in.max()) / scale)
+    if not np.isfinite(link_residual) or link_residual > LINK_RTOL:
+        raise NumericalError(NAME, f"b, c solve eqs. mRelatSuffiDiff/mRelatSuffiIn only to {link_residual:.3g} (relative)", f"below {LINK_RTOL:g}")
+
+    art = Artefact(stage=NAME, meta={"delta_source": model.spec.abstract.delta if isinstance(model.spec.abstract.delta, str) else "matrix",
+                                      "samples": SAMPLES, "sample_seed": 1, "rank_rtol": RANK_RTOL, "link_rtol": LINK_RTOL})
+    art.exprs.update({"delta": delta, "b": b, "c": c})
+    art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": grid[:, k],
+                       "link_residual": link_residual, "c_is_zero": bool(all(e == 0 for e in c))})
+    art.checks["rank_delta"] = Check(smin, True, f"smallest singular value of delta on V (> {RANK_RTOL:g} max(1, largest): full row rank)")
+    art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y, relative")
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    return {
+        "delta": [str(e) for e in art.exprs["delta"]], "b": [str(e) for e in art.exprs["b"]], "c": [str(e) for e in art.exprs["c"]],
+        "min_singular_value": float(art.values["min_singular_value"]), "link_residual": float(art.values["link_residual"]),
+    }
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    return f"min singular value of delta on V = {art.values['min_singular_value']:.4g}, link residual = {art.values['link_residual']:.2g}"

@@ -1,0 +1,182 @@
+"""Stage 4: the left inverse m of p, and the conditions that tie it to the output (Section IV-C).
+
+m solves kappa(m(x)) = h(x) (eq. mRelatSuffiOut); of the branches sympy finds, the one with m(p(xi)) = xi
+on V is kept (eq. egm for the Cuk converter).  The stage checks, each with a stored number:
+
+* p is injective on V: a left inverse exists (m(p(xi)) = xi on a grid of V), and kappa is strictly monotone;
+* V covers Y (eq. SimuLocalRequire): kappa(V) contains the output box Y;
+* condition (i) of Theorem mCondi: p(m(x)) = x on Im(p), i.e. p(m(p(xi))) = p(xi);
+* condition (ii) of Theorem mCondi, through Corollary mRelateGeo for linear h: x - p(m(x)) in Ker(h),
+  i.e. h(x) = kappa(m(x)) on random samples of X_y = {x : h(x) in Y} (and symbolically where sympy can);
+* where m is real: the output interval on which every radicand of m is non-negative (eq. mEquation:
+  |x4| <= E / (2 sqrt(R_i G_L)) = 126.91 V for the converter), which must contain Y.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import DesignError
+from ..grids import sample_output_region
+from ..model import Model
+
+NAME = "inverse"
+UPSTREAM = ("manifold", "kappa")
+
+#: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
+LEFT_INVERSE_TOL = 1e-9
+#: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
+CONDITION_II_RTOL = 1e-9
+SAMPLES = 2000
+
+
+def output_symbol() -> sp.Symbol:
+    """The symbol standing for the output value y while solving kappa(mu) = y."""
+    return sp.Symbol("_y", real=True)
+
+
+def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, float, list[str]]:
+    """The interval of y on which every square-root argument of m(y) is non-negative.
+
+    Returns
+    -------
+    lo, hi : float
+        The interval (-inf / inf where unbounded).
+    radicands : list of str
+        The radicands, as formulas in y.
+    """
+    lo, hi, texts = -np.inf, np.inf, []
+    for power in m_of_y.atoms(sp.Pow):
+        if power.exp.is_Rational and power.exp.q % 2 == 0:
+            radicand = power.base
+            texts.append(str(radicand))
+            numeric = model.substitute(radicand)
+            region = sp.solve_univariate_inequality(numeric >= 0, y, relational=False)
+            hull = sp.Interval(region.inf, region.sup)
+            if region != hull:
+                raise DesignError("abstract", f"m is real on a union of intervals {region}", "a left inverse real on one interval of outputs")
+            lo, hi = max(lo, float(region.inf)), min(hi, float(region.sup))
+    return lo, hi, texts
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
+
+    Returns
+    -------
+    Artefact
+        Expression m (n_hat x 1, in x); values V, Y, m_real_interval, kappa_range and the residuals.
+
+    Raises
+    ------
+    DesignError
+        If the shapes are not supported, no branch of m is a left inverse on V (p not injective),
+        kappa(V) does not cover Y, or m is not real on all of Y.
+    """
+    if model.n_hat != 1 or model.p != 1:
+        raise DesignError("abstract.states", f"the closed-form left inverse needs one abstract state and one output (n_hat = {model.n_hat}, p = {model.p})",
+                          "a scalar abstraction of a single-output plant in this version")
+    man, kap = upstream["manifold"], upstream["kappa"]
+    p, kappa = man.expr("p"), kap.expr("kappa")
+    xi = model.xi[0]
+    y = output_symbol()
+    mu = sp.Dummy("mu", real=True)
+    try:
+        branches = sp.solve(sp.Eq(kappa[0].xreplace({xi: mu}), y), mu)
+    except NotImplementedError:
+        branches = []
+    if not branches:
+        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y)", "a kappa that sympy can invert")
+
+    grid = np.asarray(man.value("xi_grid"))
+    p_grid = np.asarray(man.value("p_grid"))
+    h_num = model.numeric(model.h, list(model.x))
+    y_grid = h_num(*p_grid)[0, 0]
+    residuals = []
+    for branch in branches:
+        m_y = model.numeric([branch], [y])
+        residuals.append(float(np.nanmax(np.abs(m_y(y_grid)[0, 0] - grid[0])) if np.all(np.isfinite(m_y(y_grid))) else np.inf))
+    best = int(np.argmin(residuals))
+    left_residual = residuals[best]
+    if left_residual > LEFT_INVERSE_TOL:
+        dk = np.diff(y_grid)
+        turns = grid[0, 1:-1][np.sign(dk[1:]) != np.sign(dk[:-1])]
+        where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
+        raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
+                          "a domain V on which kappa is strictly monotone")
+    m_of_y = sp.simplify(branches[best])
+    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
+
+    # Where m is real, and whether that covers Y.
+    Y = model.Y
+    real_lo, real_hi, radicands = real_interval(m_of_y, y, model)
+    real_covers_Y = bool(real_lo <= Y[0, 0] and Y[0, 1] <= real_hi)
+    m_on_Y = model.numeric([m_of_y], [y])(np.linspace(Y[0, 0], Y[0, 1], 20001))[0, 0]
+    finite_on_Y = bool(np.all(np.isfinite(m_on_Y)))
+    if not (real_covers_Y and finite_on_Y):
+        raise DesignError("concrete.output_set", f"m is real only for outputs in [{real_lo:.6g}, {real_hi:.6g}] and finite on Y: {finite_on_Y}",
+                          f"Y = {Y.tolist()} inside the region where m is real and finite")
+
+    # eq. SimuLocalRequire: kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
+    k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
+    covers = bool(k_lo <= Y[0, 0] and Y[0, 1] <= k_hi)
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) = [{k_lo:.6g}, {k_hi:.6g}] does not cover Y = {Y[0].tolist()} (eq. SimuLocalRequire)",
+                          "a larger domain V, or a smaller output_set")
+    dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
+    monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
+
+    # Condition (i): p(m(x)) = x on Im(p).
+    m_num = model.numeric(m, list(model.x))
+    p_num = model.numeric(p, list(model.xi))
+    p_back = p_num(m_num(*p_grid)[0, 0])[:, 0, :]
+    cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
+
+    # Condition (ii), via Corollary mRelateGeo (h linear): x - p(m(x)) in Ker h, on samples of X_y.
+    C = model.C
+    if C is None:
+        raise DesignError("concrete.h", "condition (ii) is checked through Corollary mRelateGeo, which needs a linear h(x) = C x", "a linear output map in this version")
+    box = np.c_[p_grid.min(axis=1), p_grid.max(axis=1)]
+    box = np.c_[box[:, 0] - np.ptp(box, axis=1) - 1.0, box[:, 1] + np.ptp(box, axis=1) + 1.0]
+    samples = sample_output_region(C, Y, box, SAMPLES)
+    x_proj = p_num(m_num(*samples)[0, 0])[:, 0, :]
+    cond_ii = float(np.abs(C @ (samples - x_proj)).max() / max(1.0, np.ptp(Y)))
+    symbolic_ii = sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0
+    if cond_ii > CONDITION_II_RTOL:
+        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
+
+    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": m.jacobian(model.x)})
+    art.values.update({
+        "V": model.V, "Y": Y, "kappa_range": np.array([[k_lo, k_hi]]), "m_real_interval": np.array([real_lo, real_hi]),
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
+        "condition_i": cond_i, "condition_ii": cond_ii, "condition_ii_symbolic": bool(symbolic_ii),
+        "min_abs_dkappa": float(np.abs(dkappa).min()),
+    })
+    art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["kappa_monotone"] = Check(float(np.abs(dkappa).min()), monotone, "min |dkappa/dxi| on V (kappa strictly monotone, so p is injective)")
+    art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
+    art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
+    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
+    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    v = art.values
+    return {
+        "V": np.asarray(v["V"]).tolist(), "m": [str(e) for e in art.exprs["m"]],
+        "left_inverse_residual": float(v["left_inverse_residual"]), "condition_i": float(v["condition_i"]),
+        "condition_ii": float(v["condition_ii"]), "condition_ii_symbolic": bool(v["condition_ii_symbolic"]),
+        "m_real_interval": np.asarray(v["m_real_interval"]).tolist(), "kappa_range": np.asarray(v["kappa_range"]).tolist(),
+    }
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    lo, hi = np.asarray(art.values["m_real_interval"])
+    return f"m(p(xi)) - xi = {art.values['left_inverse_residual']:.2g}, m real for y in [{lo:.5g}, {hi:.5g}]"

@@ -1,0 +1,59 @@
+"""Stage 3: the abstract output map kappa = h o p (eq. SimuDesignCond2).
+
+kappa(xi) = h(p(xi)) makes the abstract system's output equal the concrete one on the manifold x = p(xi).
+For the Cuk converter this is eq. egKappa.  The stage stores kappa, its values on V (Fig. kappa_xi) and
+checks that it is finite there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import NumericalError
+from ..model import Model
+
+NAME = "kappa"
+UPSTREAM = ("manifold",)
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Compose kappa = h o p and tabulate it on V.
+
+    Returns
+    -------
+    Artefact
+        Expressions kappa (p x 1) and dkappa_dxi (p x n_hat); values xi_grid, kappa_grid, kappa_range.
+
+    Raises
+    ------
+    NumericalError
+        If kappa is not finite somewhere on the grid of V.
+    """
+    man = upstream["manifold"]
+    p = man.expr("p")
+    kappa = sp.Matrix([sp.factor(sp.simplify(e)) for e in model.h.xreplace(dict(zip(model.x, p)))])
+    dkappa = kappa.jacobian(model.xi)
+    grid = np.asarray(man.value("xi_grid"))
+    kappa_grid = model.numeric(kappa, list(model.xi))(*grid)[:, 0, :]
+    finite = bool(np.all(np.isfinite(kappa_grid)))
+    if not finite:
+        bad = grid[:, ~np.all(np.isfinite(kappa_grid), axis=0)][:, 0]
+        raise NumericalError(NAME, f"kappa = h(p(xi)) is not finite at xi = {bad.tolist()}", "kappa finite on V")
+    art = Artefact(stage=NAME, meta={"grid_points": int(grid.shape[1])})
+    art.exprs.update({"kappa": kappa, "dkappa_dxi": dkappa})
+    art.values.update({"xi_grid": grid, "kappa_grid": kappa_grid,
+                       "kappa_range": np.c_[kappa_grid.min(axis=1), kappa_grid.max(axis=1)]})
+    art.checks["kappa_finite"] = Check(float(np.abs(kappa_grid).max()), finite, "largest |kappa| on the grid of V (finite)")
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    return {"kappa": [str(e) for e in art.exprs["kappa"]], "range_on_V": np.asarray(art.values["kappa_range"]).tolist()}
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    return f"kappa(V) = {np.round(np.asarray(art.values['kappa_range']), 4).tolist()}"

@@ -1,0 +1,125 @@
+"""Stage 2: the invariant manifold x = p(xi), solving the invariance PDE (eq. SimuDesignCond1)
+
+    dp/dxi (xi) phi_bar(xi) = f_bar(p(xi)) + g(p(xi)) l(xi)        for all xi in V.
+
+With phi_bar = 0 (Remark solvePDE) the PDE is the algebraic equation f(p(xi), l(xi)) = 0: p(xi) is the
+equilibrium of the concrete system under the constant input l(xi).  It is solved symbolically with the
+parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.  The residual of the PDE is
+evaluated on a grid of V and stored, together with the check that l maps V into U (Theorem SimuDesign).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import DesignError, NumericalError
+from ..grids import domain_grid
+from ..model import Model
+
+NAME = "manifold"
+UPSTREAM: tuple[str, ...] = ()
+
+GRID_POINTS = 2001
+#: Largest PDE residual accepted, relative to the size of f_bar(p) + g(p) l along the manifold.
+RESIDUAL_RTOL = 1e-9
+
+
+def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
+    """Solve f_bar(p) + g(p) l(xi) = 0 for p (eq. SimuDesignCond1 with phi_bar = 0).
+
+    Returns
+    -------
+    p : sympy Matrix (n x 1)
+        The branch that is real and finite on all of V.
+    branches : int
+        How many solutions sympy found.
+
+    Raises
+    ------
+    DesignError
+        If no closed-form solution exists, or none is real and finite on V.
+    """
+    P = sp.Matrix(sp.symbols(f"_p0:{model.n}", real=True))
+    equations = (model.f_bar + model.g * model.l).xreplace(dict(zip(model.x, P)))
+    try:
+        solutions = sp.solve(list(equations), list(P), dict=True)
+    except NotImplementedError:
+        solutions = []
+    grid = domain_grid(model.V, 201)
+    for sol in solutions:
+        if set(sol) != set(P):
+            continue  # a family of solutions: p is not determined
+        p = sp.Matrix([sp.factor(sp.simplify(sol[s])) for s in P])
+        values = model.numeric(p, list(model.xi))(*grid)
+        if np.all(np.isfinite(values)):
+            return p, len(solutions)
+    raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)",
+                      "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Solve eq. SimuDesignCond1 for p and check it.
+
+    Returns
+    -------
+    Artefact
+        Expressions p (n x 1) and dp_dxi (n x n_hat); values xi_grid, p_grid, residual.
+
+    Raises
+    ------
+    DesignError
+        If the spec needs the PDE solver (phi_bar != 0; not in this version), no solution exists, or
+        l(V) is not inside U.
+    NumericalError
+        If the residual of the PDE on V is above tolerance.
+    """
+    if model.V is None:
+        raise DesignError("abstract.domain", "'auto' is not supported by this version", "a box [[lo, hi], ...] per abstract state")
+    if any(sp.simplify(e) != 0 for e in model.phi_bar):
+        raise DesignError("abstract.phi_bar", "phi_bar != 0 needs a solver of the invariance PDE (eq. SimuDesignCond1), which this version does not have",
+                          "phi_bar: ['0', ...] (the algebraic case f(p(xi), l(xi)) = 0)")
+    p, branches = solve_algebraic(model)
+    dp = p.jacobian(model.xi)
+
+    grid = domain_grid(model.V, GRID_POINTS)
+    xi_args = list(model.xi)
+    p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                       # (n, N)
+    dp_grid = model.numeric(dp, xi_args)(*grid)                              # (n, n_hat, N)
+    phi_grid = model.numeric(model.phi_bar, xi_args)(*grid)[:, 0, :]         # (n_hat, N)
+    l_grid = model.numeric(model.l, xi_args)(*grid)[:, 0, :]                 # (m, N)
+    fbar = model.numeric(model.f_bar, list(model.x))(*p_grid)[:, 0, :]
+    g = model.numeric(model.g, list(model.x))(*p_grid)                       # (n, m, N)
+    rhs = fbar + np.einsum("ijk,jk->ik", g, l_grid)
+    lhs = np.einsum("ijk,jk->ik", dp_grid, phi_grid)
+    residual = float(np.abs(lhs - rhs).max())
+    scale = float(max(1.0, np.abs(fbar).max(), np.abs(np.einsum("ijk,jk->ik", g, l_grid)).max()))
+    if not np.isfinite(residual) or residual > RESIDUAL_RTOL * scale:
+        raise NumericalError(NAME, f"residual of eq. SimuDesignCond1 on V is {residual:.3g} (scale {scale:.3g})", f"below {RESIDUAL_RTOL:g} relative")
+
+    U = model.U
+    l_lo, l_hi = l_grid.min(axis=1), l_grid.max(axis=1)
+    l_inside = bool(np.all(l_lo >= U[:, 0] - 1e-12) and np.all(l_hi <= U[:, 1] + 1e-12))
+    if not l_inside:
+        raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}",
+                          "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l")
+
+    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of f(p, l(xi)) = 0)", "branches": branches,
+                                      "grid_points": int(grid.shape[1]), "residual_rtol": RESIDUAL_RTOL})
+    art.exprs.update({"p": p, "dp_dxi": dp})
+    art.values.update({"xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
+                       "l_range": np.c_[l_lo, l_hi]})
+    art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1)")
+    art.checks["l_in_U"] = Check(float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]])), l_inside, "largest excursion of l(V) outside U (<= 0: l maps V into U)")
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    return {"p": [str(e) for e in art.exprs["p"]], "residual": float(art.values["residual"]), "method": art.meta.get("method")}
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    return f"p found ({art.meta.get('branches')} branch(es)), PDE residual = {art.values['residual']:.2g}"

@@ -1,0 +1,241 @@
+"""Stage 1: asymptotic stabilisability by a quadratic incremental Lyapunov function (eq. egLMI).
+
+With f(x, u) = A(u) x + b(u) and A affine in u (eq. ConvertSystemLinear), V(x, z) = (x - z)^T M (x - z)
+(eq. egV) satisfies Theorem StabiliseLyap with k(z, x, u) = u when
+
+    A(u)^T M + M A(u) <= -lambda M,   M > 0                                          (eq. egLMI)
+
+for all u in U; since the left side is affine in u it suffices to impose it at the vertices of the box U.
+The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
+the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import cvxpy as cp
+import numpy as np
+import scipy.linalg as sla
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import DesignError, NumericalError, SpecError
+from ..model import Model
+
+NAME = "stabilise"
+UPSTREAM: tuple[str, ...] = ()
+
+#: Smallest eigenvalue imposed on M (with trace(M) = n) so that M > 0 strictly.
+M_MIN_EIG = 1e-3
+#: A margin t must be below -MARGIN_TOL for lambda to count as feasible.
+MARGIN_TOL = 1e-7
+#: Relative width at which the bisection on lambda stops.
+BISECTION_RTOL = 1e-4
+SWEEP_POINTS = 201
+
+
+def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
+    """Write f(x, u) = A(u) x + b(u) symbolically (eq. ConvertSystemLinear).
+
+    Returns
+    -------
+    A, b : sympy Matrix
+        A(u) (n x n, affine in u) and b(u) (n x 1).
+
+    Raises
+    ------
+    DesignError
+        If f is not affine in x, or A is not affine in u.
+    """
+    A = model.f.jacobian(model.x)
+    xs, us = set(model.x), list(model.u)
+    for (i, j), e in np.ndenumerate(np.array(A, dtype=object)):
+        if e.free_symbols & xs:
+            raise DesignError("concrete", f"f(x, u) is not affine in x: df{i + 1}/d{model.x[j]} = {e} depends on x",
+                              "f(x, u) = A(u) x + b(u) for stabilisability.method polytopic_lmi or given")
+        for a, b in itertools.product(us, us):
+            if sp.simplify(sp.diff(e, a, b)) != 0:
+                raise DesignError("concrete", f"A(u) is not affine in u: entry ({i + 1}, {j + 1}) = {e}",
+                                  "A(u) affine in u so that the LMI at the vertices of U covers all of U")
+    b = sp.simplify(model.f - A * model.x)
+    return sp.simplify(A), b
+
+
+def vertices(U: np.ndarray) -> np.ndarray:
+    """The 2^m vertices of the box U, one per row."""
+    return np.array(list(itertools.product(*[(lo, hi) for lo, hi in U])), dtype=float)
+
+
+def sweep(U: np.ndarray, points: int = SWEEP_POINTS) -> np.ndarray:
+    """Points of U to re-check the LMI on: a grid of about ``points`` points (rows)."""
+    per_axis = max(2, int(round(points ** (1.0 / len(U)))))
+    axes = [np.linspace(lo, hi, per_axis) for lo, hi in U]
+    return np.array(list(itertools.product(*axes)), dtype=float)
+
+
+def lmi_margins(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> np.ndarray:
+    """Largest eigenvalue of A^T M + M A + lambda M for each A (<= 0 where eq. egLMI holds)."""
+    return np.array([np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() for A in A_list])
+
+
+def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, float, str]:
+    """Find M maximising the margin of eq. egLMI at the given vertices for a fixed lambda.
+
+    Parameters
+    ----------
+    A_list : list of ndarray
+        A(u) at the vertices of U.
+    lam : float
+        The decay rate lambda.
+
+    Returns
+    -------
+    M : ndarray or None
+        The solution (None if the solver found none).
+    t : float
+        The optimal margin: A^T M + M A + lambda M <= t I at every vertex (t < 0 when feasible).
+    status : str
+        cvxpy's status string.
+    """
+    n = A_list[0].shape[0]
+    M = cp.Variable((n, n), symmetric=True)
+    t = cp.Variable()
+    eye = np.eye(n)
+    constraints = [M >> M_MIN_EIG * eye, cp.trace(M) == n]
+    constraints += [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
+    problem = cp.Problem(cp.Minimize(t), constraints)
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.SolverError as exc:
+        raise NumericalError(NAME, f"Clarabel failed on the LMI at lambda = {lam:g} ({exc})", "a solvable LMI") from None
+    if M.value is None or t.value is None:
+        return None, np.inf, str(problem.status)
+    Mv = 0.5 * (M.value + M.value.T)
+    return Mv, float(t.value), str(problem.status)
+
+
+def largest_decay_rate(A_list: list[np.ndarray]) -> tuple[float, np.ndarray | None]:
+    """The largest lambda for which eq. egLMI is feasible, by bisection, and its M.
+
+    lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces
+    Re eig(A) <= -lambda / 2), which brackets the search.
+    """
+    upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
+    if upper <= 0:
+        return 0.0, None
+    lo, hi, best = 0.0, upper, None
+    while hi - lo > BISECTION_RTOL * upper:
+        mid = 0.5 * (lo + hi)
+        M, t, _ = solve_lmi(A_list, mid)
+        if M is not None and t < -MARGIN_TOL:
+            lo, best = mid, M
+        else:
+            hi = mid
+    return lo, best
+
+
+def largest_decay_rate_for(A_list: list[np.ndarray], M: np.ndarray) -> float:
+    """The largest lambda a given M certifies: min over vertices of the generalised eigenvalues of
+    -(A^T M + M A) relative to M."""
+    return float(min(sla.eigh(-(A.T @ M + M @ A), M, eigvals_only=True).min() for A in A_list))
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Certify stabilisability: M and lambda of eq. egLMI, with margins re-checked in numpy.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    upstream : dict
+        Unused (the first stage).
+
+    Returns
+    -------
+    Artefact
+        Values M, lambda, vertex and sweep margins, lmi_margin; expressions A(u), b(u).
+
+    Raises
+    ------
+    DesignError
+        If f is not of the class the method needs, M is not positive definite, or the LMI is
+        infeasible at the requested decay rate (the message gives the largest feasible one).
+    NumericalError
+        If the solver claims success but the numpy re-check fails.
+    """
+    st = model.spec.stabilisability
+    A_sym, b_sym = affine_form(model)
+    A_num = model.numeric(A_sym, list(model.u))
+    verts = vertices(model.U)
+    A_vertices = [A_num(*vtx) for vtx in verts]
+    meta: dict = {"method": st.method, "feedback": st.feedback}
+
+    if st.method == "given":
+        M = np.array(st.M, dtype=float)
+        if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
+            raise SpecError("stabilisability.M", "is not symmetric", "a symmetric positive definite matrix")
+        if np.linalg.eigvalsh(M).min() <= 0:
+            raise DesignError("stabilisability.M", f"is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(M).min():.4g})", "M > 0")
+        lam_max = largest_decay_rate_for(A_vertices, M)
+        lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
+        meta.update(solver="none (M given; verified in numpy)")
+    else:
+        meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n, M >= {M_MIN_EIG} I",
+                    objective="minimise t subject to A(u_k)^T M + M A(u_k) + lambda M <= t I at every vertex u_k",
+                    margin_tol=MARGIN_TOL)
+        if st.decay_rate == "maximise":
+            lam, M = largest_decay_rate(A_vertices)
+            if M is None:
+                raise DesignError("stabilisability", "no decay rate lambda > 0 makes eq. egLMI feasible (A(u) is not Hurwitz at some vertex of U)",
+                                  "an incrementally stable plant, or a stabilising feedback (issue: linear_gain)")
+            meta.update(bisection_rtol=BISECTION_RTOL)
+        else:
+            lam = float(st.decay_rate)
+            M, t, status = solve_lmi(A_vertices, lam)
+            meta.update(status=status, optimal_margin=t)
+            if M is None or t >= -MARGIN_TOL:
+                best, _ = largest_decay_rate(A_vertices)
+                hint = f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0 else "a plant with A(u) Hurwitz at every vertex of U"
+                raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g})", hint)
+
+    vertex_margins = lmi_margins(A_vertices, M, lam)
+    sweep_u = sweep(model.U)
+    sweep_margins = lmi_margins([A_num(*uu) for uu in sweep_u], M, lam)
+    margin = float(max(vertex_margins.max(), sweep_margins.max()))
+    eig_M = np.linalg.eigvalsh(M)
+    if st.method == "polytopic_lmi" and margin > 0:
+        raise NumericalError(NAME, f"Clarabel reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
+    if st.method == "given" and margin > 0:
+        raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
+                          f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies")
+
+    art = Artefact(stage=NAME, meta=meta)
+    art.values.update({
+        "M": M, "lambda": lam, "vertices": verts, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
+        "sweep_margins": sweep_margins, "lmi_margin": margin, "M_eigenvalues": eig_M,
+        "A_vertices": np.stack(A_vertices), "relative_margin": margin / eig_M.max(),
+    })
+    art.exprs.update({"A": A_sym, "b": b_sym})
+    art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A(u)^T M + M A(u) + lambda M over the vertices and a sweep of U (<= 0: eq. egLMI holds)")
+    art.checks["M_positive"] = Check(float(eig_M.min()), bool(eig_M.min() > 0), "smallest eigenvalue of M (> 0)")
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    v = art.values
+    return {
+        "lambda": float(v["lambda"]),
+        "M": np.asarray(v["M"]).tolist(),
+        "lmi_margin": float(v["lmi_margin"]),
+        "vertex_margins": np.asarray(v["vertex_margins"]).tolist(),
+        "M_min_eigenvalue": float(np.min(v["M_eigenvalues"])),
+        "method": art.meta.get("method"),
+        "A": [str(e) for e in art.exprs["A"]],
+    }
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    return f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"
