@@ -1,0 +1,320 @@
+"""Stage 7: closed-loop simulation of the two scenarios of Section V-D.
+
+**Tracking** (Figs. Example_BoundedIn/Out).  The abstract system xi' = phi_bar(xi) + delta(xi) v is driven by
+the spec's set-point controller v = clip(delta^+(xi) (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max),
+where xi_ref is the least-norm point of V with kappa(xi_ref) = the current reference level.  The concrete
+system receives the interface u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, egInterfaceSat) with
+q = 0 or the least-squares q of eq. egqLS.  The run records psi = kappa(xi), y = h(x), their error and the
+uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x0 = p(xi0)).
+
+**m-relation** (Figs. Example_mRelationIn/Out).  The concrete system runs open loop under the spec's u(t);
+the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
+mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
+
+Both use scipy's DOP853 with the tolerances recorded in the artefact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.integrate as sint
+import scipy.optimize as sopt
+import sympy as sp
+
+from ..artefacts import Artefact, Check
+from ..errors import DesignError, NumericalError
+from ..expr import parse_expression
+from ..model import TIME, Model, compile_flat
+
+NAME = "simulate"
+UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
+
+TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
+M_RELATION_TOL = {"method": "DOP853", "rtol": 1e-11, "atol": 1e-11}
+SAMPLE_DT = 1e-3
+#: psi must end each dwell within this fraction of the output span of its level.
+SETTLE_RTOL = 1e-4
+#: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
+M_RELATION_TOL_ABS = 1e-6
+
+
+class _Plant:
+    """The numeric terms of a design, compiled into two fused functions (one of xi, one of x).
+
+    ``at_xi(xi)`` gives phi_bar, delta, l, dp/dxi delta and kappa at one abstract state; ``at_x(x)`` gives
+    f_bar, g, h, b and c at one concrete state.  One call each per right-hand side keeps the ODE fast.
+    """
+
+    def __init__(self, model: Model, up: dict[str, Artefact]):
+        self.n, self.m, self.nh, self.mh, self.p = model.n, model.m, model.n_hat, model.m_hat, model.p
+        xi_terms = [model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa")]
+        x_terms = [model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), up["inverse"].expr("m")]
+        self._xi_shapes = [t.shape for t in xi_terms]
+        self._x_shapes = [t.shape for t in x_terms]
+        self._xi_f = compile_flat([e for t in xi_terms for e in t], list(model.xi), model.values)
+        self._x_f = compile_flat([e for t in x_terms for e in t], list(model.x), model.values)
+        self.p_map = model.numeric(up["manifold"].expr("p"), list(model.xi))
+        self.kappa = model.numeric(up["kappa"].expr("kappa"), list(model.xi))
+        self.L = np.asarray(up["bound"].value("L"))
+        self.U = model.U
+
+    @staticmethod
+    def _split(values: list, shapes: list[tuple[int, int]]) -> list[np.ndarray]:
+        flat = np.array(values, dtype=float)
+        out, k = [], 0
+        for r, c in shapes:
+            out.append(flat[k:k + r * c].reshape(r, c))
+            k += r * c
+        return out
+
+    def at_xi(self, xi: np.ndarray) -> list[np.ndarray]:
+        """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1)] at xi."""
+        return self._split(self._xi_f(*xi), self._xi_shapes)
+
+    def at_x(self, x: np.ndarray) -> list[np.ndarray]:
+        """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x."""
+        return self._split(self._x_f(*x), self._x_shapes)
+
+
+def _pinv(a: np.ndarray) -> np.ndarray:
+    """Moore-Penrose pseudo-inverse, with a cheap path for a single column (zero where the column is)."""
+    if a.shape[1] == 1:
+        s = float(a[:, 0] @ a[:, 0])
+        return a.T / s if s > 0 else np.zeros_like(a.T)
+    return np.linalg.pinv(a)
+
+
+def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int) -> np.ndarray:
+    """The least-norm xi in V with kappa(xi) = level (scalar abstraction: roots on a fine grid, refined)."""
+    if model.n_hat != 1:
+        raise DesignError("simulate.tracking", "set-point references need a scalar abstraction in this version", "one abstract state")
+    lo, hi = model.V[0]
+    grid = np.linspace(lo, hi, 20001)
+    err = plant.kappa(grid)[0, 0] - level[0]
+    roots = [grid[k] for k in np.flatnonzero(err == 0)]
+    for k in np.flatnonzero(np.sign(err[:-1]) * np.sign(err[1:]) < 0):
+        roots.append(sopt.brentq(lambda s: plant.kappa(s)[0, 0] - level[0], grid[k], grid[k + 1], xtol=1e-14))
+    if not roots:
+        k_lo, k_hi = float(np.min(err + level[0])), float(np.max(err + level[0]))
+        raise DesignError(f"simulate.tracking.reference_levels[{index}]", f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
+                          "levels inside kappa(V)")
+    return np.array([min(roots, key=abs)])
+
+
+def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
+                 q_kind: str, saturate: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed loop at one point: abstract input, interface output and both state derivatives.
+
+    Returns
+    -------
+    v : ndarray (m_hat,)
+        clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max).
+    u : ndarray (m,)
+        u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, egInterfaceSat; q = 0 or eq. egqLS).
+    dxi, dx : ndarray
+        phi_bar(xi) + delta(xi) v and f_bar(x) + g(x) u.
+    """
+    phi, delta, l, dpd, _ = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v = np.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
+    u = l[:, 0].copy()
+    if q_kind == "least_squares":
+        q = _pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. egqLS
+        u = u + q @ v
+    if saturate:
+        u = np.clip(u, plant.U[:, 0], plant.U[:, 1])
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u
+
+
+def _integrate(rhs, t_span, z0, t_eval, tol, what):
+    sol = sint.solve_ivp(rhs, t_span, z0, t_eval=t_eval, dense_output=False, **tol)
+    if sol.status != 0 or not np.all(np.isfinite(sol.y)):
+        t_bad = sol.t[-1] if sol.t.size else t_span[0]
+        raise NumericalError(f"simulate.{what}", f"integration failed at t = {t_bad:.6g} s ({sol.message})", "a trajectory that stays finite")
+    return sol
+
+
+def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The tracking scenario; returns (values, checks) with keys under ``tracking/``."""
+    tr = model.spec.simulate.tracking
+    ctl = tr.abstract_controller
+    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
+    xi0 = np.array(tr.xi0, dtype=float)
+    if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
+        raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
+    x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
+    levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.reference_levels]
+    refs = [reference_state(model, plant, level, i) for i, level in enumerate(levels)]
+    nh = model.n_hat
+
+    def rhs_for(xi_ref):
+        def rhs(t, z):
+            _, _, dxi, dx = tracking_law(plant, z[:nh], z[nh:], xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
+            return np.r_[dxi, dx]
+        return rhs
+
+    z = np.r_[xi0, x0]
+    ts, zs, ref_idx, settle = [], [], [], []
+    t0 = 0.0
+    k = 0
+    while t0 < tr.t_final - 1e-12:
+        i = min(k, len(levels) - 1)
+        t1 = tr.t_final if k >= len(levels) - 1 else min(tr.t_final, t0 + tr.dwell)
+        t_eval = np.arange(t0, t1, SAMPLE_DT)
+        t_eval = np.r_[t_eval, t1] if t_eval[-1] < t1 - 1e-12 else t_eval
+        sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
+        keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
+        ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
+        z = sol.y[:, -1]
+        psi_end = plant.at_xi(z[:nh])[4][:, 0]
+        settle.append(float(np.abs(psi_end - levels[i]).max()))
+        t0, k = t1, k + 1
+    t = np.concatenate(ts)
+    Z = np.concatenate(zs, axis=1)
+    idx = np.concatenate(ref_idx)
+    xi, x = Z[:nh], Z[nh:]
+    xi_ref = np.stack([refs[i] for i in idx], axis=1)
+    v = np.empty((model.m_hat, t.size))
+    u = np.empty((model.m, t.size))
+    for k in range(t.size):
+        v[:, k], u[:, k], _, _ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
+    psi = plant.kappa(*xi)[:, 0, :]
+    y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
+    e = psi - y
+    err = np.linalg.norm(e, axis=0)
+    v_inf = float(np.abs(v).max())
+    gain = float(up["bound"].value("gain"))
+    bound = gain * v_inf
+    span = float(np.ptp(model.Y, axis=1).max())
+    settle_ok = bool(max(settle) <= SETTLE_RTOL * span)
+    U = model.U
+    u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))
+    xi_ok = bool(np.all(xi >= model.V[:, 0:1] - 1e-9) and np.all(xi <= model.V[:, 1:2] + 1e-9))
+    values = {
+        "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
+        "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
+        "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
+        "tracking/max_abs_error": float(err.max()), "tracking/v_inf": v_inf, "tracking/u_min": float(u.min()),
+        "tracking/u_max": float(u.max()), "tracking/uniform_bound": bound, "tracking/x0": x0,
+        "tracking/W0": float((plant.p_map(*xi0)[:, 0] - x0) @ np.asarray(up["stabilise"].value("M")) @ (plant.p_map(*xi0)[:, 0] - x0)),
+    }
+    checks = {
+        "tracking_error_within_bound": Check(float(err.max() - bound), bool(err.max() <= bound), "max |psi - y| - G ||v||_inf (<= 0: eq. egErrorBound holds)"),
+        "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
+        "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
+        "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem ErrorBound applies)"),
+    }
+    return values, checks
+
+
+def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``."""
+    mr = model.spec.simulate.m_relation
+    names = {**model.params, "t": TIME}
+    texts = mr.u if isinstance(mr.u, list) else [mr.u]
+    u_expr = sp.Matrix([parse_expression(s, names, f"simulate.m_relation.u[{i}]", signal=True) for i, s in enumerate(texts)])
+    u_of_t = compile_flat(list(u_expr), [TIME], model.values)
+    x0 = np.array(mr.x0, dtype=float)
+    xi0 = plant.at_x(x0)[5][:, 0]
+    if not np.all(np.isfinite(xi0)):
+        raise DesignError("simulate.m_relation.x0", f"m(x0) is not real at x0 = {x0.tolist()}", "x0 where m is real (see inverse.m_real_interval)")
+    nh = model.n_hat
+
+    def link(t, z):
+        """u(t), v = b(x) + c(x) u (eq. mRelateLink) and both state derivatives."""
+        xi, x = z[:nh], z[nh:]
+        u = np.array(u_of_t(t), dtype=float)
+        phi, delta, *_ = plant.at_xi(xi)
+        f_bar, g, _, b, c, _ = plant.at_x(x)
+        v = b[:, 0] + c @ u
+        return u, v, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u
+
+    def rhs(t, z):
+        _, _, dxi, dx = link(t, z)
+        return np.r_[dxi, dx]
+
+    t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
+    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation")
+    xi, x = sol.y[:nh], sol.y[nh:]
+    at_x = [plant.at_x(x[:, k]) for k in range(sol.t.size)]
+    y = np.stack([a[2][:, 0] for a in at_x], axis=1)
+    real_lo, real_hi = np.asarray(up["inverse"].value("m_real_interval"))
+    outside = np.flatnonzero((y[0] < real_lo) | (y[0] > real_hi))
+    if outside.size:
+        k = outside[0]
+        raise DesignError("simulate.m_relation", f"at t = {sol.t[k]:.4g} s the output y = {y[0, k]:.6g} leaves [{real_lo:.6g}, {real_hi:.6g}], where m is real",
+                          "a scenario whose output stays where m is real")
+    u = np.stack([np.array(u_of_t(tk), dtype=float) for tk in sol.t], axis=1)
+    v = np.stack([link(tk, sol.y[:, k])[1] for k, tk in enumerate(sol.t)], axis=1)
+    psi = plant.kappa(*xi)[:, 0, :]
+    e = psi - y
+    err = float(np.linalg.norm(e, axis=0).max())
+    invariance = float(np.abs(np.stack([a[5][:, 0] for a in at_x], axis=1) - xi).max())
+    values = {
+        "m_relation/t": sol.t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
+        "m_relation/psi": psi, "m_relation/y": y, "m_relation/e_y": e, "m_relation/xi0": xi0,
+        "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
+        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()),
+    }
+    checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem mRelatOutMatch)")}
+    return values, checks
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Run the spec's tracking and m-relation scenarios.
+
+    Returns
+    -------
+    Artefact
+        Time series and metrics under ``tracking/`` and ``m_relation/``.
+
+    Raises
+    ------
+    SpecError
+        If the spec has no ``simulate`` scenario.
+    DesignError
+        If a reference level is out of reach or the m-relation run leaves the region where m is real.
+    NumericalError
+        If an integration fails or blows up.
+    """
+    sim = model.spec.simulate
+    if sim.tracking is None and sim.m_relation is None:
+        raise DesignError("simulate", "the spec has no scenario", "simulate.tracking and/or simulate.m_relation")
+    plant = _Plant(model, upstream)
+    art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL,
+                                      "sample_dt": SAMPLE_DT, "interface_q": model.spec.interface.q,
+                                      "saturate": model.spec.interface.saturate})
+    for scenario, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)):
+        if getattr(sim, scenario) is not None:
+            values, checks = runner(model, plant, upstream)
+            art.values.update(values)
+            art.checks.update(checks)
+    return art
+
+
+_METRICS = {
+    "tracking": ("max_abs_error", "v_inf", "u_min", "u_max", "uniform_bound", "W0"),
+    "m_relation": ("max_abs_error", "invariance_residual", "u_min", "u_max"),
+}
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    out = {}
+    for scenario, keys in _METRICS.items():
+        if f"{scenario}/t" in art.values:
+            out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
+    if "tracking" in out:
+        out["tracking"]["settle_errors"] = np.asarray(art.values["tracking/settle_errors"]).tolist()
+    return out
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    parts = []
+    if "tracking/t" in art.values:
+        v = art.values
+        parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}")
+    if "m_relation/t" in art.values:
+        parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
+    return ", ".join(parts)
