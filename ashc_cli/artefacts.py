@@ -2,7 +2,7 @@
 
 Layout of ``<out>/<stage>.h5``::
 
-    /                 attrs: schema_version, stage, spec_sha256, spec_name, upstream (JSON {stage: sha256}),
+    /                 attrs: schema_version, stage, spec_sha256, spec_name, parameters (JSON), upstream (JSON {stage: sha256}),
                              packages (JSON), created (UTC ISO 8601), ashc_version, meta (JSON: solver,
                              tolerances, integrator, ...)
     /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
@@ -123,7 +123,8 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, upstream: dict[str, str]) -> str:
+def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, parameters: dict[str, float],
+                   upstream: dict[str, str]) -> str:
     """Write an artefact atomically and return the new file's SHA-256.
 
     Parameters
@@ -134,6 +135,8 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
         What to store.
     spec_sha256, spec_name : str
         The spec it was made from.
+    parameters : dict of str to float
+        The spec's parameter values (so stored formulas can be evaluated without the spec).
     upstream : dict of str to str
         SHA-256 of each upstream artefact file it was made from.
 
@@ -152,6 +155,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
             fh.attrs["stage"] = art.stage
             fh.attrs["spec_sha256"] = spec_sha256
             fh.attrs["spec_name"] = spec_name
+            fh.attrs["parameters"] = json.dumps(parameters, sort_keys=True)
             fh.attrs["upstream"] = json.dumps(upstream, sort_keys=True)
             fh.attrs["packages"] = json.dumps(package_versions(), sort_keys=True)
             fh.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -178,7 +182,8 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    art.provenance = {"spec_sha256": spec_sha256, "upstream": upstream, "sha256": sha, "schema_version": SCHEMA_VERSION}
+    art.provenance = {"spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters, "upstream": upstream,
+                      "sha256": sha, "schema_version": SCHEMA_VERSION}
     return sha
 
 
@@ -240,6 +245,7 @@ def read_artefact(path: str | Path) -> Artefact:
         "schema_version": int(attrs.get("schema_version", -1)),
         "spec_sha256": str(attrs.get("spec_sha256", "")),
         "spec_name": str(attrs.get("spec_name", "")),
+        "parameters": json.loads(attrs.get("parameters", "{}")),
         "upstream": json.loads(attrs.get("upstream", "{}")),
         "packages": json.loads(attrs.get("packages", "{}")),
         "created": str(attrs.get("created", "")),

@@ -12,6 +12,7 @@ For the converter b is eq. egMrelateLink (with chi read as a square root, ERRATA
 from __future__ import annotations
 
 import numpy as np
+import scipy.optimize as sopt
 import sympy as sp
 
 from ..artefacts import Artefact, Check
@@ -43,6 +44,35 @@ def singular_values(delta_grid: np.ndarray) -> np.ndarray:
     return np.linalg.svd(np.moveaxis(delta_grid, -1, 0), compute_uv=False)
 
 
+def smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, delta_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The smallest singular value of delta over V, where it is reached, and the largest.
+
+    A grid alone can step over an isolated zero (delta = xi - 0.5 on a grid missing 0.5), so for a square
+    delta a sign change of det(delta) between neighbouring grid points counts as a zero, and for a scalar
+    abstraction the grid minimum is refined by a bounded search in its neighbouring cells.
+    """
+    sv = singular_values(delta_grid)
+    smin_each, smax = sv.min(axis=1), float(np.nanmax(sv))
+    k = int(np.nanargmin(smin_each))
+    smin, at = float(smin_each[k]), grid[:, k]
+    if model.n_hat == 1:
+        xs = grid[0]
+        f = model.numeric(delta, list(model.xi))
+        if delta.is_square:
+            det = np.linalg.det(np.moveaxis(delta_grid, -1, 0))
+            flips = np.flatnonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)
+            if flips.size:
+                j = flips[0]
+                root = sopt.brentq(lambda s: np.linalg.det(f(s)), xs[j], xs[j + 1], xtol=1e-14)
+                return 0.0, smax, np.array([root])
+        lo, hi = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
+        if hi > lo:
+            res = sopt.minimize_scalar(lambda s: singular_values(f(np.array([s]))).min(), bounds=(lo, hi), method="bounded", options={"xatol": 1e-14})
+            if res.success and res.fun < smin:
+                smin, at = float(res.fun), np.array([float(res.x)])
+    return smin, smax, np.asarray(at, dtype=float)
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Check the rank of delta on V and build b, c of Theorem mRelateDelta.
 
@@ -66,12 +96,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     delta_grid = model.numeric(delta, list(model.xi))(*grid)
     if model.m_hat < model.n_hat:
         raise DesignError("abstract.inputs", f"delta is {model.n_hat} x {model.m_hat}, which cannot have full row rank", "at least as many abstract inputs as abstract states (Theorem mRelateDelta)")
-    sv = singular_values(delta_grid)
-    smin_each, smax = sv.min(axis=1), float(np.nanmax(sv))
-    k = int(np.nanargmin(smin_each))
-    smin = float(smin_each[k])
+    smin, smax, at = smallest_singular_value(model, delta, grid, delta_grid)
     if not np.isfinite(smin) or smin <= RANK_RTOL * max(1.0, smax):
-        raise DesignError("abstract.delta", f"delta loses row rank on V: smallest singular value {smin:.3g} at xi = {np.round(grid[:, k], 6).tolist()}",
+        raise DesignError("abstract.delta", f"delta loses row rank on V: smallest singular value {smin:.3g} at xi = {np.round(at, 6).tolist()}",
                           "delta(xi) of full row rank for every xi in V (Theorem mRelateDelta)")
 
     m = inv.expr("m")
@@ -103,7 +130,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art = Artefact(stage=NAME, meta={"delta_source": model.spec.abstract.delta if isinstance(model.spec.abstract.delta, str) else "matrix",
                                       "samples": SAMPLES, "sample_seed": 1, "rank_rtol": RANK_RTOL, "link_rtol": LINK_RTOL})
     art.exprs.update({"delta": delta, "b": b, "c": c})
-    art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": grid[:, k],
+    art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": at,
                        "link_residual": link_residual, "c_is_zero": bool(all(e == 0 for e in c))})
     art.checks["rank_delta"] = Check(smin, True, f"smallest singular value of delta on V (> {RANK_RTOL:g} max(1, largest): full row rank)")
     art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y, relative")

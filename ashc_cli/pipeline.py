@@ -1,0 +1,169 @@
+"""Stage order, staleness and caching: what ``ashc design`` and every stage command run.
+
+A stage's artefact is *up to date* when it was written with the current schema version, from a spec with
+the same SHA-256, and from upstream artefacts whose files have the SHA-256s it recorded (and which are up
+to date themselves).  :func:`run` walks the stages a target needs in flow-chart order, reads those that are
+up to date and recomputes the rest, writing each artefact atomically before the next stage starts.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from .artefacts import SCHEMA_VERSION, Artefact, read_artefact, write_artefact
+from .errors import ArtefactError
+from .model import build_model
+from .spec import Spec
+from .stages import DESIGN, ORDER
+
+__all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "staleness", "run", "load_all", "StageReport"]
+
+#: Stage modules by name, in flow-chart order.
+STAGES = {mod.NAME: mod for mod in ORDER}
+
+
+@dataclass(frozen=True)
+class StageReport:
+    """What happened to one stage in a run (for progress lines)."""
+
+    stage: str
+    status: str          # "ran" or "up to date"
+    seconds: float
+    headline: str
+
+
+def default_out(spec: Spec) -> Path:
+    """Where a spec's artefacts go unless ``--out`` says otherwise: ``outputs/<name>``."""
+    return Path("outputs") / spec.name
+
+
+def artefact_path(out: str | Path, stage: str) -> Path:
+    """The artefact file of a stage."""
+    return Path(out) / f"{stage}.h5"
+
+
+def needed(targets: Iterable[str]) -> list[str]:
+    """The targets and every stage upstream of them, in flow-chart order."""
+    want: set[str] = set()
+    stack = list(targets)
+    while stack:
+        name = stack.pop()
+        if name not in want:
+            want.add(name)
+            stack.extend(STAGES[name].UPSTREAM)
+    return [name for name in STAGES if name in want]
+
+
+def staleness(spec: Spec, out: str | Path, stage: str, _cache: dict | None = None) -> str | None:
+    """Why a stage's artefact is not up to date, or None if it is.
+
+    Parameters
+    ----------
+    spec : Spec
+        The current spec.
+    out : str or Path
+        The artefact folder.
+    stage : str
+        The stage to examine.
+
+    Returns
+    -------
+    str or None
+        A reason (missing, unreadable, other spec, other schema, upstream changed) or None.
+    """
+    cache = {} if _cache is None else _cache
+    if stage in cache:
+        return cache[stage]
+    path = artefact_path(out, stage)
+    reason = None
+    if not path.exists():
+        reason = "no artefact yet"
+    else:
+        try:
+            prov = read_artefact(path).provenance
+        except ArtefactError:
+            prov = None
+            reason = "artefact unreadable"
+        if prov is not None:
+            if prov["schema_version"] != SCHEMA_VERSION:
+                reason = f"artefact has schema {prov['schema_version']}, this ashc writes {SCHEMA_VERSION}"
+            elif prov["spec_sha256"] != spec.sha256:
+                reason = "made from another spec (SHA-256 differs)"
+            else:
+                for up in STAGES[stage].UPSTREAM:
+                    if staleness(spec, out, up, cache) is not None:
+                        reason = f"upstream stage {up} is not up to date"
+                        break
+                    up_sha = read_artefact(artefact_path(out, up)).provenance["sha256"]
+                    if prov["upstream"].get(up) != up_sha:
+                        reason = f"upstream artefact {up}.h5 changed since"
+                        break
+    cache[stage] = reason
+    return reason
+
+
+def run(
+    spec: Spec,
+    out: str | Path,
+    targets: Iterable[str],
+    *,
+    force: bool = False,
+    on_stage: Callable[[StageReport], None] | None = None,
+) -> dict[str, Artefact]:
+    """Bring the target stages (and what they need) up to date.
+
+    Parameters
+    ----------
+    spec : Spec
+        The validated spec.
+    out : str or Path
+        The artefact folder.
+    targets : iterable of str
+        Stage names wanted.
+    force : bool
+        Recompute every needed stage even if up to date.
+    on_stage : callable, optional
+        Called with a :class:`StageReport` after each stage.
+
+    Returns
+    -------
+    dict of str to Artefact
+        The artefacts of every needed stage.
+    """
+    model = build_model(spec)
+    arts: dict[str, Artefact] = {}
+    reasons: dict = {}
+    for name in needed(targets):
+        mod = STAGES[name]
+        start = time.perf_counter()
+        reason = "forced" if force else staleness(spec, out, name, reasons)
+        if reason is None:
+            art = read_artefact(artefact_path(out, name))
+            status = "up to date"
+        else:
+            art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
+            write_artefact(artefact_path(out, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
+                           parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM})
+            reasons[name] = None
+            status = "ran"
+        arts[name] = art
+        if on_stage is not None:
+            on_stage(StageReport(name, status, time.perf_counter() - start, mod.headline(art)))
+    return arts
+
+
+def load_all(out: str | Path) -> dict[str, Artefact]:
+    """Every artefact present in a folder, by stage (for summary and eval, which need no spec).
+
+    Raises
+    ------
+    ArtefactError
+        If the folder holds no artefact at all.
+    """
+    arts = {name: read_artefact(artefact_path(out, name)) for name in STAGES if artefact_path(out, name).exists()}
+    if not arts:
+        raise ArtefactError(str(out), "holds no ashc artefact", "a folder written by `ashc design SPEC --out DIR`")
+    return arts

@@ -1,0 +1,77 @@
+"""Tests of HDF5 artefacts (ashc_cli.artefacts): round trip, provenance, atomic writes."""
+
+import h5py
+import numpy as np
+import pytest
+import sympy as sp
+
+from ashc_cli import artefacts
+from ashc_cli.artefacts import SCHEMA_VERSION, Artefact, Check, read_artefact, write_artefact
+from ashc_cli.errors import ArtefactError
+
+
+def sample():
+    x = sp.Symbol("x", real=True)
+    E = sp.Symbol("E", positive=True)
+    art = Artefact(stage="demo", meta={"solver": "none", "tol": 1e-9})
+    art.values.update({"M": np.eye(2), "lambda": 2.0, "name": "cuk", "tags": ["a", "b"], "group/t": np.arange(3.0)})
+    art.exprs["p"] = sp.Matrix([E * x / (x - 1), sp.sqrt(E**2 - x**2)])
+    art.checks["margin"] = Check(-0.5, True, "a margin")
+    return art
+
+
+def write(path, art):
+    return write_artefact(path, art, spec_sha256="abc", spec_name="s", parameters={"E": 12.0}, upstream={"up": "123"})
+
+
+def test_round_trip(tmp_path):
+    path = tmp_path / "demo.h5"
+    sha = write(path, sample())
+    back = read_artefact(path)
+    assert back.stage == "demo"
+    assert np.array_equal(back.values["M"], np.eye(2)) and back.values["lambda"] == 2.0
+    assert back.values["name"] == "cuk" and back.values["tags"] == ["a", "b"]
+    assert np.array_equal(back.values["group/t"], [0.0, 1.0, 2.0])
+    assert back.exprs["p"] == sample().exprs["p"]  # exact, assumptions included
+    assert back.checks["margin"] == Check(-0.5, True, "a margin")
+    prov = back.provenance
+    assert prov["sha256"] == sha and prov["spec_sha256"] == "abc" and prov["upstream"] == {"up": "123"}
+    assert prov["schema_version"] == SCHEMA_VERSION and prov["parameters"] == {"E": 12.0}
+    assert "numpy" in prov["packages"] and prov["created"]
+    with h5py.File(path) as fh:  # the readable form is there too
+        assert fh["exprs/p/text"][0].decode() == "E*x/(x - 1)"
+
+
+def test_crash_during_write_keeps_previous_artefact(tmp_path, monkeypatch):
+    path = tmp_path / "demo.h5"
+    write(path, sample())
+    before = path.read_bytes()
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(artefacts, "_write_value", boom)
+    with pytest.raises(RuntimeError):
+        write(path, sample())
+    assert path.read_bytes() == before
+    assert read_artefact(path).values["lambda"] == 2.0
+    assert [p.name for p in tmp_path.iterdir()] == ["demo.h5"]  # no temporary file left behind
+
+
+def test_unreadable_and_missing(tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not hdf5")
+    with pytest.raises(ArtefactError, match="not a readable ashc artefact"):
+        read_artefact(bad)
+    with pytest.raises(ArtefactError, match="no such artefact"):
+        read_artefact(tmp_path / "none.h5")
+
+
+def test_tampered_expression_is_not_executed(tmp_path):
+    path = tmp_path / "demo.h5"
+    write(path, sample())
+    with h5py.File(path, "a") as fh:
+        fh["exprs/p/srepr"][0] = "__import__('os').system('touch pwned')"
+    with pytest.raises(ArtefactError):
+        read_artefact(path)
+    assert not (tmp_path / "pwned").exists()

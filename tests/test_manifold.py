@@ -1,0 +1,46 @@
+"""Tests of stage 2, the invariant manifold p (eq. SimuDesignCond1)."""
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from ashc_cli.errors import DesignError
+from ashc_cli.model import build_model
+from ashc_cli.spec import parse_spec_text
+from ashc_cli.stages import manifold
+
+from .conftest import CUK
+
+
+def test_p_matches_the_papers_closed_form(paper_design, paper_model):
+    p = paper_design["manifold"].exprs["p"]
+    P = paper_model.params
+    E, G_L, R_i = P["E"], P["G_L"], P["R_i"]
+    xi = paper_model.xi[0]
+    den = (xi - 1) ** 2 + G_L * R_i * xi**2
+    papers = [E * G_L * xi**2 / den, -E * (xi - 1) / den, E * G_L * xi * (xi - 1) / den, E * xi * (xi - 1) / den]  # eq. egSimuDesign
+    assert all(sp.simplify(a - b) == 0 for a, b in zip(p, papers))
+
+
+def test_p_at_the_papers_initial_state(paper_design, paper_model):
+    # Section V-D: x0 = p(0.6156) = [1.3678, 31.0396, -0.8541, -19.1080] (4 decimals printed).
+    value = paper_model.numeric(paper_design["manifold"].exprs["p"], list(paper_model.xi))(0.6156)[:, 0]
+    assert value == pytest.approx([1.3678, 31.0396, -0.8541, -19.1080], abs=5e-5)
+
+
+def test_residual_is_stored_and_small(paper_design):
+    art = paper_design["manifold"]
+    assert art.values["residual"] < 1e-9 * art.values["residual_scale"]
+    assert art.checks["pde_residual"].passed and art.checks["l_in_U"].passed
+
+
+def test_phi_bar_nonzero_is_refused_clearly():
+    model = build_model(parse_spec_text(CUK.read_text().replace('phi_bar: ["0"]', 'phi_bar: ["-xi"]')))
+    with pytest.raises(DesignError, match="phi_bar != 0"):
+        manifold.run(model, {})
+
+
+def test_l_leaving_U_is_refused():
+    model = build_model(parse_spec_text(CUK.read_text().replace('l: ["xi"]', 'l: ["2*xi"]')))
+    with pytest.raises(DesignError, match=r"l\(V\)"):
+        manifold.run(model, {})

@@ -1,0 +1,50 @@
+"""Tests of stage order and caching (ashc_cli.pipeline)."""
+
+import shutil
+
+from ashc_cli.pipeline import DESIGN, needed, run, staleness
+from ashc_cli.spec import load_spec, parse_spec_text
+
+from .conftest import CUK_PAPER_M
+
+
+def test_needed_is_flow_chart_order():
+    assert needed(["kappa"]) == ["manifold", "kappa"]
+    assert needed(["bound"]) == ["stabilise", "manifold", "kappa", "inverse", "delta", "bound"]
+    assert needed(["simulate"])[-1] == "simulate"
+
+
+def test_reruns_exactly_the_stale_stages(paper_out, tmp_path):
+    spec = load_spec(CUK_PAPER_M)
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    assert all(staleness(spec, out, s) is None for s in DESIGN)
+    seen = []
+    run(spec, out, DESIGN, on_stage=lambda r: seen.append((r.stage, r.status)))
+    assert {status for _, status in seen} == {"up to date"}
+
+    # A changed delta leaves stabilise..inverse alone and reruns delta and bound.
+    text = CUK_PAPER_M.read_text().replace('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', 'delta: "1"')
+    spec2 = parse_spec_text(text)
+    assert staleness(spec2, out, "delta") == "made from another spec (SHA-256 differs)"
+    seen.clear()
+    arts = run(spec2, out, DESIGN, on_stage=lambda r: seen.append((r.stage, r.status)))
+    assert all(status == "ran" for _, status in seen)  # the spec hash is global: every stage reruns
+    assert abs(arts["bound"].values["dbar_q0"] - arts["bound"].values["dbar_q0_identity"]) < 1e-9
+
+    # Rewriting an upstream artefact makes its downstream stale, not its upstream.
+    run(spec2, out, ["manifold"], force=True)
+    assert staleness(spec2, out, "stabilise") is None
+    assert staleness(spec2, out, "kappa") == "upstream artefact manifold.h5 changed since"
+    assert staleness(spec2, out, "bound") == "upstream artefact manifold.h5 changed since"
+    assert staleness(spec2, out, "delta") == "upstream artefact manifold.h5 changed since"
+    assert staleness(spec2, out, "inverse") == "upstream artefact manifold.h5 changed since"
+
+
+def test_corrupt_artefact_is_stale(paper_out, tmp_path):
+    spec = load_spec(CUK_PAPER_M)
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    (out / "kappa.h5").write_bytes(b"garbage")
+    assert staleness(spec, out, "kappa") == "artefact unreadable"
+    assert staleness(spec, out, "manifold") is None

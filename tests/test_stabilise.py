@@ -1,0 +1,78 @@
+"""Tests of stage 1, stabilisability (eq. egLMI)."""
+
+import numpy as np
+import pytest
+
+from ashc_cli.errors import DesignError
+from ashc_cli.model import build_model
+from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.stages import stabilise
+
+from .conftest import CUK
+
+
+def model_with(*pairs):
+    text = CUK.read_text()
+    for old, new in pairs:
+        assert old in text
+        text = text.replace(old, new)
+    return build_model(parse_spec_text(text))
+
+
+def test_affine_form_is_the_papers_A(paper_model):
+    A, b = stabilise.affine_form(paper_model)
+    num = paper_model.numeric(A, list(paper_model.u))
+    R_i, L_1, C_2, G_L, L_3, C_4 = 0.05, 10e-3, 11e-3, 44.7e-3, 10e-3, 11e-3
+    u = 0.3
+    # eq. ConvertSystemLinear (with G_l read as G_L, ERRATA item 2)
+    expected = np.array([[-R_i / L_1, -(1 - u) / L_1, 0, 0], [(1 - u) / C_2, 0, u / C_2, 0],
+                         [0, -u / L_3, 0, -1 / L_3], [0, 0, 1 / C_4, -G_L / C_4]])
+    assert np.allclose(num(u), expected, rtol=1e-14)
+    assert list(b) == [paper_model.params["E"] / paper_model.params["L_1"], 0, 0, 0]
+
+
+def test_papers_M_is_verified_at_both_vertices(paper_design):
+    # eq. egM with lambda = 2: A(u)^T M + M A(u) + 2 M <= 0 at u = 0 and u = 1.
+    art = paper_design["stabilise"]
+    margins = art.values["vertex_margins"]
+    assert np.all(margins < 0)
+    assert margins == pytest.approx([-0.51310, -0.0018510], rel=1e-3)
+    assert art.values["lmi_margin"] <= 0 and art.checks["lmi_margin"].passed
+
+
+def test_own_lmi_solution_is_certified_and_rechecked():
+    model = build_model(load_spec(CUK))
+    art = stabilise.run(model, {})
+    M, lam = art.values["M"], art.values["lambda"]
+    assert lam == 2.0
+    # Independent numpy re-check on a sweep of U (eq. egLMI), not the stage's own numbers.
+    for u in np.linspace(0, 1, 101):
+        A = np.asarray(model.numeric(stabilise.affine_form(model)[0], list(model.u))(u))
+        assert np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() <= 0
+    assert np.linalg.eigvalsh(M).min() > 0
+    assert art.values["lmi_margin"] < -1e-3
+
+
+def test_maximise_finds_the_largest_rate():
+    art = stabilise.run(model_with(("decay_rate: 2.0", "decay_rate: maximise")), {})
+    lam = art.values["lambda"]
+    # lambda <= -2 max Re eig(A(1)) = 2.0314 (a necessary bound), and lambda = 2 is feasible.
+    assert 2.0 < lam <= 2.0314
+    assert art.values["lmi_margin"] <= 0
+
+
+def test_infeasible_rate_names_the_largest_feasible():
+    with pytest.raises(DesignError, match=r"infeasible at lambda = 3.*below 2\.0[0-9]* \(the largest feasible\)"):
+        stabilise.run(model_with(("decay_rate: 2.0", "decay_rate: 3.0")), {})
+
+
+def test_given_M_that_does_not_certify():
+    model = model_with(("method: polytopic_lmi", "method: given"), ("feedback: identity", "feedback: identity\n  M: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"))
+    with pytest.raises(DesignError, match="does not satisfy eq. egLMI"):
+        stabilise.run(model, {})
+
+
+def test_f_not_affine_in_x_is_refused():
+    model = model_with(('"x1/C_2"', '"x1**2/C_2"'))
+    with pytest.raises(DesignError, match="not affine in x"):
+        stabilise.run(model, {})
