@@ -1,13 +1,14 @@
 # ashc: `make demo` designs and simulates the paper's Cuk converter; `make test` runs the suite.
 # Both create .venv and install the package from pyproject.toml on first use.
 
+SHELL  := /bin/bash
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 SPEC   ?= specs/cuk_converter.yaml
 OUT    ?= outputs/cuk_converter
 
-.PHONY: install demo test clean
+.PHONY: install demo test fuzz docs clean
 
 $(BIN)/ashc: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +25,17 @@ demo: install
 
 test: install
 	$(BIN)/python -m pytest -q
+
+# A longer fuzz than the suite's: FUZZ_EXAMPLES cases per property; hypothesis prints the counts.
+FUZZ_EXAMPLES ?= 20000
+fuzz: install
+	ASHC_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/python -m pytest -q tests/test_fuzz.py -p no:cacheprovider --hypothesis-show-statistics \
+	  | grep -E "passing examples|failing|passed|failed|test_" ; \
+	  status=$${PIPESTATUS[0]}; echo "fuzz: $(FUZZ_EXAMPLES) cases per property, exit $$status"; exit $$status
+
+# Regenerate docs/bad-inputs.md: every bad input of tests/bad_inputs.py and the message it gets.
+docs: install
+	$(BIN)/python -m tests.bad_inputs docs/bad-inputs.md
 
 clean:
 	rm -rf outputs/*/ .pytest_cache

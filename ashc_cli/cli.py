@@ -12,6 +12,7 @@ import functools
 import json
 import sys
 import traceback
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -45,6 +46,7 @@ SpecArg = Annotated[Path, typer.Argument(help="The YAML spec (see spec-format.md
 OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Recompute every needed stage even if up to date.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (progress goes to stderr).")]
+FrozenOpt = Annotated[bool, typer.Option("--frozen", help="Never rerun an upstream stage: fail (exit 5, naming the stage) if one is stale.")]
 
 
 def _guard(fn):
@@ -79,10 +81,10 @@ def _progress(to_stderr: bool):
     return show
 
 
-def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool):
+def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool, frozen: bool = False):
     spec = load_spec(spec_path)
     folder = out if out is not None else default_out(spec)
-    arts = run(spec, folder, targets, force=force, on_stage=_progress(as_json))
+    arts = run(spec, folder, targets, force=force, frozen=frozen, on_stage=_progress(as_json))
     return spec, folder, arts
 
 
@@ -102,13 +104,13 @@ _STAGE_HELP = {
 
 
 def _make_stage_command(stage: str):
-    def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
-        _, _, arts = _run(spec, out, [stage], force, as_json)
+    def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, frozen: FrozenOpt = False) -> None:
+        _, _, arts = _run(spec, out, [stage], force, as_json, frozen)
         if as_json:
             _emit_json(summary({stage: arts[stage]})[stage])
 
     command.__name__ = f"{stage}_command"
-    command.__doc__ = _STAGE_HELP[stage] + " Runs any stale upstream stage first."
+    command.__doc__ = _STAGE_HELP[stage] + " Runs any stale upstream stage first (unless --frozen)."
     app.command(name=stage, help=command.__doc__)(_guard(command))
 
 
@@ -193,6 +195,8 @@ def main(argv: list[str] | None = None) -> None:
     if "--debug" in args:
         _DEBUG = True
         args.remove("--debug")
+    else:
+        warnings.simplefilter("ignore")  # the one-line error contract: library warnings only with --debug
     app(args=args, prog_name="ashc")
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ast
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy as np
@@ -250,7 +251,9 @@ def parse_expression(
         raise SpecError(field, f"expression is {len(source)} characters long", f"at most {MAX_LENGTH}")
     source = source.replace("^", "**")
     try:
-        tree = ast.parse(source, mode="eval")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. "invalid decimal literal": the error below says it
+            tree = ast.parse(source, mode="eval")
     except SyntaxError as exc:
         raise SpecError(field, f"syntax error in '{_short(source)}' at column {exc.offset}", "an expression in ordinary math syntax") from None
     except (RecursionError, MemoryError, ValueError):

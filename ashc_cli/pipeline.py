@@ -19,7 +19,8 @@ from .model import build_model
 from .spec import Spec
 from .stages import DESIGN, ORDER
 
-__all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "staleness", "run", "load_all", "StageReport"]
+__all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers", "run",
+           "load_all", "StageReport"]
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
@@ -105,12 +106,40 @@ def staleness(spec: Spec, out: str | Path, stage: str, _cache: dict | None = Non
     return reason
 
 
+def remove_leftovers(out: str | Path) -> list[Path]:
+    """Delete temporary files a killed run left in the artefact folder (the artefacts themselves are whole)."""
+    removed = []
+    folder = Path(out)
+    if folder.is_dir():
+        for tmp in folder.glob(".*.h5.*.tmp"):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
+def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
+    """Refuse to run a stage on an upstream artefact made from another spec or schema.
+
+    Raises
+    ------
+    ArtefactError
+        Naming the upstream stage to rerun.
+    """
+    for up in STAGES[stage].UPSTREAM:
+        prov = arts[up].provenance
+        if prov.get("schema_version") != SCHEMA_VERSION:
+            raise ArtefactError(f"{up}.h5", f"has schema {prov.get('schema_version')}, {stage} needs {SCHEMA_VERSION}", f"rerun `ashc {up} SPEC`")
+        if prov.get("spec_sha256") != spec.sha256:
+            raise ArtefactError(f"{up}.h5", f"was made from another spec than the one {stage} is run with", f"rerun `ashc {up} SPEC`")
+
+
 def run(
     spec: Spec,
     out: str | Path,
     targets: Iterable[str],
     *,
     force: bool = False,
+    frozen: bool = False,
     on_stage: Callable[[StageReport], None] | None = None,
 ) -> dict[str, Artefact]:
     """Bring the target stages (and what they need) up to date.
@@ -125,6 +154,8 @@ def run(
         Stage names wanted.
     force : bool
         Recompute every needed stage even if up to date.
+    frozen : bool
+        Never recompute an upstream stage: refuse (naming the stage to rerun) if one is not up to date.
     on_stage : callable, optional
         Called with a :class:`StageReport` after each stage.
 
@@ -132,18 +163,28 @@ def run(
     -------
     dict of str to Artefact
         The artefacts of every needed stage.
+
+    Raises
+    ------
+    ArtefactError
+        With ``frozen``, if an upstream stage is not up to date.
     """
+    targets = list(targets)
     model = build_model(spec)
+    remove_leftovers(out)
     arts: dict[str, Artefact] = {}
     reasons: dict = {}
     for name in needed(targets):
         mod = STAGES[name]
         start = time.perf_counter()
         reason = "forced" if force else staleness(spec, out, name, reasons)
+        if frozen and name not in targets and reason is not None:
+            raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"rerun `ashc {name} SPEC`, or drop --frozen")
         if reason is None:
             art = read_artefact(artefact_path(out, name))
             status = "up to date"
         else:
+            check_upstream(spec, name, arts)
             art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
             write_artefact(artefact_path(out, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM})

@@ -325,7 +325,7 @@ def check_shapes(spec: Spec) -> None:
     st = spec.stabilisability
     if st.method == "given":
         if st.M is None:
-            raise SpecError("stabilisability.M", "missing for method 'given'", f"an {n} x {n} symmetric matrix")
+            raise SpecError("stabilisability.M", "missing for method 'given'", f"a symmetric {n} x {n} matrix")
         _check_len("stabilisability.M", st.M, n, "one row per state")
         for i, row in enumerate(st.M):
             _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")

@@ -101,3 +101,22 @@ def test_srepr_round_trip_and_refusal():
     for bad in ("__import__('os')", "Symbol('x').evalf()", "Add(*[1])", "open('f')"):
         with pytest.raises(ArtefactError):
             from_srepr(bad)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["__import__('os').system('touch pwned')", "().__class__.__bases__[0].__subclasses__()", "9**9**9**9", "10**10**10",
+     "x" + "+x" * 900, "sin(" * 500 + "x" + ")" * 500, "-" * 1999 + "x", "(" * 1000 + "x" + ")" * 1000, "max(" + "x," * 900 + "x)"],
+)
+def test_hostile_expressions_refused_quickly(text, tmp_path, monkeypatch):
+    # The issue asks for refusal in well under a second, without running anything.
+    import time
+
+    monkeypatch.chdir(tmp_path)
+    start = time.perf_counter()
+    try:
+        parse(text)
+    except SpecError:
+        pass
+    assert time.perf_counter() - start < 1.0
+    assert not (tmp_path / "pwned").exists()

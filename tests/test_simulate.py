@@ -58,3 +58,10 @@ def test_controller_and_interface_law(paper_spec, paper_design):
     assert dxi[0] == pytest.approx(delta * 60.0)
     v, u, *_ = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "least_squares", True)
     assert 0.0 <= u[0] <= 1.0
+
+
+def test_blow_up_is_reported_with_its_time():
+    from ashc_cli.errors import NumericalError
+
+    with pytest.raises(NumericalError, match=r"simulate.demo: integration failed at t = 1 s"):
+        simulate._integrate(lambda t, z: z**2, (0.0, 2.0), np.array([1.0]), None, {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}, "demo")

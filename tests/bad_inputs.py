@@ -1,0 +1,162 @@
+"""The catalogue of bad inputs ashc is tried on, with the exit code and message each must get.
+
+Used by ``tests/test_bad_inputs.py`` (every case is run in the suite) and by
+``python -m tests.bad_inputs docs/bad-inputs.md`` (``make docs``), which writes the table of inputs and the
+messages they actually get.  Each case edits the paper's Cuk spec (``specs/cuk_converter.yaml``), or
+replaces it with raw text, and runs the stages it needs in-process.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from ashc_cli.errors import AshcError
+from ashc_cli.pipeline import DESIGN, run
+from ashc_cli.spec import parse_spec_text
+
+ROOT = Path(__file__).resolve().parents[1]
+CUK = ROOT / "specs" / "cuk_converter.yaml"
+CUK_PAPER_M = ROOT / "specs" / "cuk_converter_paper_M.yaml"
+
+
+
+@dataclass(frozen=True)
+class Case:
+    """One bad input: how to make it, what must come back."""
+
+    id: str
+    what: str
+    edits: tuple[tuple[str, str], ...] = ()
+    raw: str | None = None
+    base: Path = CUK
+    targets: tuple[str, ...] = DESIGN
+    code: int = 2
+    fragment: str = ""
+    drop_tracking: bool = False
+
+    def text(self) -> str:
+        if self.raw is not None:
+            return self.raw
+        text = self.base.read_text()
+        for old, new in self.edits:
+            if old not in text:
+                raise AssertionError(f"case {self.id}: {old!r} not in {self.base.name}")
+            text = text.replace(old, new)
+        if self.drop_tracking:
+            start = text.index("  tracking:")
+            end = text.index("  m_relation:")
+            text = text[:start] + text[end:]
+        return text
+
+
+CASES: tuple[Case, ...] = (
+    # --- YAML and structure -------------------------------------------------------------------------
+    Case("yaml-malformed", "malformed YAML", raw="name: [\n", fragment="malformed YAML"),
+    Case("yaml-not-mapping", "top level is a list", raw="- 1\n- 2\n", fragment="top level is list"),
+    Case("yaml-duplicate-key", "a key given twice", raw="name: a\nname: b\n", fragment="duplicate key 'name'"),
+    Case("yaml-alias", "YAML aliases (billion-laughs vector)", raw="a: &x [1, 2]\nb: *x\n", fragment="aliases"),
+    Case("yaml-python-tag", "a python object tag", raw="name: !!python/object/apply:os.system ['echo hi']\n", fragment="malformed YAML"),
+    Case("key-unknown", "a misspelt key", edits=(('  delta: "', '  detla: "'),), fragment="unknown key 'detla'; expected did you mean 'delta'?"),
+    Case("key-missing", "a required key left out", edits=(('  h: ["x4"]\n', ""),), fragment="concrete.h: missing"),
+    Case("len-f_bar", "f_bar not n long", edits=(('"x1/C_2", ', ""),), fragment="concrete.f_bar: has 3 entries; expected 4"),
+    Case("len-g", "g not n x m", edits=(('["0"]]', '["0", "1"]]'),), fragment="concrete.g[3]: has 2 entries; expected 1"),
+    Case("len-h", "h longer than output_set", edits=(('h: ["x4"]', 'h: ["x4", "x2"]'),), fragment="concrete.output_set: has 1 entries; expected 2"),
+    Case("pair-not-pair", "a bound that is not a pair", edits=(("input_bounds: [[0, 1]]", "input_bounds: [[0]]"),), fragment="concrete.input_bounds[0]"),
+    Case("pair-lo-gt-hi", "a bound with lo > hi", edits=(("input_bounds: [[0, 1]]", "input_bounds: [[1, 0]]"),), fragment="lo = 1.0 > hi = 0.0"),
+    Case("param-nan", "a NaN parameter", edits=(("E: 12.0", "E: .nan"),), fragment="parameters.E"),
+    Case("param-inf", "an infinite parameter", edits=(("E: 12.0", "E: .inf"),), fragment="parameters.E"),
+    Case("param-not-number", "a parameter that is not a number", edits=(("E: 12.0", "E: twelve"),), fragment="parameters.E"),
+    Case("enum-method", "an unknown stabilisability method", edits=(("method: polytopic_lmi", "method: lmi"),), fragment="stabilisability.method"),
+    Case("rate-negative", "a negative decay rate", edits=(("decay_rate: 2.0", "decay_rate: -2"),), fragment="stabilisability.decay_rate"),
+    Case("given-no-M", "method given without M", edits=(("method: polytopic_lmi", "method: given"),), fragment="stabilisability.M: missing"),
+    Case("given-M-asymmetric", "a given M that is not symmetric", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[ 0.4804, 0.0202,"),), fragment="stabilisability.M: is not symmetric"),
+    Case("given-M-indefinite", "a given M that is not positive definite", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[-0.4804, 0.0102,"),), code=3, fragment="is not positive definite"),
+    Case("sim-xi0-length", "xi0 of the wrong length", edits=(("xi0: [0.6156]", "xi0: [0.6, 0.1]"),), fragment="simulate.tracking.xi0: has 2 entries"),
+    # --- names ----------------------------------------------------------------------------------------
+    Case("name-clash-param", "a state named like a parameter", edits=(("states: [x1, x2, x3, x4]", "states: [x1, x2, x3, E]"),), fragment="name 'E' is already used in parameters"),
+    Case("name-function", "a state named like a function", edits=(("states: [xi]", "states: [exp]"),), fragment="reserved"),
+    Case("name-keyword", "a state named like a Python keyword", edits=(("states: [xi]", "states: [lambda]"),), fragment="reserved"),
+    Case("name-time", "a state named t", edits=(("states: [xi]", "states: [t]"),), fragment="reserved"),
+    # --- expressions ----------------------------------------------------------------------------------
+    Case("expr-undeclared", "an undeclared name", edits=(('"x1/C_2"', '"x5/C_2"'),), fragment="concrete.f_bar[1]: unknown name 'x5'"),
+    Case("expr-wrong-side", "an abstract state in the concrete drift", edits=(('"x1/C_2"', '"xi/C_2"'),), fragment="concrete.f_bar[1]: uses xi"),
+    Case("expr-syntax", "a syntax error", edits=(('"x1/C_2"', '"x1/"'),), fragment="concrete.f_bar[1]: syntax error"),
+    Case("expr-div-zero", "a division by a literal zero", edits=(('"x1/C_2"', '"x1/0"'),), fragment="division by zero"),
+    Case("expr-div-zero-expr", "a division by a constant expression equal to zero", edits=(('"x1/C_2"', '"x1/(2 - 2)"'),), fragment="division by zero"),
+    Case("expr-import", "code injection through __import__", edits=(('"x1/C_2"', "\"__import__('os').system('touch /tmp/pwned')\""),), fragment="is not allowed"),
+    Case("expr-attribute", "attribute access", edits=(('"x1/C_2"', '"x1.real"'),), fragment="'x1.real' is not allowed"),
+    Case("expr-lambda", "a lambda", edits=(('"x1/C_2"', '"(lambda: 1)()"'),), fragment="is not allowed"),
+    Case("expr-index", "indexing", edits=(('"x1/C_2"', '"[x1][0]"'),), fragment="is not allowed"),
+    Case("expr-fstring", "an f-string", edits=(('"x1/C_2"', "\"f'{x1}'\""),), fragment="is not allowed"),
+    Case("expr-huge-power", "a huge literal power", edits=(('"x1/C_2"', '"9**9**9**9"'),), fragment="too large"),
+    Case("expr-long", "a very long expression", edits=(('"x1/C_2"', '"' + "x1+" * 1000 + 'x1"'),), fragment="characters long"),
+    Case("expr-deep", "a deeply nested expression", edits=(('"x1/C_2"', '"' + "sin(" * 100 + "x1" + ")" * 100 + '"'),), fragment="nested deeper"),
+    Case("expr-not-string", "an expression that is a mapping", edits=(('"x1/C_2"', "{a: 1}"),), fragment="concrete.f_bar[1]"),
+    Case("expr-signal-outside", "a time signal in the plant", edits=(('"x1/C_2"', '"triangle(x1)"'),), fragment="call of 'triangle' is not allowed"),
+    # --- design conditions --------------------------------------------------------------------------------
+    Case("plant-not-affine", "f not affine in x for polytopic_lmi", edits=(('"x1/C_2"', '"x1**2/C_2"'),), code=3, fragment="not affine in x"),
+    Case("lmi-infeasible", "an infeasible decay rate", edits=(("decay_rate: 2.0", "decay_rate: 3.0"),), code=3, fragment="(the largest feasible)"),
+    Case("l-outside-U", "l(V) outside U", edits=(('l: ["xi"]', 'l: ["2*xi"]'),), code=3, fragment="is not inside U"),
+    Case("phi-bar-nonzero", "phi_bar != 0 (PDE solver not in this version)", edits=(('phi_bar: ["0"]', 'phi_bar: ["-xi"]'),), code=3, fragment="phi_bar != 0"),
+    Case("p-not-injective", "kappa not injective on V", edits=(("domain: [[0, 0.95]]", "domain: [[0, 1.0]]"),), code=3, fragment="p is not injective on V"),
+    Case("V-not-covering-Y", "V not covering Y", edits=(("domain: [[0, 0.95]]", "domain: [[0, 0.9]]"),), code=3, fragment="does not cover Y"),
+    Case("Y-beyond-m-real", "Y beyond where m is real", edits=(("output_set: [[-120, 0]]", "output_set: [[-130, 0]]"),), code=3, fragment="where m is real"),
+    Case("delta-rank", "delta losing rank on V", edits=(('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', 'delta: "xi - 0.5"'),), code=3, fragment="delta loses row rank on V"),
+    # --- simulation ------------------------------------------------------------------------------------------
+    Case("sim-xi0-outside-V", "xi0 outside V", edits=(("xi0: [0.6156]", "xi0: [0.99]"),), targets=("simulate",), code=3, fragment="is outside V"),
+    Case("sim-level-unreachable", "a reference level kappa never reaches on V", edits=(("reference_levels: [-19.11,", "reference_levels: [-130,"),), targets=("simulate",), code=3, fragment="is not reached by kappa"),
+    Case("sim-leaves-m-real", "the m-relation run leaves where m is real", edits=(("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"), ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"')),
+         targets=("simulate",), drop_tracking=True, code=3, fragment="reaches the edge of [-126.915, 126.915], where m is real"),
+    Case("sim-u-bad-name", "an unknown name in the m-relation input signal", edits=(('u: "0.3*triangle(t - 2)', 'u: "0.3*triangle(s - 2)'),), targets=("simulate",), drop_tracking=True, code=2, fragment="unknown name 's'"),
+)
+
+
+def diagnose(case: Case, out: Path) -> tuple[int, str]:
+    """Run a case; return (exit code, the one-line message), or (0, '') if it unexpectedly succeeds."""
+    try:
+        spec = parse_spec_text(case.text(), "spec")
+        run(spec, out, case.targets)
+    except AshcError as exc:
+        return exc.exit_code, exc.line()
+    return 0, ""
+
+
+def table(results: list[tuple[Case, int, str]]) -> str:
+    """The markdown page of every case and the message it gets."""
+    lines = [
+        "# Bad inputs and what ashc answers",
+        "",
+        "Generated by `make docs` (`python -m tests.bad_inputs docs/bad-inputs.md`); every row is also a test",
+        "(`tests/test_bad_inputs.py`). Each input is the paper's Cuk spec with one edit. The message is what the",
+        "CLI prints after `error: `, and the code is the exit status (2 spec, 3 design condition, 4 numerical,",
+        "5 artefact).",
+        "",
+        "| case | bad input | code | message |",
+        "| --- | --- | --- | --- |",
+    ]
+    for case, code, message in results:
+        shown = message.replace("|", "\\|")
+        if len(shown) > 300:
+            shown = shown[:297] + "..."
+        lines.append(f"| `{case.id}` | {case.what} | {code} | {shown} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str]) -> int:
+    target = Path(argv[0]) if argv else ROOT / "docs" / "bad-inputs.md"
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, case in enumerate(CASES):
+            code, message = diagnose(case, Path(tmp) / str(k))
+            results.append((case, code, message))
+            print(f"{case.id:<24} {code}  {message[:100]}", file=sys.stderr)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
