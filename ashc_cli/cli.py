@@ -19,10 +19,11 @@ from typing import Annotated, Optional
 import typer
 
 from . import __version__
-from .errors import AshcError
+from .errors import AshcError, DesignError
 from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run
 from .query import EVALUABLE, evaluate, parse_point, summary
 from .spec import load_spec
+from .verdict import verdict
 
 app = typer.Typer(
     name="ashc",
@@ -137,6 +138,40 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
                    f"|psi - y| <= {b['gain']:.5g} ||v||_inf when W(xi0, x0) = 0")
     if failed:
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
+        raise typer.Exit(3)
+
+
+@app.command()
+@_guard
+def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
+    """The verdict on Problem 1: one row per condition of the paper with its measured number.
+
+    Runs the design stages that are stale, stopping at the first design condition that fails; prints each
+    condition (Assumption 1, the LMI certificate, the PDE residual, SimuLocalRequire, conditions (i) and
+    (ii), the rank of delta, condition (B), ...) with pass/fail, then "Problem 1 solved: yes/no".
+    Exit status 0 only for yes, 3 for no.
+    """
+    spec_obj = load_spec(spec)
+    folder = out if out is not None else default_out(spec_obj)
+    arts, stopped = {}, None
+    for stage in DESIGN:
+        try:
+            arts.update(run(spec_obj, folder, [stage], force=force and stage == DESIGN[0], on_stage=_progress(True)))
+        except DesignError as exc:
+            stopped = (stage, exc)
+            break
+    solved, rows = verdict(arts, stopped)
+    if as_json:
+        _emit_json({"spec": spec_obj.name, "solved": solved, "rows": [r.as_dict() for r in rows]})
+    else:
+        typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
+        for r in rows:
+            value = "" if r.value is None else f"{r.value:.4g}"
+            typer.echo(f"  {r.status:<11} {r.condition:<42} {value:>11}   {r.reference}")
+            if r.status == "fail":
+                typer.echo(f"              {r.detail}")
+        typer.echo(f"Problem 1 solved: {'yes' if solved else 'no'}")
+    if not solved:
         raise typer.Exit(3)
 
 

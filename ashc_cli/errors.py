@@ -66,9 +66,14 @@ class DesignError(AshcError):
     """A condition of the paper's design procedure does not hold (exit code 3).
 
     Examples: the LMI is infeasible, p is not injective on V, kappa(V) does not cover Y, delta loses rank.
+    ``check`` names the stage check the failure is about (for the Problem 1 verdict), if there is one.
     """
 
     exit_code = 3
+
+    def __init__(self, where: str, what: str, expected: str | None = None, *, check: str | None = None):
+        self.check = check
+        super().__init__(where, what, expected)
 
 
 class NumericalError(AshcError):

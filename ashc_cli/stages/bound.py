@@ -117,7 +117,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     norm_q0_identity = theta_norms(L, dp_num(*grid), None)
     norm_ls = theta_norms(L, dpd_num(*grid), g_num(*p_num(*grid)[:, 0, :]))
     if not np.all(np.isfinite(norm_q0)):
-        raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)", "p continuously differentiable and delta continuous on V (Proposition condB)")
+        raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)", "p continuously differentiable and delta continuous on V (Proposition condB)", check="condition_B")
 
     if model.n_hat == 1:
         xs = grid[0]
@@ -147,6 +147,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.checks["condition_B"] = Check(dbar_q0, bool(np.isfinite(dbar_q0) and 0 < eps < lam),
                                       "Proposition condB: V compact, p C^1, delta continuous, V quadratic: dbar_q0 finite and 0 < epsilon < lambda")
     art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, "largest c with M >= c C^T C (> 0, eq. SimuFuncCondi1)")
+    lipschitz_h = float(np.linalg.norm(C, 2))
+    art.values["lipschitz_h"] = lipschitz_h
+    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h)), "Lipschitz constant L_h = ||C||_2 of the linear output map (finite: Assumption 1 holds)")
     return art
 
 

@@ -99,7 +99,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     smin, smax, at = smallest_singular_value(model, delta, grid, delta_grid)
     if not np.isfinite(smin) or smin <= RANK_RTOL * max(1.0, smax):
         raise DesignError("abstract.delta", f"delta loses row rank on V: smallest singular value {smin:.3g} at xi = {np.round(at, 6).tolist()}",
-                          "delta(xi) of full row rank for every xi in V (Theorem mRelateDelta)")
+                          "delta(xi) of full row rank for every xi in V (Theorem mRelateDelta)", check="rank_delta")
 
     m = inv.expr("m")
     dm = inv.expr("dm_dx")

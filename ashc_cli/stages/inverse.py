@@ -105,7 +105,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         turns = grid[0, 1:-1][np.sign(dk[1:]) != np.sign(dk[:-1])]
         where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
-                          "a domain V on which kappa is strictly monotone")
+                          "a domain V on which kappa is strictly monotone", check="left_inverse")
     m_of_y = sp.simplify(branches[best])
     m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
 
@@ -117,14 +117,14 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     finite_on_Y = bool(np.all(np.isfinite(m_on_Y)))
     if not (real_covers_Y and finite_on_Y):
         raise DesignError("concrete.output_set", f"m is real only for outputs in [{real_lo:.6g}, {real_hi:.6g}] and finite on Y: {finite_on_Y}",
-                          f"Y = {Y.tolist()} inside the region where m is real and finite")
+                          f"Y = {Y.tolist()} inside the region where m is real and finite", check="m_real_on_Y")
 
     # eq. SimuLocalRequire: kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
     k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
     covers = bool(k_lo <= Y[0, 0] and Y[0, 1] <= k_hi)
     if not covers:
         raise DesignError("abstract.domain", f"kappa(V) = [{k_lo:.6g}, {k_hi:.6g}] does not cover Y = {Y[0].tolist()} (eq. SimuLocalRequire)",
-                          "a larger domain V, or a smaller output_set")
+                          "a larger domain V, or a smaller output_set", check="V_covers_Y")
     dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
     monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
 
@@ -145,7 +145,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     cond_ii = float(np.abs(C @ (samples - x_proj)).max() / max(1.0, np.ptp(Y)))
     symbolic_ii = sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0
     if cond_ii > CONDITION_II_RTOL:
-        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
+        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)", check="condition_ii")
 
     art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})

@@ -103,7 +103,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     l_inside = bool(np.all(l_lo >= U[:, 0] - 1e-12) and np.all(l_hi <= U[:, 1] + 1e-12))
     if not l_inside:
         raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}",
-                          "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l")
+                          "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l", check="l_in_U")
 
     art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of f(p, l(xi)) = 0)", "branches": branches,
                                       "grid_points": int(grid.shape[1]), "residual_rtol": RESIDUAL_RTOL})

@@ -176,7 +176,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
             raise SpecError("stabilisability.M", "is not symmetric", "a symmetric positive definite matrix")
         if np.linalg.eigvalsh(M).min() <= 0:
-            raise DesignError("stabilisability.M", f"is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(M).min():.4g})", "M > 0")
+            raise DesignError("stabilisability.M", f"is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(M).min():.4g})", "M > 0", check="M_positive")
         lam_max = largest_decay_rate_for(A_vertices, M)
         lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
         meta.update(solver="none (M given; verified in numpy)")
@@ -197,7 +197,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             if M is None or t >= -MARGIN_TOL:
                 best, _ = largest_decay_rate(A_vertices)
                 hint = f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0 else "a plant with A(u) Hurwitz at every vertex of U"
-                raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g})", hint)
+                raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g})", hint, check="lmi_margin")
 
     vertex_margins = lmi_margins(A_vertices, M, lam)
     sweep_u = sweep(model.U)
@@ -208,7 +208,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise NumericalError(NAME, f"Clarabel reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
     if st.method == "given" and margin > 0:
         raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
-                          f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies")
+                          f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies", check="lmi_margin")
 
     art = Artefact(stage=NAME, meta=meta)
     art.values.update({

@@ -1,0 +1,89 @@
+"""The verdict on Problem 1 (Nonlinear ASHC): one row per condition of the paper, each with its number.
+
+Problem 1 asks for (1) a local simulation function on some V satisfying eq. SimuLocalRequire and (2) an
+m-relation on Y.  By Theorem SimuDesign with Proposition condB, (1) holds when Assumption 1, the
+stabilisability certificate, the invariance PDE, l(V) in U, eq. SimuLocalRequire and condition (B) hold; by
+Lemma mRelatePDE with Theorems mRelateDelta and mCondi, (2) holds when p is injective on V, conditions (i)
+and (ii), m is real on Y, delta has full row rank and b, c solve eqs. mRelatSuffiDiff/In.  Each row reads
+a check a design stage stored; :func:`verdict` is a pure function of the artefacts (and of the error that
+stopped the design, if one did).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .artefacts import Artefact
+from .errors import AshcError
+
+__all__ = ["Row", "ROWS", "verdict"]
+
+
+@dataclass(frozen=True)
+class Row:
+    """One condition of Problem 1 and how it came out."""
+
+    condition: str
+    reference: str
+    requirement: str      # "simulation function" or "m-relation"
+    status: str           # "pass", "fail" or "not reached"
+    value: float | None
+    detail: str
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+#: (condition, paper reference, requirement of Problem 1, stage, stored check name)
+ROWS = (
+    ("Assumption 1: h Lipschitz", "Assumption outputLipstchiz", "simulation function", "bound", "h_lipschitz"),
+    ("alpha_h > 0 (W bounds the output error)", "eq. SimuFuncCondi1", "simulation function", "bound", "alpha_h"),
+    ("stabilisability certificate (LMI margin)", "eq. egLMI, Thm. StabiliseLyap", "simulation function", "stabilise", "lmi_margin"),
+    ("M positive definite", "eq. egV", "simulation function", "stabilise", "M_positive"),
+    ("invariance PDE residual", "eq. SimuDesignCond1", "simulation function", "manifold", "pde_residual"),
+    ("l maps V into U", "Thm. SimuDesign", "simulation function", "manifold", "l_in_U"),
+    ("V covers Y", "eq. SimuLocalRequire", "simulation function", "inverse", "V_covers_Y"),
+    ("condition (B)", "Prop. condB", "simulation function", "bound", "condition_B"),
+    ("p injective on V (left inverse)", "Thm. mCondi, step 1", "m-relation", "inverse", "left_inverse"),
+    ("condition (i)", "Thm. mCondi (i)", "m-relation", "inverse", "condition_i"),
+    ("condition (ii)", "Thm. mCondi (ii), Cor. mRelateGeo", "m-relation", "inverse", "condition_ii"),
+    ("m real on Y", "eq. mEquation", "m-relation", "inverse", "m_real_on_Y"),
+    ("delta full row rank on V", "Thm. mRelateDelta", "m-relation", "delta", "rank_delta"),
+    ("b, c solve the m-relation PDEs", "eqs. mRelatSuffiDiff, mRelatSuffiIn", "m-relation", "delta", "m_relation_link"),
+)
+
+
+def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = None) -> tuple[bool, list[Row]]:
+    """Problem 1's verdict from the design artefacts.
+
+    Parameters
+    ----------
+    arts : dict of str to Artefact
+        The artefacts of the stages that completed.
+    stopped : (stage, error), optional
+        The stage whose design condition failed, and its error, if the design stopped early.
+
+    Returns
+    -------
+    solved : bool
+        True only when every row passes.
+    rows : list of Row
+    """
+    rows = []
+    for condition, reference, requirement, stage, check in ROWS:
+        if stage in arts and check in arts[stage].checks:
+            chk = arts[stage].checks[check]
+            value = float(chk.value) if np.isfinite(chk.value) else None
+            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, chk.description))
+        elif stopped is not None and stopped[0] == stage and getattr(stopped[1], "check", None) in (check, None):
+            # The failure is about this row (or about the stage as a whole, e.g. an unsupported case).
+            rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line()))
+        else:
+            reason = f"stage {stage} did not complete" if stopped is not None else f"no {stage} artefact"
+            rows.append(Row(condition, reference, requirement, "not reached", None, reason))
+    if stopped is not None and not any(r.status == "fail" for r in rows):
+        rows.append(Row("design stage " + stopped[0], "-", "-", "fail", None, stopped[1].line()))
+    solved = all(r.status == "pass" for r in rows)
+    return solved, rows
