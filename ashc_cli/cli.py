@@ -154,9 +154,12 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     spec_obj = load_spec(spec)
     folder = out if out is not None else default_out(spec_obj)
     arts, stopped = {}, None
+    show = _progress(True)
     for stage in DESIGN:
         try:
-            arts.update(run(spec_obj, folder, [stage], force=force and stage == DESIGN[0], on_stage=_progress(True)))
+            # One stage at a time, so a failing condition still leaves the verdict of the stages before it.
+            arts.update(run(spec_obj, folder, [stage], force=force and stage not in arts,
+                            on_stage=lambda report, stage=stage: show(report) if report.stage == stage else None))
         except DesignError as exc:
             stopped = (stage, exc)
             break

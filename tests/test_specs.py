@@ -1,0 +1,71 @@
+"""Every spec in specs/ through `ashc design`, `ashc check` and `ashc simulate`, with hand-derived closed forms."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ashc_cli.artefacts import read_artefact
+from ashc_cli.model import build_model
+from ashc_cli.spec import load_spec
+
+from .conftest import SPECS, ashc
+
+BOOST = SPECS / "boost_converter.yaml"
+E, r, R = 12.0, 0.1, 10.0
+
+
+@pytest.fixture(scope="module")
+def boost(tmp_path_factory):
+    out = tmp_path_factory.mktemp("boost")
+    check = ashc("check", str(BOOST), "--out", str(out), "--json")
+    sim = ashc("simulate", str(BOOST), "--out", str(out), check=True)
+    return {"out": out, "check": check, "simulate": sim, "model": build_model(load_spec(BOOST))}
+
+
+def test_boost_check_says_yes(boost):
+    assert boost["check"].returncode == 0, boost["check"].stderr
+    assert json.loads(boost["check"].stdout)["solved"] is True
+
+
+def test_boost_manifold_is_the_hand_derived_equilibrium(boost):
+    # L di/dt = -r i - d' v + E = 0 and C dv/dt = d' i - v/R = 0 with d' = 1 - xi give
+    # i = E / (R d'^2 + r), v = E R d' / (R d'^2 + r).
+    model = boost["model"]
+    p = model.numeric(read_artefact(boost["out"] / "manifold.h5").exprs["p"], list(model.xi))
+    xi = np.linspace(0, 0.8, 101)
+    d = 1 - xi
+    expected = np.stack([E / (R * d**2 + r), E * R * d / (R * d**2 + r)])
+    assert np.allclose(p(xi)[:, 0, :], expected, rtol=1e-13)
+
+
+def test_boost_left_inverse_is_the_hand_derived_root(boost):
+    # kappa(m) = y is y R d'^2 - E R d' + y r = 0; the branch through d' = 1 at xi = 0 is
+    # d' = (E R + sqrt(E^2 R^2 - 4 r R y^2)) / (2 R y), real for |y| <= E sqrt(R / r) / 2 = 60 V.
+    model = boost["model"]
+    art = read_artefact(boost["out"] / "inverse.h5")
+    m = model.numeric(art.exprs["m"], list(model.x))
+    y = np.linspace(12, 40, 57)
+    expected = 1 - (E * R + np.sqrt(E**2 * R**2 - 4 * r * R * y**2)) / (2 * R * y)
+    assert np.allclose(m(0.0, y)[0, 0], expected, rtol=1e-12)
+    assert art.values["m_real_interval"][1] == pytest.approx(E * math.sqrt(R / r) / 2, rel=1e-12)
+
+
+def test_boost_simulations(boost):
+    sim = read_artefact(boost["out"] / "simulate.h5").values
+    bound = read_artefact(boost["out"] / "bound.h5").values["gain"] * sim["tracking/v_inf"]
+    assert sim["tracking/max_abs_error"] <= bound
+    assert 0.0 <= sim["tracking/u_min"] and sim["tracking/u_max"] <= 1.0
+    assert max(sim["tracking/settle_errors"]) < 1e-3
+    assert sim["m_relation/max_abs_error"] < 1e-6
+
+
+@pytest.mark.parametrize("spec", sorted(SPECS.glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_spec_passes_check_unless_it_says_why_not(spec, tmp_path):
+    # A spec that is meant to fail says so in a comment line "Expected: `ashc check` answers no: <reason>".
+    expected_no = "answers no" in spec.read_text()
+    proc = ashc("check", str(spec), "--out", str(tmp_path / "out"), "--json")
+    data = json.loads(proc.stdout)
+    assert data["solved"] is (not expected_no), proc.stdout
+    assert proc.returncode == (3 if expected_no else 0)
