@@ -69,3 +69,50 @@ def test_every_spec_passes_check_unless_it_says_why_not(spec, tmp_path):
     data = json.loads(proc.stdout)
     assert data["solved"] is (not expected_no), proc.stdout
     assert proc.returncode == (3 if expected_no else 0)
+
+
+LINEAR = SPECS / "linear_double.yaml"
+
+
+@pytest.fixture(scope="module")
+def linear(tmp_path_factory):
+    out = tmp_path_factory.mktemp("linear")
+    ashc("design", str(LINEAR), "--out", str(out), check=True)
+    ashc("simulate", str(LINEAR), "--out", str(out), check=True)
+    return {"out": out, "model": build_model(load_spec(LINEAR))}
+
+
+def test_linear_sylvester_against_an_independent_solve(linear):
+    # A P + B Q = P S solved by vectorisation: (I (x) A - S^T (x) I) vec(P) = -vec(B Q).
+    c = 0.5
+    A = np.array([[0, 1, 0, 0], [-1, -1, c, 0], [0, 0, 0, 1], [c, 0, -1, -1]], dtype=float)
+    B = np.array([[0, 0], [1, 0], [0, 0], [0, 1]], dtype=float)
+    S = np.array([[0, 1], [-2, -1]], dtype=float)
+    Q = np.array([[-1, 0], [-c, 0]], dtype=float)
+    lhs = np.kron(np.eye(2), A) - np.kron(S.T, np.eye(4))
+    P_ref = np.linalg.solve(lhs, -(B @ Q).reshape(-1, order="F")).reshape(4, 2, order="F")
+    model = linear["model"]
+    p = read_artefact(linear["out"] / "manifold.h5").exprs["p"]
+    P = np.array(model.substitute(p.jacobian(model.xi)), dtype=float)
+    assert np.allclose(P, P_ref, atol=1e-12)
+    assert np.allclose(P, [[1, 0], [0, 1], [0, 0], [0, 0]], atol=1e-12)  # the hand solution in the spec header
+
+
+def test_linear_left_inverse_and_link(linear):
+    model = linear["model"]
+    inv = read_artefact(linear["out"] / "inverse.h5")
+    m = model.numeric(inv.exprs["m"], list(model.x))
+    assert np.allclose(m(0.3, -0.7, 5.0, 9.0)[:, 0], [0.3, -0.7], atol=1e-12)  # m(x) = [x1, x2]
+    dl = read_artefact(linear["out"] / "delta.h5")
+    b = model.numeric(dl.exprs["b"], list(model.x))
+    # b = dm/dx f_bar - phi_bar(m) = [x2, -x1 - x2 + c x3] - [x2, -2 x1 - x2] = [0, x1 + c x3]
+    assert np.allclose(b(0.3, -0.7, 5.0, 9.0)[:, 0], [0.0, 0.3 + 0.5 * 5.0], atol=1e-12)
+
+
+def test_linear_simulations(linear):
+    sim = read_artefact(linear["out"] / "simulate.h5").values
+    gain = read_artefact(linear["out"] / "bound.h5").values["gain"]
+    assert sim["tracking/max_abs_error"] <= gain * sim["tracking/v_inf"]
+    assert max(sim["tracking/settle_errors"]) < 1e-3
+    assert np.allclose(sim["tracking/xi_ref"][1], 0.0, atol=1e-6)  # least-norm reference: xi2 = 0
+    assert sim["m_relation/max_abs_error"] < 1e-6

@@ -10,11 +10,19 @@ on V is kept (eq. egm for the Cuk converter).  The stage checks, each with a sto
   i.e. h(x) = kappa(m(x)) on random samples of X_y = {x : h(x) in Y} (and symbolically where sympy can);
 * where m is real: the output interval on which every radicand of m is non-negative (eq. mEquation:
   |x4| <= E / (2 sqrt(R_i G_L)) = 126.91 V for the converter), which must contain Y.
+
+When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = P^+ (x - p0) for any
+numbers of abstract states and outputs: p is injective iff P has full column rank, m is real everywhere, and
+kappa(V) covers Y iff every vertex of the box Y is reached from V (a linear program per vertex, since kappa(V)
+is a convex polytope).
 """
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
+import scipy.optimize as sopt
 import sympy as sp
 
 from ..artefacts import Artefact, Check
@@ -61,6 +69,74 @@ def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, f
     return lo, hi, texts
 
 
+def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_grid: np.ndarray) -> None:
+    """Conditions (i) and (ii) of Theorem mCondi, measured the same way on either path."""
+    m_num = model.numeric(m, list(model.x))
+    p_num = model.numeric(p, list(model.xi))
+    p_back = p_num(*m_num(*p_grid)[:, 0, :])[:, 0, :]
+    cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
+    C = model.C
+    if C is None:
+        raise DesignError("concrete.h", "condition (ii) is checked through Corollary mRelateGeo, which needs a linear h(x) = C x", "a linear output map in this version")
+    box = np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
+    samples = sample_output_region(C, model.Y, box, SAMPLES)
+    x_proj = p_num(*m_num(*samples)[:, 0, :])[:, 0, :]
+    cond_ii = float(np.abs(C @ (samples - x_proj)).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
+    if cond_ii > CONDITION_II_RTOL:
+        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)", check="condition_ii")
+    art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
+    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
+    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+
+
+def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """The left inverse m(x) = P^+ (x - p0) of an affine p(xi) = P xi + p0, and its checks."""
+    p = man.expr("p")
+    P = np.array(model.substitute(p.jacobian(model.xi)), dtype=float)
+    p0 = np.array(model.substitute(p.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+    sv = np.linalg.svd(P, compute_uv=False)
+    if sv.min() <= 1e-12 * max(1.0, sv.max()):
+        raise DesignError("abstract", f"p(xi) = P xi + p0 is not injective: P has rank {int(np.sum(sv > 1e-12 * sv.max()))} < n_hat = {model.n_hat}",
+                          "P of full column rank (Thm. mCondi)", check="left_inverse")
+    P_plus = np.linalg.pinv(P)
+    m = sp.Matrix(P_plus.tolist()) * (model.x - sp.Matrix(p0.tolist()))
+    grid = np.asarray(man.value("xi_grid"))
+    p_grid = np.asarray(man.value("p_grid"))
+    left_residual = float(np.abs(P_plus @ (p_grid - p0[:, None]) - grid).max())
+
+    # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope).
+    kappa = kap.expr("kappa")
+    K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
+    k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+    Y, V = model.Y, model.V
+    missing = []
+    for vertex in itertools.product(*[(lo, hi) for lo, hi in Y]):
+        lp = sopt.linprog(np.zeros(model.n_hat), A_eq=K, b_eq=np.array(vertex) - k0, bounds=[tuple(b) for b in V], method="highs")
+        if lp.status != 0:
+            missing.append(list(vertex))
+    corners = np.array(list(itertools.product(*[(lo, hi) for lo, hi in V]))).T
+    k_corners = K @ corners + k0[:, None]
+    k_range = np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
+    covers = not missing
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): no xi in V reaches the output(s) {missing}",
+                          "a larger domain V, or a smaller output_set", check="V_covers_Y")
+
+    art = Artefact(stage=NAME, meta={"method": "linear: m(x) = P^+ (x - p0)", "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "dm_dx": m.jacobian(model.x)})
+    art.values.update({
+        "V": V, "Y": Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
+        "left_inverse_residual": left_residual, "condition_ii_symbolic": bool(np.abs(K @ P_plus @ np.eye(model.n) - np.array(model.C)).max() < 1e-12),
+        "min_abs_dkappa": float(np.linalg.svd(K, compute_uv=False).min()),
+    })
+    art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["V_covers_Y"] = Check(float(len(missing)), covers, "eq. SimuLocalRequire: vertices of Y not reached from V (0)")
+    art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
+    _checks_common(art, model, p, m, p_grid)
+    return art
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
 
@@ -75,11 +151,13 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         If the shapes are not supported, no branch of m is a left inverse on V (p not injective),
         kappa(V) does not cover Y, or m is not real on all of Y.
     """
-    if model.n_hat != 1 or model.p != 1:
-        raise DesignError("abstract.states", f"the closed-form left inverse needs one abstract state and one output (n_hat = {model.n_hat}, p = {model.p})",
-                          "a scalar abstraction of a single-output plant in this version")
     man, kap = upstream["manifold"], upstream["kappa"]
     p, kappa = man.expr("p"), kap.expr("kappa")
+    if not any(e.free_symbols & set(model.xi) for e in p.jacobian(model.xi)):
+        return run_linear(model, man, kap)
+    if model.n_hat != 1 or model.p != 1:
+        raise DesignError("abstract.states", f"the closed-form left inverse of a nonlinear p needs one abstract state and one output (n_hat = {model.n_hat}, p = {model.p})",
+                          "a scalar abstraction of a single-output plant, or an affine p, in this version")
     xi = model.xi[0]
     y = output_symbol()
     mu = sp.Dummy("mu", real=True)
@@ -128,24 +206,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
     monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
 
-    # Condition (i): p(m(x)) = x on Im(p).
-    m_num = model.numeric(m, list(model.x))
-    p_num = model.numeric(p, list(model.xi))
-    p_back = p_num(m_num(*p_grid)[0, 0])[:, 0, :]
-    cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
-
-    # Condition (ii), via Corollary mRelateGeo (h linear): x - p(m(x)) in Ker h, on samples of X_y.
-    C = model.C
-    if C is None:
-        raise DesignError("concrete.h", "condition (ii) is checked through Corollary mRelateGeo, which needs a linear h(x) = C x", "a linear output map in this version")
-    box = np.c_[p_grid.min(axis=1), p_grid.max(axis=1)]
-    box = np.c_[box[:, 0] - np.ptp(box, axis=1) - 1.0, box[:, 1] + np.ptp(box, axis=1) + 1.0]
-    samples = sample_output_region(C, Y, box, SAMPLES)
-    x_proj = p_num(m_num(*samples)[0, 0])[:, 0, :]
-    cond_ii = float(np.abs(C @ (samples - x_proj)).max() / max(1.0, np.ptp(Y)))
     symbolic_ii = sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0
-    if cond_ii > CONDITION_II_RTOL:
-        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)", check="condition_ii")
 
     art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
@@ -153,15 +214,14 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.values.update({
         "V": model.V, "Y": Y, "kappa_range": np.array([[k_lo, k_hi]]), "m_real_interval": np.array([real_lo, real_hi]),
         "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
-        "condition_i": cond_i, "condition_ii": cond_ii, "condition_ii_symbolic": bool(symbolic_ii),
+        "condition_ii_symbolic": bool(symbolic_ii),
         "min_abs_dkappa": float(np.abs(dkappa).min()),
     })
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["kappa_monotone"] = Check(float(np.abs(dkappa).min()), monotone, "min |dkappa/dxi| on V (kappa strictly monotone, so p is injective)")
     art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
-    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
-    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+    _checks_common(art, model, p, m, p_grid)
     return art
 
 
@@ -172,7 +232,8 @@ def summarise(art: Artefact) -> dict:
         "V": np.asarray(v["V"]).tolist(), "m": [str(e) for e in art.exprs["m"]],
         "left_inverse_residual": float(v["left_inverse_residual"]), "condition_i": float(v["condition_i"]),
         "condition_ii": float(v["condition_ii"]), "condition_ii_symbolic": bool(v["condition_ii_symbolic"]),
-        "m_real_interval": np.asarray(v["m_real_interval"]).tolist(), "kappa_range": np.asarray(v["kappa_range"]).tolist(),
+        "m_real_interval": [float(b) if np.isfinite(b) else None for b in np.asarray(v["m_real_interval"])],
+        "kappa_range": np.asarray(v["kappa_range"]).tolist(), "method": art.meta.get("method", "closed form (sympy.solve of kappa(m) = y)"),
     }
 
 

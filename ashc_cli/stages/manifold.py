@@ -4,13 +4,18 @@
 
 With phi_bar = 0 (Remark solvePDE) the PDE is the algebraic equation f(p(xi), l(xi)) = 0: p(xi) is the
 equilibrium of the concrete system under the constant input l(xi).  It is solved symbolically with the
-parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.  The residual of the PDE is
+parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.
+
+With phi_bar != 0 on a linear plant (f_bar(x) = A x + a, g = B constant) and affine phi_bar(xi) = S xi + s,
+l(xi) = Q xi + q0, p(xi) = P xi + p0 where P solves the Sylvester equation A P + B Q = P S (Girard & Pappas
+2009, Remark LinearCompare) and A p0 = P s - a - B q0; it has one solution when A and S share no eigenvalue.  The residual of the PDE is
 evaluated on a grid of V and stored, together with the check that l maps V into U (Theorem SimuDesign).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg as sla
 import sympy as sp
 
 from ..artefacts import Artefact, Check
@@ -59,6 +64,44 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
 
 
+def _affine_parts(exprs: sp.Matrix, args: sp.Matrix, model: Model) -> tuple[np.ndarray, np.ndarray] | None:
+    """(J, c) with exprs = J args + c numerically, or None if exprs is not affine in args."""
+    J = exprs.jacobian(args)
+    if any(e.free_symbols & set(args) for e in J):
+        return None
+    c = exprs.xreplace({a: 0 for a in args})
+    return np.array(model.substitute(J), dtype=float), np.array(model.substitute(c), dtype=float).reshape(-1)
+
+
+#: A and S must have eigenvalues at least this far apart for the Sylvester equation to be well posed.
+SYLVESTER_SEPARATION = 1e-8
+
+
+def solve_sylvester(model: Model) -> sp.Matrix | None:
+    """p(xi) = P xi + p0 for a linear plant and affine phi_bar, l (Remark LinearCompare), or None.
+
+    Raises
+    ------
+    DesignError
+        If A and S share an eigenvalue (no unique solution) or A is singular where an offset is needed.
+    """
+    parts = [_affine_parts(model.f_bar, model.x, model), _affine_parts(model.phi_bar, model.xi, model), _affine_parts(model.l, model.xi, model)]
+    if any(part is None for part in parts) or any(e.free_symbols & set(model.x) for e in model.g):
+        return None
+    (A, a), (S, s0), (Q, q0) = parts
+    B = np.array(model.substitute(model.g), dtype=float)
+    gap = np.abs(np.linalg.eigvals(A)[:, None] - np.linalg.eigvals(S)[None, :]).min()
+    if gap < SYLVESTER_SEPARATION:
+        raise DesignError("abstract.phi_bar", f"A and S share an eigenvalue (distance {gap:.3g}): the Sylvester equation A P + B Q = P S has no unique solution",
+                          "a phi_bar whose eigenvalues differ from the plant's")
+    P = sla.solve_sylvester(A, -S, -B @ Q)              # A P - P S = -B Q
+    try:
+        p0 = np.linalg.solve(A, P @ s0 - a - B @ q0)     # constant part: A p0 + a + B q0 = P s0
+    except np.linalg.LinAlgError:
+        raise DesignError("concrete.f_bar", "A is singular, so the offset p0 of p(xi) = P xi + p0 is not determined", "an invertible A, or offsets that vanish") from None
+    return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Solve eq. SimuDesignCond1 for p and check it.
 
@@ -77,10 +120,15 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     if model.V is None:
         raise DesignError("abstract.domain", "'auto' is not supported by this version", "a box [[lo, hi], ...] per abstract state")
-    if any(sp.simplify(e) != 0 for e in model.phi_bar):
-        raise DesignError("abstract.phi_bar", "phi_bar != 0 needs a solver of the invariance PDE (eq. SimuDesignCond1), which this version does not have",
-                          "phi_bar: ['0', ...] (the algebraic case f(p(xi), l(xi)) = 0)")
-    p, branches = solve_algebraic(model)
+    if all(sp.simplify(e) == 0 for e in model.phi_bar):
+        p, branches = solve_algebraic(model)
+        method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
+    else:
+        p, branches = solve_sylvester(model), 1
+        method = "Sylvester equation A P + B Q = P S (scipy.linalg.solve_sylvester)"
+        if p is None:
+            raise DesignError("abstract.phi_bar", "phi_bar != 0 on a nonlinear plant needs the polynomial PDE solver of eq. SimuDesignCond1, which this version does not have",
+                              "phi_bar: ['0', ...] (the algebraic case), or a linear plant with affine phi_bar and l (Sylvester)")
     dp = p.jacobian(model.xi)
 
     grid = domain_grid(model.V, GRID_POINTS)
@@ -105,7 +153,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}",
                           "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l", check="l_in_U")
 
-    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of f(p, l(xi)) = 0)", "branches": branches,
+    art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
                                       "grid_points": int(grid.shape[1]), "residual_rtol": RESIDUAL_RTOL})
     art.exprs.update({"p": p, "dp_dxi": dp})
     art.values.update({"xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,

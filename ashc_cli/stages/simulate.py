@@ -16,6 +16,7 @@ Both use scipy's DOP853 with the tolerances recorded in the artefact.
 
 from __future__ import annotations
 
+import cvxpy as cp
 import numpy as np
 import scipy.integrate as sint
 import scipy.optimize as sopt
@@ -86,10 +87,24 @@ def _pinv(a: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(a)
 
 
-def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int) -> np.ndarray:
-    """The least-norm xi in V with kappa(xi) = level (scalar abstraction: roots on a fine grid, refined)."""
+def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int, kappa: sp.Matrix) -> np.ndarray:
+    """The least-norm xi in V with kappa(xi) = level.
+
+    Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
+    Scalar abstraction: the roots of kappa - level on a fine grid of V, refined, the smallest kept.
+    """
+    where = f"simulate.tracking.reference_levels[{index}]"
+    if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
+        K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
+        k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+        xi = cp.Variable(model.n_hat)
+        problem = cp.Problem(cp.Minimize(cp.sum_squares(xi)), [K @ xi + k0 == level, xi >= model.V[:, 0], xi <= model.V[:, 1]])
+        problem.solve(solver=cp.CLARABEL)
+        if xi.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+            raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V ({problem.status})", "levels inside kappa(V)")
+        return np.asarray(xi.value, dtype=float)
     if model.n_hat != 1:
-        raise DesignError("simulate.tracking", "set-point references need a scalar abstraction in this version", "one abstract state")
+        raise DesignError("simulate.tracking", "set-point references of a nonlinear kappa need a scalar abstraction in this version", "one abstract state, or an affine kappa")
     lo, hi = model.V[0]
     grid = np.linspace(lo, hi, 20001)
     err = plant.kappa(grid)[0, 0] - level[0]
@@ -98,7 +113,7 @@ def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int) 
         roots.append(sopt.brentq(lambda s: plant.kappa(s)[0, 0] - level[0], grid[k], grid[k + 1], xtol=1e-14))
     if not roots:
         k_lo, k_hi = float(np.min(err + level[0])), float(np.max(err + level[0]))
-        raise DesignError(f"simulate.tracking.reference_levels[{index}]", f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
+        raise DesignError(where, f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
                           "levels inside kappa(V)")
     return np.array([min(roots, key=abs)])
 
@@ -153,7 +168,7 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
         raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
     x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
     levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.reference_levels]
-    refs = [reference_state(model, plant, level, i) for i, level in enumerate(levels)]
+    refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
     nh = model.n_hat
 
     def rhs_for(xi_ref):
@@ -255,8 +270,9 @@ def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tupl
 
     leaves_real_region.terminal = True
     leaves_real_region.direction = -1
+    bounded = model.p == 1 and np.isfinite(real_lo) and np.isfinite(real_hi)
     t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
-    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation", events=[leaves_real_region])
+    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation", events=[leaves_real_region] if bounded else None)
     if sol.status == 1:
         t_out, z_out = sol.t_events[0][0], sol.y_events[0][0]
         raise DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {plant.at_x(z_out[nh:])[2][0, 0]:.6g} reaches the edge of [{real_lo:.6g}, {real_hi:.6g}], "
