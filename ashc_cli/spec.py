@@ -176,6 +176,8 @@ class _SafeStrictLoader(yaml.SafeLoader):
         seen = set()
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, str):
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"key {key!r} is not a name (every key of a spec is text)", key_node.start_mark)
             if key in seen:
                 raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"duplicate key '{key}'", key_node.start_mark)
             seen.add(key)
@@ -245,15 +247,18 @@ def _validation_to_spec_error(exc: ValidationError) -> SpecError:
     # An unknown key explains the "missing" errors it causes, so it goes first; otherwise a Union
     # reports one error per branch and the most specific (longest location) says most.
     err = max(errors, key=lambda e: (e["type"] == "extra_forbidden", len(e["loc"])))
-    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
     kind = err["type"]
-    where = _path(loc)
     if kind == "extra_forbidden":
-        model = _model_at(loc[:-1])
+        # The offending key can be anything YAML allows (a number, punctuation): keep it as it is.
+        parent = tuple(p for p in err["loc"][:-1] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+        key = str(err["loc"][-1]) if err["loc"] else "?"
+        model = _model_at(parent)
         valid = sorted(model.model_fields) if model else []
-        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+        close = difflib.get_close_matches(key, valid, n=1)
         hint = f"did you mean '{close[0]}'? valid keys: {', '.join(valid)}" if close else f"one of: {', '.join(valid)}"
-        return SpecError(where, f"unknown key '{loc[-1]}'", hint)
+        return SpecError(_path(parent + (key,)), f"unknown key {_short(key)}", hint)
+    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+    where = _path(loc)
     if kind == "missing":
         return SpecError(where, "missing", "this key (see spec-format.md)")
     value = err.get("input")

@@ -84,3 +84,10 @@ def test_file_errors(tmp_path):
         load_spec(tmp_path / "absent.yaml")
     with pytest.raises(SpecError, match="is a directory"):
         load_spec(tmp_path)
+
+
+def test_unknown_key_that_is_not_a_name():
+    # Found by `make fuzz`: a top-level key that is not an identifier used to crash the error formatter.
+    assert "unknown key '0:'" in error_of("'0:': 1\n")
+    assert "key 7 is not a name" in error_of("7: x\n")
+    assert "is not a name" in error_of("name: a\nparameters: {1.5: 2}\n")
