@@ -93,6 +93,10 @@ class Abstract(_Strict):
     l: list[Expr]
     domain: Union[Literal["auto"], list[Bounds]]
     delta: DeltaSpec = "identity"
+    #: Relative residual the polynomial solver of the invariance PDE must reach on an independent grid.
+    pde_tolerance: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 1e-8
+    #: Highest polynomial degree the PDE solver tries.
+    pde_max_degree: Annotated[int, Field(ge=1, le=30)] = 12
 
 
 class Interface(_Strict):

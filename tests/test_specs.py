@@ -116,3 +116,44 @@ def test_linear_simulations(linear):
     assert max(sim["tracking/settle_errors"]) < 1e-3
     assert np.allclose(sim["tracking/xi_ref"][1], 0.0, atol=1e-6)  # least-norm reference: xi2 = 0
     assert sim["m_relation/max_abs_error"] < 1e-6
+
+
+CASCADE = SPECS / "nonlinear_cascade.yaml"
+
+
+@pytest.fixture(scope="module")
+def cascade(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cascade")
+    ashc("design", str(CASCADE), "--out", str(out), check=True)
+    ashc("simulate", str(CASCADE), "--out", str(out), check=True)
+    return {"out": out, "model": build_model(load_spec(CASCADE))}
+
+
+def test_polynomial_pde_solver_finds_the_exact_manifold(cascade):
+    # The exact solution of eq. SimuDesignCond1 for this plant is p(xi) = [xi, xi^2] (see the spec header).
+    model = cascade["model"]
+    art = read_artefact(cascade["out"] / "manifold.h5")
+    assert art.meta["method"].startswith("Chebyshev collocation, degree 2")
+    xi = np.linspace(0, 1, 201)
+    p = model.numeric(art.exprs["p"], list(model.xi))(xi)[:, 0, :]
+    assert np.abs(p - np.stack([xi, xi**2])).max() < 1e-10
+    assert art.values["residual"] < 1e-10
+
+
+def test_cascade_left_inverse_and_runs(cascade):
+    model = cascade["model"]
+    m = model.numeric(read_artefact(cascade["out"] / "inverse.h5").exprs["m"], list(model.x))
+    y = np.linspace(0.2, 1.5, 27)
+    assert np.allclose(m(y / 2, y / 2)[0, 0], (-1 + np.sqrt(1 + 4 * y)) / 2, atol=1e-10)
+    sim = read_artefact(cascade["out"] / "simulate.h5").values
+    gain = read_artefact(cascade["out"] / "bound.h5").values["gain"]
+    assert sim["tracking/max_abs_error"] <= gain * sim["tracking/v_inf"]
+    assert sim["m_relation/max_abs_error"] < 1e-6
+
+
+def test_a_pde_the_solver_cannot_fit_says_the_best_residual(tmp_path):
+    spec = tmp_path / "low_degree.yaml"
+    spec.write_text(CASCADE.read_text().replace("pde_tolerance: 1.0e-10", "pde_tolerance: 1.0e-10\n  pde_max_degree: 1"))
+    proc = ashc("manifold", str(spec), "--out", str(tmp_path / "o"))
+    assert proc.returncode == 3
+    assert "no polynomial of degree <= 1 solves eq. SimuDesignCond1" in proc.stderr and "best relative residual is" in proc.stderr

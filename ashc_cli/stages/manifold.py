@@ -8,14 +8,20 @@ parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.
 
 With phi_bar != 0 on a linear plant (f_bar(x) = A x + a, g = B constant) and affine phi_bar(xi) = S xi + s,
 l(xi) = Q xi + q0, p(xi) = P xi + p0 where P solves the Sylvester equation A P + B Q = P S (Girard & Pappas
-2009, Remark LinearCompare) and A p0 = P s - a - B q0; it has one solution when A and S share no eigenvalue.  The residual of the PDE is
+2009, Remark LinearCompare) and A p0 = P s - a - B q0; it has one solution when A and S share no eigenvalue.
+
+Otherwise (phi_bar != 0, nonlinear plant, one abstract state) p is approximated by Chebyshev polynomials on V,
+fitted by collocation (nonlinear least squares on the PDE residual at Chebyshev nodes), raising the degree
+until the relative residual on an independent grid is below ``abstract.pde_tolerance`` (Remark solvePDE).  The residual of the PDE is
 evaluated on a grid of V and stored, together with the check that l maps V into U (Theorem SimuDesign).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import numpy.polynomial.chebyshev as cheb
 import scipy.linalg as sla
+import scipy.optimize as sopt
 import sympy as sp
 
 from ..artefacts import Artefact, Check
@@ -102,6 +108,71 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
 
 
+#: Coefficients below this fraction of the largest are dropped from the fitted polynomial (round-off).
+CHOP_RTOL = 1e-12
+
+
+def solve_polynomial(model: Model) -> tuple[sp.Matrix, int, float]:
+    """Chebyshev collocation for eq. SimuDesignCond1 with one abstract state.
+
+    Returns
+    -------
+    p : sympy Matrix
+        Polynomials in xi (power basis, float coefficients).
+    degree : int
+        The degree that reached the tolerance.
+    residual : float
+        Relative residual on an independent grid.
+
+    Raises
+    ------
+    DesignError
+        If n_hat > 1, or no degree up to ``abstract.pde_max_degree`` reaches ``abstract.pde_tolerance``
+        (the message gives the best residual reached).
+    """
+    if model.n_hat != 1:
+        raise DesignError("abstract.states", "the polynomial solver of eq. SimuDesignCond1 handles one abstract state in this version",
+                          "one abstract state, a linear plant (Sylvester), or phi_bar = 0")
+    tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
+    a, b = model.V[0]
+    fbar = model.numeric(model.f_bar, list(model.x))
+    g = model.numeric(model.g, list(model.x))
+    phi = model.numeric(model.phi_bar, list(model.xi))
+    l = model.numeric(model.l, list(model.xi))
+    n = model.n
+
+    def residual(coeffs: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, float]:
+        s = (2 * xs - (a + b)) / (b - a)
+        P = cheb.chebval(s, coeffs.T)                                   # (n, N)
+        dP = cheb.chebval(s, cheb.chebder(coeffs.T)) * 2 / (b - a) if coeffs.shape[1] > 1 else np.zeros_like(P)
+        lhs = dP * phi(xs)[0, 0]
+        rhs = fbar(*P)[:, 0, :] + np.einsum("ijN,jN->iN", g(*P), l(xs)[:, 0, :])
+        return lhs - rhs, float(max(1.0, np.abs(lhs).max(), np.abs(rhs).max()))
+
+    check = np.linspace(a, b, 1001)
+    coeffs = np.zeros((n, 1))
+    best = np.inf
+    for degree in range(1, max_degree + 1):
+        coeffs = np.c_[coeffs, np.zeros(n)]
+        nodes = (a + b) / 2 + (b - a) / 2 * np.cos(np.pi * (np.arange(2 * (degree + 1)) + 0.5) / (2 * (degree + 1)))
+        fit = sopt.least_squares(lambda c: residual(c.reshape(n, degree + 1), nodes)[0].ravel(), coeffs.ravel(), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        coeffs = fit.x.reshape(n, degree + 1)
+        r, scale = residual(coeffs, check)
+        best = min(best, float(np.abs(r).max() / scale))
+        if best <= tol:
+            s = sp.Symbol("_s", real=True)
+            xi = model.xi[0]
+            rows = []
+            for row in coeffs:
+                power = cheb.cheb2poly(row)
+                power[np.abs(power) < CHOP_RTOL * max(np.abs(power).max(), 1e-300)] = 0.0
+                poly = sum(sp.Float(c) * s**k for k, c in enumerate(power) if c != 0)
+                rows.append(sp.expand(sp.sympify(poly).xreplace({s: (2 * xi - (a + b)) / (b - a)})))
+            return sp.Matrix(rows), degree, best
+    raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. SimuDesignCond1 on V to {tol:g}: the best relative residual is {best:.3g}",
+                      "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Solve eq. SimuDesignCond1 for p and check it.
 
@@ -127,8 +198,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         p, branches = solve_sylvester(model), 1
         method = "Sylvester equation A P + B Q = P S (scipy.linalg.solve_sylvester)"
         if p is None:
-            raise DesignError("abstract.phi_bar", "phi_bar != 0 on a nonlinear plant needs the polynomial PDE solver of eq. SimuDesignCond1, which this version does not have",
-                              "phi_bar: ['0', ...] (the algebraic case), or a linear plant with affine phi_bar and l (Sylvester)")
+            p, degree, fit_residual = solve_polynomial(model)
+            method = f"Chebyshev collocation, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
     dp = p.jacobian(model.xi)
 
     grid = domain_grid(model.V, GRID_POINTS)
