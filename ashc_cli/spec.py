@@ -77,7 +77,7 @@ class Stabilisability(_Strict):
 
     method: Literal["polytopic_lmi", "given"]
     decay_rate: Union[Annotated[float, Field(gt=0, allow_inf_nan=False)], Literal["maximise"]]
-    feedback: Literal["identity"] = "identity"
+    feedback: Literal["identity", "linear_gain"] = "identity"
     M: list[list[FiniteFloat]] | None = None
 
 

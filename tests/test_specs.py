@@ -157,3 +157,14 @@ def test_a_pde_the_solver_cannot_fit_says_the_best_residual(tmp_path):
     proc = ashc("manifold", str(spec), "--out", str(tmp_path / "o"))
     assert proc.returncode == 3
     assert "no polynomial of degree <= 1 solves eq. SimuDesignCond1" in proc.stderr and "best relative residual is" in proc.stderr
+
+
+def test_unstable_plant_tracks_with_the_synthesised_gain(tmp_path):
+    spec = SPECS / "unstable_linear.yaml"
+    ashc("simulate", str(spec), "--out", str(tmp_path), check=True)
+    sim = read_artefact(tmp_path / "simulate.h5").values
+    gain = read_artefact(tmp_path / "bound.h5").values["gain"]
+    assert sim["tracking/max_abs_error"] <= gain * sim["tracking/v_inf"]
+    assert max(sim["tracking/settle_errors"]) < 1e-3   # psi settles; y follows through K (x - p(xi))
+    assert np.abs(sim["tracking/y"]).max() < 2.0         # the concrete output stays bounded
+    assert sim["m_relation/max_abs_error"] < 1e-6

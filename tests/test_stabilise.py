@@ -76,3 +76,26 @@ def test_f_not_affine_in_x_is_refused():
     model = model_with(('"x1/C_2"', '"x1**2/C_2"'))
     with pytest.raises(DesignError, match="not affine in x"):
         stabilise.run(model, {})
+
+
+def test_linear_gain_makes_an_unstable_plant_incrementally_stable():
+    from .conftest import SPECS
+
+    model = build_model(load_spec(SPECS / "unstable_linear.yaml"))
+    art = stabilise.run(model, {})
+    M, K, lam = art.values["M"], art.values["K"], art.values["lambda"]
+    A = np.array([[0.0, 1.0], [1.0, 0.0]])
+    B = np.array([[0.0], [1.0]])
+    assert np.linalg.eigvals(A).real.max() > 0          # not incrementally stable on its own
+    Acl = A + B @ K
+    # Independent re-check of (A + B K)^T M + M (A + B K) <= -lambda M (eq. egLMI with k = u + K (z - x)).
+    assert np.linalg.eigvalsh(Acl.T @ M + M @ Acl + lam * M).max() <= 0
+    assert np.linalg.eigvalsh(M).min() > 0 and lam == 2.0
+
+
+def test_identity_feedback_on_an_unstable_plant_suggests_linear_gain():
+    from .conftest import SPECS
+
+    text = (SPECS / "unstable_linear.yaml").read_text().replace("feedback: linear_gain", "feedback: identity")
+    with pytest.raises(DesignError, match="feedback: linear_gain"):
+        stabilise.run(build_model(parse_spec_text(text)), {})

@@ -50,7 +50,7 @@ class _Plant:
 
     def __init__(self, model: Model, up: dict[str, Artefact]):
         self.n, self.m, self.nh, self.mh, self.p = model.n, model.m, model.n_hat, model.m_hat, model.p
-        xi_terms = [model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa")]
+        xi_terms = [model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"), up["manifold"].expr("p")]
         x_terms = [model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), up["inverse"].expr("m")]
         self._xi_shapes = [t.shape for t in xi_terms]
         self._x_shapes = [t.shape for t in x_terms]
@@ -59,6 +59,7 @@ class _Plant:
         self.p_map = model.numeric(up["manifold"].expr("p"), list(model.xi))
         self.kappa = model.numeric(up["kappa"].expr("kappa"), list(model.xi))
         self.L = np.asarray(up["bound"].value("L"))
+        self.K = np.asarray(up["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
         self.U = model.U
 
     @staticmethod
@@ -71,7 +72,7 @@ class _Plant:
         return out
 
     def at_xi(self, xi: np.ndarray) -> list[np.ndarray]:
-        """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1)] at xi."""
+        """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1), p (n,1)] at xi."""
         return self._split(self._xi_f(*xi), self._xi_shapes)
 
     def at_x(self, x: np.ndarray) -> list[np.ndarray]:
@@ -127,14 +128,15 @@ def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarra
     v : ndarray (m_hat,)
         clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max).
     u : ndarray (m,)
-        u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, egInterfaceSat; q = 0 or eq. egqLS).
+        u_w = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (eqs. Interface, egInterface, egInterfaceSat; q = 0 or
+        eq. egqLS; K = 0 unless feedback linear_gain).
     dxi, dx : ndarray
         phi_bar(xi) + delta(xi) v and f_bar(x) + g(x) u.
     """
-    phi, delta, l, dpd, _ = plant.at_xi(xi)
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
     f_bar, g, *_ = plant.at_x(x)
     v = np.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
-    u = l[:, 0].copy()
+    u = l[:, 0] + plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) of eq. Interface (K = 0 for identity feedback)
     if q_kind == "least_squares":
         q = _pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. egqLS
         u = u + q @ v

@@ -8,6 +8,11 @@ With f(x, u) = A(u) x + b(u) and A affine in u (eq. ConvertSystemLinear), V(x, z
 for all u in U; since the left side is affine in u it suffices to impose it at the vertices of the box U.
 The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
 the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.
+
+``feedback: linear_gain`` (a plant that is not incrementally stable, with g(x) = B constant) synthesises K so
+that k(z, x, u) = u + K (z - x) renders the pair incrementally stable: with X = M^-1 and Y = K X the
+condition (A(u) + B K)^T M + M (A(u) + B K) <= -lambda M becomes the LMI
+A X + X A^T + B Y + Y^T B^T + lambda X <= t I (t < 0); the interface then adds K (x - p(xi)) (eq. Interface).
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ MARGIN_TOL = 1e-7
 #: Relative width at which the bisection on lambda stops.
 BISECTION_RTOL = 1e-4
 SWEEP_POINTS = 201
+#: With a synthesised feedback the decay rate is searched up to this cap (1/s) by ``maximise``.
+FEEDBACK_MAX_RATE = 100.0
 
 
 def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
@@ -115,21 +122,60 @@ def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, 
     return Mv, float(t.value), str(problem.status)
 
 
-def largest_decay_rate(A_list: list[np.ndarray]) -> tuple[float, np.ndarray | None]:
+def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float) -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
+    """Find M and K with (A + B K)^T M + M (A + B K) <= t M-congruent margin, for a fixed lambda.
+
+    Solved in X = M^-1, Y = K X: A X + X A^T + B Y + Y^T B^T + lambda X <= t I, X >= eps I, trace(X) = n.
+
+    Returns
+    -------
+    M, K : ndarray or None
+    t : float
+        The optimal margin (< 0 when feasible).
+    status : str
+    """
+    n, m = B.shape
+    X = cp.Variable((n, n), symmetric=True)
+    Y = cp.Variable((m, n))
+    t = cp.Variable()
+    eye = np.eye(n)
+    constraints = [X >> M_MIN_EIG * eye, cp.trace(X) == n]
+    constraints += [A @ X + X @ A.T + B @ Y + Y.T @ B.T + lam * X << t * eye for A in A_list]
+    problem = cp.Problem(cp.Minimize(t), constraints)
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.SolverError as exc:
+        raise NumericalError(NAME, f"Clarabel failed on the feedback LMI at lambda = {lam:g} ({exc})", "a solvable LMI") from None
+    if X.value is None or t.value is None:
+        return None, None, np.inf, str(problem.status)
+    Xv = 0.5 * (X.value + X.value.T)
+    M = np.linalg.inv(Xv)
+    return 0.5 * (M + M.T), Y.value @ M, float(t.value), str(problem.status)
+
+
+def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None) -> tuple[float, np.ndarray | None]:
     """The largest lambda for which eq. egLMI is feasible, by bisection, and its M.
 
     lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces
     Re eig(A) <= -lambda / 2), which brackets the search.
     """
-    upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
+    if B is None:
+        upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
+    else:
+        upper = FEEDBACK_MAX_RATE  # with feedback any rate may be reachable: search up to a cap
     if upper <= 0:
         return 0.0, None
     lo, hi, best = 0.0, upper, None
     while hi - lo > BISECTION_RTOL * upper:
         mid = 0.5 * (lo + hi)
-        M, t, _ = solve_lmi(A_list, mid)
+        if B is None:
+            M, t, _ = solve_lmi(A_list, mid)
+            found = M
+        else:
+            M, K, t, _ = solve_lmi_feedback(A_list, B, mid)
+            found = None if M is None else (M, K)
         if M is not None and t < -MARGIN_TOL:
-            lo, best = mid, M
+            lo, best = mid, found
         else:
             hi = mid
     return lo, best
@@ -170,8 +216,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     verts = vertices(model.U)
     A_vertices = [A_num(*vtx) for vtx in verts]
     meta: dict = {"method": st.method, "feedback": st.feedback}
+    K = np.zeros((model.m, model.n))
 
-    if st.method == "given":
+    if st.feedback == "linear_gain":
+        M, K, lam, meta = _synthesise_feedback(model, st, A_vertices, meta)
+    elif st.method == "given":
         M = np.array(st.M, dtype=float)
         if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
             raise SpecError("stabilisability.M", "is not symmetric", "a symmetric positive definite matrix")
@@ -196,15 +245,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             meta.update(status=status, optimal_margin=t)
             if M is None or t >= -MARGIN_TOL:
                 best, _ = largest_decay_rate(A_vertices)
-                hint = f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0 else "a plant with A(u) Hurwitz at every vertex of U"
+                hint = (f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0
+                        else "a plant with A(u) Hurwitz at every vertex of U, or feedback: linear_gain (g constant)")
                 raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g})", hint, check="lmi_margin")
 
-    vertex_margins = lmi_margins(A_vertices, M, lam)
+    B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
+    vertex_margins = lmi_margins([A + B_K for A in A_vertices], M, lam)
     sweep_u = sweep(model.U)
-    sweep_margins = lmi_margins([A_num(*uu) for uu in sweep_u], M, lam)
+    sweep_margins = lmi_margins([A_num(*uu) + B_K for uu in sweep_u], M, lam)
     margin = float(max(vertex_margins.max(), sweep_margins.max()))
     eig_M = np.linalg.eigvalsh(M)
-    if st.method == "polytopic_lmi" and margin > 0:
+    if (st.method == "polytopic_lmi" or st.feedback == "linear_gain") and margin > 0:
         raise NumericalError(NAME, f"Clarabel reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
     if st.method == "given" and margin > 0:
         raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
@@ -212,14 +263,41 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     art = Artefact(stage=NAME, meta=meta)
     art.values.update({
-        "M": M, "lambda": lam, "vertices": verts, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
+        "M": M, "K": K, "lambda": lam, "vertices": verts, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
         "sweep_margins": sweep_margins, "lmi_margin": margin, "M_eigenvalues": eig_M,
         "A_vertices": np.stack(A_vertices), "relative_margin": margin / eig_M.max(),
     })
     art.exprs.update({"A": A_sym, "b": b_sym})
-    art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A(u)^T M + M A(u) + lambda M over the vertices and a sweep of U (<= 0: eq. egLMI holds)")
+    art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl(u)^T M + M A_cl(u) + lambda M over the vertices and a sweep of U, A_cl = A + B K (K = 0 for identity feedback; <= 0: eq. egLMI holds)")
     art.checks["M_positive"] = Check(float(eig_M.min()), bool(eig_M.min() > 0), "smallest eigenvalue of M (> 0)")
     return art
+
+
+def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict):
+    """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X."""
+    if st.method != "polytopic_lmi":
+        raise SpecError("stabilisability.method", f"'{st.method}' with feedback linear_gain", "method polytopic_lmi (K is synthesised)")
+    if any(e.free_symbols & set(model.x) for e in model.g):
+        raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g", "g independent of x, or feedback identity")
+    B = np.array(model.substitute(model.g), dtype=float)
+    meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M^-1) = n, M^-1 >= {M_MIN_EIG} I",
+                objective="minimise t subject to A X + X A^T + B Y + Y^T B^T + lambda X <= t I at every vertex; K = Y X^-1, M = X^-1")
+    if st.decay_rate == "maximise":
+        lam, found = largest_decay_rate(A_vertices, B)
+        if found is None:
+            raise DesignError("stabilisability", "no feedback gain K makes (A + B K) incrementally stable with a positive decay rate",
+                              "a stabilisable pair (A, B)", check="lmi_margin")
+        M, K = found
+        meta.update(bisection_rtol=BISECTION_RTOL, rate_cap=FEEDBACK_MAX_RATE)
+    else:
+        lam = float(st.decay_rate)
+        M, K, t, status = solve_lmi_feedback(A_vertices, B, lam)
+        meta.update(status=status, optimal_margin=t)
+        if M is None or t >= -MARGIN_TOL:
+            best, _ = largest_decay_rate(A_vertices, B)
+            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g} (best margin {t:.3g})",
+                              f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'", check="lmi_margin")
+    return M, np.asarray(K, dtype=float), lam, meta
 
 
 def summarise(art: Artefact) -> dict:
@@ -228,6 +306,7 @@ def summarise(art: Artefact) -> dict:
     return {
         "lambda": float(v["lambda"]),
         "M": np.asarray(v["M"]).tolist(),
+        "K": np.asarray(v["K"]).tolist() if "K" in v else None,
         "lmi_margin": float(v["lmi_margin"]),
         "vertex_margins": np.asarray(v["vertex_margins"]).tolist(),
         "M_min_eigenvalue": float(np.min(v["M_eigenvalues"])),
