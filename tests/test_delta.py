@@ -53,3 +53,19 @@ def test_delta_losing_rank_is_refused():
     inv = inverse.run(model, {"manifold": man, "kappa": kappa.run(model, {"manifold": man})})
     with pytest.raises(DesignError, match=r"delta loses row rank on V.*xi = \[0.5\]"):
         delta.run(model, {"manifold": man, "inverse": inv})
+
+
+def test_flatten_makes_theta_constant_and_least(tmp_path):
+    from ashc_cli.pipeline import DESIGN, run
+
+    text = CUK_PAPER_M.read_text().replace('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', "delta: flatten")
+    arts = run(parse_spec_text(text), tmp_path, DESIGN)
+    b = arts["bound"].values
+    curve = b["theta_norm_q0"]
+    # ||theta(xi, .)|| with q = 0 is the same on all of V ...
+    assert curve.max() - curve.min() < 1e-9 * curve.max()
+    # ... and equals the smallest ||sqrt(M) dp/dxi|| on V, the least dbar for any delta with max |delta| = 1.
+    assert b["dbar_q0"] == pytest.approx(b["theta_norm_q0_identity"].min(), rel=1e-9)
+    # For the converter that is the paper's 12.35 (eq. egDelta is 1 at xi = 0, where the norm is smallest).
+    assert b["dbar_q0"] == pytest.approx(12.3526, abs=1e-4)
+    assert arts["delta"].values["min_singular_value"] > 0

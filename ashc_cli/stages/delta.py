@@ -1,6 +1,10 @@
 """Stage 5: the abstract input matrix delta and the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).
 
-delta comes from the spec (``identity`` or expressions in xi; eq. egDelta for the converter).  Theorem
+delta comes from the spec (``identity`` or expressions in xi; eq. egDelta for the converter), or is designed
+by ``flatten`` (one abstract state): delta(xi) = c / ||sqrt(M) dp/dxi(xi)|| with c the smallest value of that
+norm on V, so ||theta(xi, .)|| with q = 0 equals c on all of V.  Any delta with max |delta| = 1 on V has
+dbar >= c (at its maximum point), so flatten gives the least dbar for that scale (ERRATA item 11: delta only
+rescales v).  Theorem
 mRelateDelta needs delta of full row rank on V; the stage measures its smallest singular value there.  Then
 
     b(x) = delta^+(m(x)) (dm/dx f_bar(x) - phi_bar(m(x))),    c(x) = delta^+(m(x)) dm/dx g(x)
@@ -21,7 +25,7 @@ from ..grids import sample_output_region
 from ..model import Model
 
 NAME = "delta"
-UPSTREAM = ("manifold", "inverse")
+UPSTREAM = ("stabilise", "manifold", "inverse")
 
 #: delta counts as full row rank where its smallest singular value exceeds this times max(1, largest).
 RANK_RTOL = 1e-10
@@ -73,6 +77,31 @@ def smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, de
     return smin, smax, np.asarray(at, dtype=float)
 
 
+#: Expressions with more operations than this are stored as derived: sympy's simplify can take minutes on them.
+SIMPLIFY_MAX_OPS = 400
+
+
+def tidy(matrix: sp.Matrix) -> sp.Matrix:
+    """Simplify each entry that is small enough for sympy to simplify quickly; keep the rest as derived."""
+    return matrix.applyfunc(lambda e: sp.simplify(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS else e)
+
+
+def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp.Matrix:
+    """delta(xi) = c / sqrt(dp/dxi^T M dp/dxi), c = min over V of sqrt(dp/dxi^T M dp/dxi) (``delta: flatten``)."""
+    if model.n_hat != 1 or model.m_hat != 1:
+        raise DesignError("abstract.delta", "'flatten' designs a scalar delta: it needs one abstract state and one abstract input",
+                          "identity or an n_hat x m_hat matrix of expressions")
+    M = np.asarray(stab.value("M"), dtype=float)
+    dp = man.expr("dp_dxi")
+    dp_grid = model.numeric(dp, list(model.xi))(*grid)[:, 0, :]
+    norms = np.sqrt(np.einsum("iN,ij,jN->N", dp_grid, M, dp_grid))
+    c = float(norms.min())
+    if not c > 0:
+        raise DesignError("abstract.delta", "'flatten' needs dp/dxi != 0 on V (p an immersion)", "a p whose derivative does not vanish on V", check="rank_delta")
+    Msym = sp.Matrix(M.tolist())
+    return sp.Matrix([[sp.Float(c) / sp.sqrt((dp.T * Msym * dp)[0, 0])]])
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Check the rank of delta on V and build b, c of Theorem mRelateDelta.
 
@@ -88,11 +117,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If b, c do not solve eqs. mRelatSuffiDiff / mRelatSuffiIn to tolerance.
     """
-    if model.delta is None:
-        raise DesignError("abstract.delta", "'flatten' is not supported by this version", "identity or an n_hat x m_hat matrix of expressions in xi")
-    delta = model.delta
     man, inv = upstream["manifold"], upstream["inverse"]
     grid = np.asarray(man.value("xi_grid"))
+    delta = model.delta if model.delta is not None else flatten(model, upstream["stabilise"], man, grid)
     delta_grid = model.numeric(delta, list(model.xi))(*grid)
     if model.m_hat < model.n_hat:
         raise DesignError("abstract.inputs", f"delta is {model.n_hat} x {model.m_hat}, which cannot have full row rank", "at least as many abstract inputs as abstract states (Theorem mRelateDelta)")
@@ -106,8 +133,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     xi_to_m = dict(zip(model.xi, m))
     delta_at_m = delta.xreplace(xi_to_m)
     pinv = right_inverse(delta_at_m)
-    b = sp.simplify(pinv * (dm * model.f_bar - model.phi_bar.xreplace(xi_to_m)))
-    c = sp.simplify(pinv * dm * model.g)
+    b = tidy(pinv * (dm * model.f_bar - model.phi_bar.xreplace(xi_to_m)))
+    c = tidy(pinv * dm * model.g)
 
     # Re-check eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y.
     p_grid = np.asarray(man.value("p_grid"))
