@@ -86,6 +86,15 @@ def lmi_margins(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> np.ndarr
     return np.array([np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() for A in A_list])
 
 
+def _solve(problem: cp.Problem, what: str) -> cp.Problem:
+    """Solve with Clarabel; a solver failure becomes a NumericalError naming the problem."""
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.SolverError as exc:
+        raise NumericalError(NAME, f"Clarabel failed on {what} ({exc})", "a solvable LMI") from None
+    return problem
+
+
 def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, float, str]:
     """Find M maximising the margin of eq. egLMI at the given vertices for a fixed lambda.
 
@@ -111,11 +120,7 @@ def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, 
     eye = np.eye(n)
     constraints = [M >> M_MIN_EIG * eye, cp.trace(M) == n]
     constraints += [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
-    problem = cp.Problem(cp.Minimize(t), constraints)
-    try:
-        problem.solve(solver=cp.CLARABEL)
-    except cp.SolverError as exc:
-        raise NumericalError(NAME, f"Clarabel failed on the LMI at lambda = {lam:g} ({exc})", "a solvable LMI") from None
+    problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g}")
     if M.value is None or t.value is None:
         return None, np.inf, str(problem.status)
     Mv = 0.5 * (M.value + M.value.T)
@@ -141,11 +146,7 @@ def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float) -> t
     eye = np.eye(n)
     constraints = [X >> M_MIN_EIG * eye, cp.trace(X) == n]
     constraints += [A @ X + X @ A.T + B @ Y + Y.T @ B.T + lam * X << t * eye for A in A_list]
-    problem = cp.Problem(cp.Minimize(t), constraints)
-    try:
-        problem.solve(solver=cp.CLARABEL)
-    except cp.SolverError as exc:
-        raise NumericalError(NAME, f"Clarabel failed on the feedback LMI at lambda = {lam:g} ({exc})", "a solvable LMI") from None
+    problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the feedback LMI at lambda = {lam:g}")
     if X.value is None or t.value is None:
         return None, None, np.inf, str(problem.status)
     Xv = 0.5 * (X.value + X.value.T)
