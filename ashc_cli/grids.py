@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["domain_grid", "sample_output_region"]
+__all__ = ["domain_grid", "sample_output_region", "sample_states_with_output"]
 
 
 def domain_grid(V: np.ndarray, points: int) -> np.ndarray:
@@ -58,3 +58,36 @@ def sample_output_region(C: np.ndarray, Y: np.ndarray, box: np.ndarray, count: i
     y = rng.uniform(Y[:, 0:1], Y[:, 1:2], size=(len(Y), count))
     # Move x along C's row space so that C x = y exactly: x <- x + C^+ (y - C x).
     return x + np.linalg.pinv(C) @ (y - C @ x)
+
+
+def sample_states_with_output(h, C: np.ndarray | None, Y: np.ndarray, box: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Random points x of X_y = {x : h(x) in Y}: exact for linear h, by rejection from ``box`` otherwise.
+
+    Parameters
+    ----------
+    h : callable
+        h(*x) for arrays, returning shape (p, 1, N) (a lambdified output map).
+    C : ndarray or None
+        The output matrix if h is linear (then :func:`sample_output_region` is used).
+    Y, box, count, seed
+        As :func:`sample_output_region`.
+
+    Returns
+    -------
+    ndarray, shape (n, k)
+        k <= count points (k = count for linear h; fewer if the box rarely meets X_y).
+    """
+    if C is not None:
+        return sample_output_region(C, Y, box, count, seed)
+    rng = np.random.default_rng(seed)
+    kept = []
+    total = 0
+    for _ in range(20):
+        x = rng.uniform(box[:, 0:1], box[:, 1:2], size=(len(box), 20 * count))
+        y = np.asarray(h(*x))[:, 0, :]
+        keep = np.all((y >= Y[:, 0:1]) & (y <= Y[:, 1:2]), axis=0)
+        kept.append(x[:, keep])
+        total += int(keep.sum())
+        if total >= count:
+            break
+    return np.concatenate(kept, axis=1)[:, :count]

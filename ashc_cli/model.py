@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+import scipy.optimize as sopt
 import sympy as sp
 
 from .errors import SpecError
 from .expr import NUMERIC_MODULES, parse_expression
 from .spec import Spec
 
-__all__ = ["Model", "build_model", "lambdify", "compile_flat", "parameter_symbol", "state_symbol", "TIME"]
+__all__ = ["Model", "build_model", "lambdify", "compile_flat", "tidy", "parameter_symbol", "state_symbol", "TIME"]
 
 #: The time symbol of spec signals.
 TIME = sp.Symbol("t", real=True)
@@ -115,7 +116,9 @@ class Model:
     U, Y : ndarray
         Input box (m x 2) and output region (p x 2).
     V : ndarray or None
-        The domain box of xi (n_hat x 2); None for ``auto``.
+        The domain box of xi (n_hat x 2); None for ``auto`` (until the manifold stage has chosen it).
+    state_box : ndarray or None
+        The box of x the design is certified on (n x 2), if the spec gives one.
     """
 
     spec: Spec
@@ -134,6 +137,7 @@ class Model:
     U: np.ndarray
     Y: np.ndarray
     V: np.ndarray | None
+    state_box: np.ndarray | None = None
     names: dict[str, sp.Symbol] = field(default_factory=dict)
 
     @property
@@ -173,9 +177,54 @@ class Model:
         """:func:`lambdify` with this model's parameter values."""
         return lambdify(exprs, args, self.values)
 
+    def h_jacobian_bound(self) -> tuple[float, np.ndarray]:
+        """L_h of Assumption 1: the sup of ||dh/dx(x)||_2 (linear h: ||C||_2 exactly).
+
+        For a nonlinear h the sup is taken over ``state_box`` (a grid refined by bounded local searches), so
+        the constant, and every bound built on it, holds while x stays in that box.
+
+        Returns
+        -------
+        L_h : float
+        at : ndarray
+            Where the sup is reached (empty for linear h).
+        """
+        if self.C is not None:
+            return float(np.linalg.norm(self.C, 2)), np.zeros(0)
+        if self.state_box is None:
+            raise SpecError("concrete.state_box", "missing: h is not linear, so its Lipschitz constant L_h (Assumption 1) is computed over a box of states",
+                            "one pair [lo, hi] per state")
+        jac = self.numeric(self.h.jacobian(self.x), list(self.x))
+        box = self.state_box
+        per_axis = max(3, int(round(20000 ** (1.0 / self.n))))
+        mesh = np.meshgrid(*[np.linspace(lo, hi, per_axis) for lo, hi in box], indexing="ij")
+        pts = np.stack([g.ravel() for g in mesh])
+        J = np.moveaxis(jac(*pts), -1, 0)                                   # (N, p, n)
+        norms = np.linalg.norm(J, ord=2, axis=(1, 2))
+        best_k = np.argsort(norms)[-5:]
+        best, at = float(norms.max()), pts[:, int(np.argmax(norms))]
+        for k in best_k:
+            res = sopt.minimize(lambda x: -float(np.linalg.norm(jac(*x), 2)), pts[:, k], bounds=[tuple(b) for b in box], method="L-BFGS-B")
+            if res.success and -res.fun > best:
+                best, at = float(-res.fun), res.x
+        return best, np.asarray(at, dtype=float)
+
     def substitute(self, expr):
         """An expression with the parameter values put in (for numbers, never for shown formulas)."""
         return sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.values.items()})
+
+
+#: Expressions with more operations than this are kept as derived: sympy's simplify can take minutes on them.
+SIMPLIFY_MAX_OPS = 400
+
+
+def tidy(matrix: sp.Matrix, how=sp.simplify) -> sp.Matrix:
+    """Simplify (with ``how``) each entry small enough for sympy to do quickly; keep the rest as derived.
+
+    Entries with float coefficients (a fitted manifold or inverse) are left alone too: simplify and factor
+    gain nothing on them and can stall for minutes on a polynomial of high degree.
+    """
+    return matrix.applyfunc(lambda e: how(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS and not e.atoms(sp.Float) else e)
 
 
 def _matrix(rows, names, field_name, shape) -> sp.Matrix:
@@ -248,4 +297,5 @@ def build_model(spec: Spec) -> Model:
         spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
         phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
         Y=np.array(c.output_set, dtype=float), V=V, names=names,
+        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float),
     )

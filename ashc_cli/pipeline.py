@@ -8,10 +8,13 @@ up to date and recomputes the rest, writing each artefact atomically before the 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from .artefacts import SCHEMA_VERSION, Artefact, read_artefact, write_artefact
 from .errors import ArtefactError
@@ -191,6 +194,8 @@ def run(
             reasons[name] = None
             status = "ran"
         arts[name] = art
+        if name == "manifold" and model.V is None:   # abstract.domain: auto, chosen by the manifold stage
+            model = dataclasses.replace(model, V=np.asarray(art.value("V"), dtype=float))
         if on_stage is not None:
             on_stage(StageReport(name, status, time.perf_counter() - start, mod.headline(art)))
     return arts

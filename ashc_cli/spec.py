@@ -70,6 +70,9 @@ class Concrete(_Strict):
     h: list[Expr] = Field(min_length=1)
     input_bounds: list[Bounds]
     output_set: list[Bounds]
+    #: The box of states the design is certified on, where the plant is not globally simple: needed when f
+    #: is not affine in x (the Jacobian LMI is imposed over it) or h is not linear (L_h is computed over it).
+    state_box: list[Bounds] | None = None
 
 
 class Stabilisability(_Strict):
@@ -97,6 +100,8 @@ class Abstract(_Strict):
     pde_tolerance: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 1e-8
     #: Highest polynomial degree the PDE solver tries.
     pde_max_degree: Annotated[int, Field(ge=1, le=30)] = 12
+    #: A point near the equilibrium p at the centre of V, where Newton continuation starts (phi_bar = 0, no closed form).
+    manifold_guess: list[FiniteFloat] | None = None
 
 
 class Interface(_Strict):
@@ -317,6 +322,12 @@ def check_shapes(spec: Spec) -> None:
     for key, pairs in (("concrete.input_bounds", c.input_bounds), ("concrete.output_set", c.output_set)):
         for i, pair in enumerate(pairs):
             _check_pair(f"{key}[{i}]", pair)
+    if c.state_box is not None:
+        _check_len("concrete.state_box", c.state_box, n, "one pair per state")
+        for i, pair in enumerate(c.state_box):
+            _check_pair(f"concrete.state_box[{i}]", pair)
+    if a.manifold_guess is not None:
+        _check_len("abstract.manifold_guess", a.manifold_guess, n, "one number per concrete state")
     _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
     _check_len("abstract.l", a.l, m, "one per concrete input")
     if a.domain != "auto":

@@ -51,7 +51,7 @@ def test_controller_and_interface_law(paper_spec, paper_design):
     model = build_model(paper_spec)
     plant = simulate._Plant(model, paper_design)
     xi, x0 = np.array([0.5]), np.array([1.0, 20.0, -1.0, -12.0])
-    v, u, dxi, dx = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "zero", True)
+    v, u, dxi, dx, _ = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "zero", True)
     assert v[0] == 60.0  # far from the reference: clipped at v_max
     assert u[0] == 0.5   # q = 0: u_w = l(xi) = xi
     delta = ((0.5 - 1) ** 2 + 44.7e-3 * 0.05 * 0.25) ** 2

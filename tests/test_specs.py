@@ -166,3 +166,94 @@ def test_unstable_plant_tracks_with_the_synthesised_gain(tmp_path):
     sim = assert_runs_hold(tmp_path)
     assert max(sim["tracking/settle_errors"]) < 1e-3   # psi settles; y follows through K (x - p(xi))
     assert np.abs(sim["tracking/y"]).max() < 2.0         # the concrete output stays bounded
+
+
+SPRING = SPECS / "saturating_spring.yaml"
+
+
+@pytest.fixture(scope="module")
+def spring(tmp_path_factory):
+    return designed(SPRING, tmp_path_factory)
+
+
+def test_continuation_manifold_matches_an_independent_root_solve(spring):
+    # Equilibria under u = xi (spec header): (1 + c_d) x2 + c_3 x2^3 = xi, then x1 + k_s tanh(x1) = x2.
+    import scipy.optimize as sopt
+    model = spring["model"]
+    art = read_artefact(spring["out"] / "manifold.h5")
+    assert art.meta["method"].startswith("Newton continuation")
+    k_s, c_d, c_3 = 0.5, 1.5, 0.2
+    xs = np.linspace(-2.5, 2.5, 41)
+    x2 = np.array([sopt.brentq(lambda s, t=t: (1 + c_d) * s + c_3 * s**3 - t, -5, 5, xtol=1e-15) for t in xs])
+    x1 = np.array([sopt.brentq(lambda s, t=t: s + k_s * np.tanh(s) - t, -5, 5, xtol=1e-15) for t in x2])
+    p = model.numeric(art.exprs["p"], list(model.xi))(xs)[:, 0, :]
+    assert np.abs(p - np.stack([x1, x2])).max() < 1e-9   # pde_tolerance 1e-10 relative, on a residual scale ~ 1
+
+
+def test_spring_certificates_use_the_state_box(spring):
+    st = read_artefact(spring["out"] / "stabilise.h5")
+    assert st.meta["jacobian_entries"] == ["df1/dx1", "df2/dx1", "df2/dx2"]
+    assert st.values["lmi_margin"] <= 0
+    bd = read_artefact(spring["out"] / "bound.h5")
+    assert bd.values["lipschitz_h"] == pytest.approx(1.1, abs=1e-9)  # |1 + 0.1 cos x1| peaks at x1 = 0
+    M = st.values["M"]
+    assert bd.values["alpha_h"] == pytest.approx(np.linalg.eigvalsh(M).min() / 1.1**2, rel=1e-9)
+    inv = read_artefact(spring["out"] / "inverse.h5")
+    assert inv.meta["method"].startswith("Chebyshev interpolant")
+    sim = assert_runs_hold(spring["out"])
+    assert read_artefact(spring["out"] / "simulate.h5").checks["tracking_x_in_state_box"].passed
+    assert max(sim["tracking/settle_errors"]) < 1e-4
+
+
+def test_nonlinear_f_without_a_state_box_is_refused(tmp_path):
+    spec = tmp_path / "nobox.yaml"
+    spec.write_text(SPRING.read_text().replace("  state_box: [[-4, 4], [-3, 3]]\n", ""))
+    proc = ashc("stabilise", str(spec), "--out", str(tmp_path / "o"))
+    assert proc.returncode == 3
+    assert "f(x, u) is not affine in x" in proc.stderr
+
+
+TWO = SPECS / "bilinear_two_input.yaml"
+
+
+@pytest.fixture(scope="module")
+def two(tmp_path_factory):
+    return designed(TWO, tmp_path_factory)
+
+
+def test_two_state_pde_finds_the_exact_manifold_and_inverse(two):
+    model = two["model"]
+    man = read_artefact(two["out"] / "manifold.h5")
+    assert man.meta["method"].startswith("Chebyshev collocation")
+    g1, g2 = np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21))
+    g1, g2 = g1.ravel(), g2.ravel()
+    p = model.numeric(man.exprs["p"], list(model.xi))(g1, g2)[:, 0, :]
+    assert np.abs(p - np.stack([g1, g2, 2 * g1 * g2])).max() < 1e-10
+    m = model.numeric(read_artefact(two["out"] / "inverse.h5").exprs["m"], list(model.x))
+    x = np.array([0.3, 0.4, 0.1])
+    assert np.allclose(m(*x)[:, 0], [(0.3 + 0.1) / (1 + 2 * 0.4), 0.4], atol=1e-12)  # m = [(x1 + x3)/(1 + 2 x2), x2]
+    assert_runs_hold(two["out"])
+
+
+def test_flatten_makes_theta_constant_for_two_abstract_states(tmp_path):
+    spec = tmp_path / "flat.yaml"
+    spec.write_text(TWO.read_text().replace("  delta: identity", "  delta: flatten"))
+    ashc("bound", str(spec), "--out", str(tmp_path / "o"), check=True)
+    bd = read_artefact(tmp_path / "o" / "bound.h5").values
+    theta = bd["theta_norm_q0"]
+    assert np.ptp(theta) < 1e-9 * theta.max()                 # ||theta(xi, .)|| (q = 0) the same on all of V
+    assert bd["dbar_q0"] < bd["dbar_q0_identity"]             # and below delta = I's at the same scale
+    dl = read_artefact(tmp_path / "o" / "delta.h5").values
+    assert dl["max_singular_value"] == pytest.approx(1.0, rel=1e-6)  # the scale: max ||delta||_2 = 1 on V
+
+
+def test_domain_auto_on_the_cuk_converter_stops_where_kappa_turns(tmp_path):
+    # kappa turns (and m stops being real) where kappa = -E / (2 sqrt(R_i G_L)) = -126.914863 (eq. mEquation);
+    # auto grows V from kappa^-1(Y) up to one grid cell short of it: about the paper's V = [0, 0.95].
+    spec = tmp_path / "auto.yaml"
+    spec.write_text((SPECS / "cuk_converter.yaml").read_text().replace("domain: [[0, 0.95]]", "domain: auto"))
+    ashc("inverse", str(spec), "--out", str(tmp_path / "o"), check=True)
+    inv = read_artefact(tmp_path / "o" / "inverse.h5").values
+    V = inv["V"]
+    assert V[0, 0] == 0.0 and 0.95 < V[0, 1] < 0.96
+    assert inv["kappa_range"][0, 0] == pytest.approx(-126.914863, abs=1e-3)

@@ -3,7 +3,8 @@
 With W(xi, x) = (p(xi) - x)^T M (p(xi) - x) (eq. egSimuFunc) and the interface u_w = l(xi) + q(xi, x) v:
 
 * alpha_h: the largest c with M >= c C^T C for h(x) = C x, i.e. 1 / lambda_max(C M^-1 C^T) (eq. SimuFuncCondi1
-  with alpha_h(r) = c r^2; the paper rounds it to 0.52, ERRATA item 4);
+  with alpha_h(r) = c r^2; the paper rounds it to 0.52, ERRATA item 4); for a nonlinear h,
+  lambda_min(M) / L_h^2 with L_h the Lipschitz constant of Assumption 1, computed over ``concrete.state_box``;
 * epsilon = lambda / 2, which maximises (lambda - epsilon) epsilon;
 * theta(xi, x) = sqrt(M) (dp/dxi delta(xi) - g(x) q(xi, x)) (eq. iota, the paper's vartheta);
 * dbar = sup over V of ||theta|| with q = 0 (a plain norm, as in Section V; Proposition condB's dbar is its
@@ -36,6 +37,14 @@ GRID_POINTS = 20001
 def alpha_h_linear(M: np.ndarray, C: np.ndarray) -> float:
     """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4)."""
     return float(1.0 / np.linalg.eigvalsh(C @ np.linalg.solve(M, C.T)).max())
+
+
+def alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
+    """alpha_h for a nonlinear h with Lipschitz constant L_h (Assumption 1, proof of Theorem SimuDesign).
+
+    W = (p - x)^T M (p - x) >= lambda_min(M) |p - x|^2 >= (lambda_min(M) / L_h^2) |h(p) - h(x)|^2.
+    """
+    return float(np.linalg.eigvalsh(M).min() / lipschitz_h**2)
 
 
 def error_bound_gain(alpha_h: float, lam: float, eps: float, dbar: float) -> float:
@@ -91,15 +100,16 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Raises
     ------
     DesignError
-        If h is not linear (alpha_h needs C in this version) or theta is unbounded on V.
+        If theta is unbounded on V.
+    SpecError
+        If h is nonlinear and the spec gives no ``concrete.state_box`` to compute L_h on.
     """
     st, man, dl = upstream["stabilise"], upstream["manifold"], upstream["delta"]
     M = np.asarray(st.value("M"), dtype=float)
     lam = float(st.value("lambda"))
     C = model.C
-    if C is None:
-        raise DesignError("concrete.h", "alpha_h needs a linear output map h(x) = C x in this version", "h linear in x")
-    alpha_h = alpha_h_linear(M, C)
+    lipschitz_h, lipschitz_at = model.h_jacobian_bound()
+    alpha_h = alpha_h_linear(M, C) if C is not None else alpha_h_lipschitz(M, lipschitz_h)
     eps = lam / 2.0
     L = np.linalg.cholesky(M)
 
@@ -139,7 +149,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     })
     art.exprs.update({"dp_delta": dp_delta, "g": model.g})
     art.values.update({
-        "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C,
+        "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C if C is not None else np.zeros((0, model.n)),
         "dbar_q0": dbar_q0, "dbar_q0_squared": dbar_q0**2, "dbar_q0_identity": dbar_id, "dbar_ls": dbar_ls,
         "dbar_argmax": np.array(at, dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
         "xi_grid": grid, "theta_norm_q0": norm_q0, "theta_norm_q0_identity": norm_q0_identity, "theta_norm_ls_manifold": norm_ls,
@@ -147,9 +157,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.checks["condition_B"] = Check(dbar_q0, bool(np.isfinite(dbar_q0) and 0 < eps < lam),
                                       "Proposition condB: V compact, p C^1, delta continuous, V quadratic: dbar_q0 finite and 0 < epsilon < lambda")
     art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, "largest c with M >= c C^T C (> 0, eq. SimuFuncCondi1)")
-    lipschitz_h = float(np.linalg.norm(C, 2))
-    art.values["lipschitz_h"] = lipschitz_h
-    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h)), "Lipschitz constant L_h = ||C||_2 of the linear output map (finite: Assumption 1 holds)")
+    art.values.update({"lipschitz_h": lipschitz_h, "lipschitz_h_at": lipschitz_at})
+    where = "||C||_2 of the linear output map" if C is not None else f"sup of ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (grid + L-BFGS-B)"
+    art.meta["alpha_h_form"] = "1 / lambda_max(C M^-1 C^T)" if C is not None else "lambda_min(M) / L_h^2 (Assumption 1)"
+    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)")
     return art
 
 

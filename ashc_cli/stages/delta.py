@@ -1,10 +1,10 @@
 """Stage 5: the abstract input matrix delta and the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).
 
 delta comes from the spec (``identity`` or expressions in xi; eq. egDelta for the converter), or is designed
-by ``flatten`` (one abstract state): delta(xi) = c / ||sqrt(M) dp/dxi(xi)|| with c the smallest value of that
-norm on V, so ||theta(xi, .)|| with q = 0 equals c on all of V.  Any delta with max |delta| = 1 on V has
-dbar >= c (at its maximum point), so flatten gives the least dbar for that scale (ERRATA item 11: delta only
-rescales v).  Theorem
+by ``flatten``: delta(xi) = c R(xi)^-1 with R the Cholesky factor of dp/dxi^T M dp/dxi (for one abstract state
+c / ||sqrt(M) dp/dxi(xi)||), c the smallest singular value of sqrt(M) dp/dxi on V, so ||theta(xi, .)|| with
+q = 0 equals c on all of V.  Any delta with max ||delta||_2 = 1 on V has dbar >= c, so flatten gives the least
+dbar for that scale (ERRATA item 11: delta only rescales v).  Theorem
 mRelateDelta needs delta of full row rank on V; the stage measures its smallest singular value there.  Then
 
     b(x) = delta^+(m(x)) (dm/dx f_bar(x) - phi_bar(m(x))),    c(x) = delta^+(m(x)) dm/dx g(x)
@@ -21,8 +21,9 @@ import sympy as sp
 
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
-from ..grids import sample_output_region
-from ..model import Model
+from ..grids import sample_states_with_output
+from ..model import Model, tidy
+from .inverse import sample_box
 
 NAME = "delta"
 UPSTREAM = ("stabilise", "manifold", "inverse")
@@ -77,29 +78,33 @@ def smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, de
     return smin, smax, np.asarray(at, dtype=float)
 
 
-#: Expressions with more operations than this are stored as derived: sympy's simplify can take minutes on them.
-SIMPLIFY_MAX_OPS = 400
-
-
-def tidy(matrix: sp.Matrix) -> sp.Matrix:
-    """Simplify each entry that is small enough for sympy to simplify quickly; keep the rest as derived."""
-    return matrix.applyfunc(lambda e: sp.simplify(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS else e)
-
-
 def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp.Matrix:
-    """delta(xi) = c / sqrt(dp/dxi^T M dp/dxi), c = min over V of sqrt(dp/dxi^T M dp/dxi) (``delta: flatten``)."""
-    if model.n_hat != 1 or model.m_hat != 1:
-        raise DesignError("abstract.delta", "'flatten' designs a scalar delta: it needs one abstract state and one abstract input",
+    """delta for ``abstract.delta: flatten``: ||theta(xi, .)|| with q = 0 is the same at every xi of V.
+
+    With J(xi) = sqrt(M) dp/dxi (n x n_hat, full column rank) and the Cholesky factor R of its Gram matrix
+    G = dp/dxi^T M dp/dxi = R^T R (R upper triangular), delta = c R^-1 gives J delta = c Q with Q^T Q = I, so
+    every singular value of theta = J delta equals c (one abstract state: delta = c / ||sqrt(M) dp/dxi||).
+    c = min over V of sigma_min(J) scales delta so that max over V of ||delta||_2 = 1.  That is the least dbar
+    at this scale: any delta with max over V of ||delta||_2 = 1 reaches ||delta(xi*) w|| = 1 for a unit w at
+    some xi*, where ||theta(xi*)|| >= ||J(xi*) delta(xi*) w|| >= sigma_min(J(xi*)) >= c (ERRATA item 11:
+    delta only rescales v).
+    """
+    if model.m_hat != model.n_hat:
+        raise DesignError("abstract.delta", f"'flatten' designs a square delta: it needs as many abstract inputs as states (n_hat = {model.n_hat}, m_hat = {model.m_hat})",
                           "identity or an n_hat x m_hat matrix of expressions")
     M = np.asarray(stab.value("M"), dtype=float)
+    L = np.linalg.cholesky(M)
     dp = man.expr("dp_dxi")
-    dp_grid = model.numeric(dp, list(model.xi))(*grid)[:, 0, :]
-    norms = np.sqrt(np.einsum("iN,ij,jN->N", dp_grid, M, dp_grid))
-    c = float(norms.min())
+    dp_grid = np.broadcast_to(model.numeric(dp, list(model.xi))(*grid), dp.shape + (grid.shape[1],))
+    J = np.einsum("ij,jkN->Nik", L.T, dp_grid)
+    c = float(np.linalg.svd(J, compute_uv=False).min())
     if not c > 0:
-        raise DesignError("abstract.delta", "'flatten' needs dp/dxi != 0 on V (p an immersion)", "a p whose derivative does not vanish on V", check="rank_delta")
-    Msym = sp.Matrix(M.tolist())
-    return sp.Matrix([[sp.Float(c) / sp.sqrt((dp.T * Msym * dp)[0, 0])]])
+        raise DesignError("abstract.delta", "'flatten' needs dp/dxi of full column rank on V (p an immersion)", "a p whose derivative has full rank on V", check="rank_delta")
+    gram = dp.T * sp.Matrix(M.tolist()) * dp
+    if model.n_hat == 1:
+        return sp.Matrix([[sp.Float(c) / sp.sqrt(gram[0, 0])]])
+    R = gram.cholesky(hermitian=False).T
+    return sp.Float(c) * R.inv()
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
@@ -138,8 +143,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     # Re-check eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y.
     p_grid = np.asarray(man.value("p_grid"))
-    box = np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
-    samples = sample_output_region(model.C, model.Y, box, SAMPLES, seed=1)
+    samples = sample_states_with_output(model.numeric(model.h, list(model.x)), model.C, model.Y, sample_box(model, p_grid), SAMPLES, seed=1)
     xs = list(model.x)
     dm_f = model.numeric(dm * model.f_bar, xs)(*samples)[:, 0, :]
     dm_g = model.numeric(dm * model.g, xs)(*samples)

@@ -27,8 +27,9 @@ import sympy as sp
 
 from ..artefacts import Artefact, Check
 from ..errors import DesignError
-from ..grids import sample_output_region
-from ..model import Model
+from .. import chebyshev
+from ..grids import domain_grid, sample_states_with_output
+from ..model import Model, tidy
 
 NAME = "inverse"
 UPSTREAM = ("manifold", "kappa")
@@ -69,19 +70,24 @@ def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, f
     return lo, hi, texts
 
 
+def sample_box(model: Model, p_grid: np.ndarray) -> np.ndarray:
+    """Where samples of X_y are drawn: ``concrete.state_box`` if given, else the manifold's box widened."""
+    if model.state_box is not None:
+        return model.state_box
+    return np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
+
+
 def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_grid: np.ndarray) -> None:
     """Conditions (i) and (ii) of Theorem mCondi, measured the same way on either path."""
     m_num = model.numeric(m, list(model.x))
     p_num = model.numeric(p, list(model.xi))
     p_back = p_num(*m_num(*p_grid)[:, 0, :])[:, 0, :]
     cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
-    C = model.C
-    if C is None:
-        raise DesignError("concrete.h", "condition (ii) is checked through Corollary mRelateGeo, which needs a linear h(x) = C x", "a linear output map in this version")
-    box = np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
-    samples = sample_output_region(C, model.Y, box, SAMPLES)
+    h_num = model.numeric(model.h, list(model.x))
+    samples = sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
     x_proj = p_num(*m_num(*samples)[:, 0, :])[:, 0, :]
-    cond_ii = float(np.abs(C @ (samples - x_proj)).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
+    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
+    cond_ii = float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max())) if samples.size else np.inf
     if cond_ii > CONDITION_II_RTOL:
         raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)", check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
@@ -137,6 +143,111 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     return art
 
 
+#: kappa is handed to sympy.solve only when it is this small (a fitted polynomial of high degree is not).
+SOLVE_MAX_OPS = 300
+#: Highest degree of the Chebyshev interpolant of kappa^-1 (one abstract state, no closed form).
+MAX_INVERSE_DEGREE = 80
+
+
+def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) -> list[list[sp.Expr]]:
+    """The solutions mu(y) of kappa(mu) = y that sympy finds (each a list, one entry per abstract state)."""
+    def solvable(e: sp.Expr) -> bool:
+        if sp.count_ops(e) > SOLVE_MAX_OPS:
+            return False
+        if not e.atoms(sp.Float):
+            return True
+        # A fitted (float) kappa: only a polynomial of low degree; sympy.solve stalls on the rest.
+        return e.is_polynomial(*model.xi) and sp.Poly(e, *model.xi).total_degree() <= 4
+
+    if not all(solvable(e) for e in kappa):
+        return []
+    mus = [sp.Dummy(f"mu{k}", real=True) for k in range(model.n_hat)]
+    equations = [sp.Eq(e.xreplace(dict(zip(model.xi, mus))), yk) for e, yk in zip(kappa, ys)]
+    try:
+        solutions = sp.solve(equations, mus, dict=True)
+    except (NotImplementedError, ValueError, TypeError):
+        return []
+    return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
+
+
+def numeric_inverse(model: Model, kappa: sp.Matrix, xs: np.ndarray, y_grid: np.ndarray, y: sp.Symbol) -> tuple[sp.Expr, float, int] | None:
+    """kappa^-1 as a Chebyshev interpolant on kappa(V), for one abstract state with kappa strictly monotone.
+
+    kappa(xi) = y is solved by Brent's method at Chebyshev nodes of kappa(V); the degree is raised until
+    max |m(kappa(xi)) - xi| on the grid of V is below ``LEFT_INVERSE_TOL``.
+
+    Returns
+    -------
+    (m_of_y, residual, degree), or None if kappa is not strictly monotone on V.
+    """
+    dk = np.diff(y_grid)
+    if not (np.all(dk > 0) or np.all(dk < 0)):
+        return None
+    k_num = model.numeric(kappa, list(model.xi))
+    lo, hi = float(xs[0]), float(xs[-1])
+    box = np.array([[y_grid.min(), y_grid.max()]])
+    nodes = chebyshev.nodes(box, MAX_INVERSE_DEGREE + 1)[0]
+    roots = np.array([sopt.brentq(lambda s, target=t: float(k_num(s)[0, 0]) - target, lo, hi, xtol=1e-15, rtol=1e-15) for t in nodes])
+    best = (None, np.inf, 0)
+    for degree in range(1, MAX_INVERSE_DEGREE + 1):
+        coeffs = chebyshev.fit(roots[None, :], box, nodes[None, :], degree)
+        residual = float(np.abs(chebyshev.evaluate(coeffs, box, y_grid[None, :])[0] - xs).max())
+        if residual < best[1]:
+            best = (coeffs, residual, degree)
+        if residual <= LEFT_INVERSE_TOL:
+            break
+    coeffs, residual, degree = best
+    return chebyshev.to_sympy(coeffs, box, [y])[0], residual, degree
+
+
+def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """The left inverse m(x) = kappa^-1(h(x)) for several abstract states and as many outputs (closed form).
+
+    Checks as the scalar path: m(p(xi)) = xi on V; m finite on a grid of Y with kappa(m(y)) = y and m(y) in V
+    there (so kappa(V) covers Y, eq. SimuLocalRequire); conditions (i) and (ii) of Theorem mCondi.
+    """
+    p, kappa = man.expr("p"), kap.expr("kappa")
+    ys = [sp.Symbol(f"_y{k}", real=True) for k in range(model.p)]
+    grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
+    h_num = model.numeric(model.h, list(model.x))
+    y_grid = h_num(*p_grid)[:, 0, :]
+    best, best_residual = None, np.inf
+    for branch in closed_form_branches(model, kappa, ys):
+        values = np.broadcast_to(model.numeric(branch, ys)(*y_grid)[:, 0, :], grid.shape)
+        residual = float(np.abs(values - grid).max()) if np.all(np.isfinite(values)) else np.inf
+        if residual < best_residual:
+            best, best_residual = branch, residual
+    if best is None or best_residual > LEFT_INVERSE_TOL:
+        raise DesignError("abstract", f"no closed-form solution m(y) of kappa(m) = y is a left inverse of p on V (best residual {best_residual:.3g})",
+                          "a kappa sympy can invert on V (e.g. triangular), or an affine p", check="left_inverse")
+    m_of_y = tidy(sp.Matrix(best))
+    m = m_of_y.xreplace(dict(zip(ys, model.h)))
+    Y, V = model.Y, model.V
+    y_box = domain_grid(Y, 4001)
+    m_on_Y = np.broadcast_to(model.numeric(m_of_y, ys)(*y_box)[:, 0, :], (model.n_hat, y_box.shape[1]))
+    finite = bool(np.all(np.isfinite(m_on_Y)))
+    excursion = float(np.max(np.r_[V[:, :1] - m_on_Y, m_on_Y - V[:, 1:]])) if finite else np.inf
+    covers = finite and excursion <= 1e-12
+    if not finite:
+        raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y", "Y inside the outputs where kappa^-1 is defined", check="m_real_on_Y")
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): kappa^-1(Y) leaves V by {excursion:.4g}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
+    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": m.jacobian(model.x)})
+    dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
+    smin = float(np.linalg.svd(dkappa, compute_uv=False).min())
+    art.values.update({
+        "V": V, "Y": Y, "kappa_range": np.c_[y_grid.min(axis=1), y_grid.max(axis=1)], "m_real_interval": np.array([-np.inf, np.inf]),
+        "radicands": ["checked on a grid of Y"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
+    })
+    art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["V_covers_Y"] = Check(excursion, covers, "eq. SimuLocalRequire: largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
+    art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
+    _checks_common(art, model, p, m, p_grid)
+    return art
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
 
@@ -155,27 +266,30 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     p, kappa = man.expr("p"), kap.expr("kappa")
     if not any(e.free_symbols & set(model.xi) for e in p.jacobian(model.xi)):
         return run_linear(model, man, kap)
-    if model.n_hat != 1 or model.p != 1:
-        raise DesignError("abstract.states", f"the closed-form left inverse of a nonlinear p needs one abstract state and one output (n_hat = {model.n_hat}, p = {model.p})",
-                          "a scalar abstraction of a single-output plant, or an affine p, in this version")
+    if model.n_hat != model.p:
+        raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
+                          "a square kappa, or an affine p (m = P^+ (x - p0))")
+    if model.n_hat > 1:
+        return run_multi(model, man, kap)
     xi = model.xi[0]
     y = output_symbol()
-    mu = sp.Dummy("mu", real=True)
-    try:
-        branches = sp.solve(sp.Eq(kappa[0].xreplace({xi: mu}), y), mu)
-    except NotImplementedError:
-        branches = []
-    if not branches:
-        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y)", "a kappa that sympy can invert")
-
     grid = np.asarray(man.value("xi_grid"))
     p_grid = np.asarray(man.value("p_grid"))
     h_num = model.numeric(model.h, list(model.x))
     y_grid = h_num(*p_grid)[0, 0]
+    branches = closed_form_branches(model, kappa, [y])
+    method = "closed form (sympy.solve of kappa(m) = y)"
     residuals = []
     for branch in branches:
-        m_y = model.numeric([branch], [y])
+        m_y = model.numeric([branch[0]], [y])
         residuals.append(float(np.nanmax(np.abs(m_y(y_grid)[0, 0] - grid[0])) if np.all(np.isfinite(m_y(y_grid))) else np.inf))
+    if not branches or min(residuals) > LEFT_INVERSE_TOL:
+        numeric = numeric_inverse(model, kappa, grid[0], y_grid, y)
+        if numeric is not None:
+            branches, residuals = [[numeric[0]]], [numeric[1]]
+            method = f"Chebyshev interpolant of kappa^-1 on kappa(V), degree {numeric[2]} (no closed form)"
+    if not branches:
+        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V", "a kappa that is invertible on V", check="left_inverse")
     best = int(np.argmin(residuals))
     left_residual = residuals[best]
     if left_residual > LEFT_INVERSE_TOL:
@@ -184,7 +298,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone", check="left_inverse")
-    m_of_y = sp.simplify(branches[best])
+    branches = [b[0] for b in branches]
+    m_of_y = tidy(sp.Matrix([branches[best]]))[0]
     m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
 
     # Where m is real, and whether that covers Y.
@@ -206,9 +321,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
     monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
 
-    symbolic_ii = sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0
+    symbolic_ii = bool(method.startswith("closed") and sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0)
 
-    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0,
+    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": m.jacobian(model.x)})
     art.values.update({

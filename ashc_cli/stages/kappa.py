@@ -12,7 +12,7 @@ import sympy as sp
 
 from ..artefacts import Artefact, Check
 from ..errors import NumericalError
-from ..model import Model
+from ..model import Model, tidy
 
 NAME = "kappa"
 UPSTREAM = ("manifold",)
@@ -33,7 +33,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     man = upstream["manifold"]
     p = man.expr("p")
-    kappa = sp.Matrix([sp.factor(sp.simplify(e)) for e in model.h.xreplace(dict(zip(model.x, p)))])
+    kappa = tidy(model.h.xreplace(dict(zip(model.x, p))), lambda e: sp.factor(sp.simplify(e)))
     dkappa = kappa.jacobian(model.xi)
     grid = np.asarray(man.value("xi_grid"))
     kappa_grid = model.numeric(kappa, list(model.xi))(*grid)[:, 0, :]

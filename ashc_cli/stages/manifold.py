@@ -19,11 +19,11 @@ evaluated on a grid of V and stored, together with the check that l maps V into 
 from __future__ import annotations
 
 import numpy as np
-import numpy.polynomial.chebyshev as cheb
 import scipy.linalg as sla
 import scipy.optimize as sopt
 import sympy as sp
 
+from .. import chebyshev
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..grids import domain_grid
@@ -58,14 +58,21 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         solutions = sp.solve(list(equations), list(P), dict=True)
     except NotImplementedError:
         solutions = []
-    grid = domain_grid(model.V, 201)
+    # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
+    grid = domain_grid(model.V if model.V is not None else auto_search_box(model), 201)
+    best, best_score = None, 0.0
     for sol in solutions:
         if set(sol) != set(P):
             continue  # a family of solutions: p is not determined
         p = sp.Matrix([sp.factor(sp.simplify(sol[s])) for s in P])
         values = model.numeric(p, list(model.xi))(*grid)
-        if np.all(np.isfinite(values)):
+        score = float(np.mean(np.all(np.isfinite(values), axis=(0, 1))))
+        if score == 1.0 and model.V is not None:
             return p, len(solutions)
+        if model.V is None and score > best_score:
+            best, best_score = p, score
+    if best is not None:
+        return best, len(solutions)
     raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)",
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
 
@@ -108,69 +115,265 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
 
 
-#: Coefficients below this fraction of the largest are dropped from the fitted polynomial (round-off).
-CHOP_RTOL = 1e-12
+def _residual_functions(model: Model):
+    """F(x, xi) = f_bar(x) + g(x) l(xi) and its Jacobians in x and xi, compiled for numpy (broadcasting)."""
+    F = model.f_bar + model.g * model.l
+    args = list(model.x) + list(model.xi)
+    return (model.numeric(F, args), model.numeric(F.jacobian(model.x), args), model.numeric(F.jacobian(model.xi), args))
 
 
-def solve_polynomial(model: Model) -> tuple[sp.Matrix, int, float]:
-    """Chebyshev collocation for eq. SimuDesignCond1 with one abstract state.
+def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, F) -> float:
+    """max |dp/dxi phi_bar - F(p, xi)| on z, relative to max(1, |dp/dxi phi_bar|, |F|)."""
+    P = chebyshev.evaluate(coeffs, box, z)
+    phi = model.numeric(model.phi_bar, list(model.xi))(*z)[:, 0, :]
+    lhs = sum(chebyshev.evaluate(chebyshev.derivative(coeffs, box, k), box, z) * phi[k] for k in range(model.n_hat))
+    rhs = F(*P, *z)[:, 0, :]
+    return float(np.abs(lhs - rhs).max() / max(1.0, np.abs(lhs).max(), np.abs(rhs).max()))
+
+
+def _check_grid(box: np.ndarray) -> np.ndarray:
+    """An independent grid (not the collocation nodes) on which a fit's residual is judged."""
+    return domain_grid(box, 1001 if len(box) == 1 else 41 ** len(box) if len(box) == 2 else 4096)
+
+
+def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
+    """Tensor Chebyshev collocation for eq. SimuDesignCond1 (phi_bar != 0), any number of abstract states.
+
+    The coefficients minimise the PDE residual at 2 (degree + 1) Chebyshev nodes per axis (Gauss-Newton with
+    the exact Jacobian: the residual is linear in p's coefficients through dp/dxi and nonlinear through
+    F(p, xi)); the degree is raised from 1 until the relative residual on an independent grid is below
+    ``abstract.pde_tolerance``.
 
     Returns
     -------
     p : sympy Matrix
-        Polynomials in xi (power basis, float coefficients).
+        Polynomials in xi.
     degree : int
-        The degree that reached the tolerance.
+        The degree per axis that reached the tolerance.
     residual : float
-        Relative residual on an independent grid.
+        Relative residual on the independent grid.
 
     Raises
     ------
     DesignError
-        If n_hat > 1, or no degree up to ``abstract.pde_max_degree`` reaches ``abstract.pde_tolerance``
-        (the message gives the best residual reached).
+        If no degree up to ``abstract.pde_max_degree`` reaches ``abstract.pde_tolerance`` (the message
+        gives the best residual reached).
     """
-    if model.n_hat != 1:
-        raise DesignError("abstract.states", "the polynomial solver of eq. SimuDesignCond1 handles one abstract state in this version",
-                          "one abstract state, a linear plant (Sylvester), or phi_bar = 0")
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
-    a, b = model.V[0]
-    fbar = model.numeric(model.f_bar, list(model.x))
-    g = model.numeric(model.g, list(model.x))
-    phi = model.numeric(model.phi_bar, list(model.xi))
-    l = model.numeric(model.l, list(model.xi))
-    n = model.n
-
-    def residual(coeffs: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, float]:
-        s = (2 * xs - (a + b)) / (b - a)
-        P = cheb.chebval(s, coeffs.T)                                   # (n, N)
-        dP = cheb.chebval(s, cheb.chebder(coeffs.T)) * 2 / (b - a) if coeffs.shape[1] > 1 else np.zeros_like(P)
-        lhs = dP * phi(xs)[0, 0]
-        rhs = fbar(*P)[:, 0, :] + np.einsum("ijN,jN->iN", g(*P), l(xs)[:, 0, :])
-        return lhs - rhs, float(max(1.0, np.abs(lhs).max(), np.abs(rhs).max()))
-
-    check = np.linspace(a, b, 1001)
-    coeffs = np.zeros((n, 1))
+    box, n, nh = model.V, model.n, model.n_hat
+    F, F_x, _ = _residual_functions(model)
+    phi_num = model.numeric(model.phi_bar, list(model.xi))
+    check = _check_grid(box)
+    coeffs = np.zeros((n,) + (1,) * nh)
     best = np.inf
     for degree in range(1, max_degree + 1):
-        coeffs = np.c_[coeffs, np.zeros(n)]
-        nodes = (a + b) / 2 + (b - a) / 2 * np.cos(np.pi * (np.arange(2 * (degree + 1)) + 0.5) / (2 * (degree + 1)))
-        fit = sopt.least_squares(lambda c: residual(c.reshape(n, degree + 1), nodes)[0].ravel(), coeffs.ravel(), xtol=1e-15, ftol=1e-15, gtol=1e-15)
-        coeffs = fit.x.reshape(n, degree + 1)
-        r, scale = residual(coeffs, check)
-        best = min(best, float(np.abs(r).max() / scale))
+        grown = np.zeros((n,) + (degree + 1,) * nh)
+        grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
+        z = chebyshev.nodes(box, 2 * (degree + 1))
+        K = (degree + 1) ** nh
+        basis = np.eye(K).reshape((K,) + (degree + 1,) * nh)
+        V = chebyshev.evaluate(basis, box, z).T                                   # (N, K)
+        phi = phi_num(*z)[:, 0, :]                                                # (n_hat, N)
+        E = sum(chebyshev.evaluate(chebyshev.derivative(basis, box, k), box, z).T * phi[k][:, None] for k in range(nh))
+
+        def residual(c: np.ndarray) -> np.ndarray:
+            C = c.reshape(n, K)
+            return (C @ E.T - F(*(C @ V.T), *z)[:, 0, :]).ravel()
+
+        def jacobian(c: np.ndarray) -> np.ndarray:
+            Fx = F_x(*(c.reshape(n, K) @ V.T), *z)                               # (n, n, N)
+            J = np.einsum("ij,NK->iNjK", np.eye(n), E) - np.einsum("ijN,NK->iNjK", Fx, V)
+            return J.reshape(n * len(V), n * K)
+
+        fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        coeffs = fit.x.reshape(grown.shape)
+        best = min(best, _relative_residual(model, coeffs, box, check, F))
         if best <= tol:
-            s = sp.Symbol("_s", real=True)
-            xi = model.xi[0]
-            rows = []
-            for row in coeffs:
-                power = cheb.cheb2poly(row)
-                power[np.abs(power) < CHOP_RTOL * max(np.abs(power).max(), 1e-300)] = 0.0
-                poly = sum(sp.Float(c) * s**k for k, c in enumerate(power) if c != 0)
-                rows.append(sp.expand(sp.sympify(poly).xreplace({s: (2 * xi - (a + b)) / (b - a)})))
-            return sp.Matrix(rows), degree, best
+            return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
     raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. SimuDesignCond1 on V to {tol:g}: the best relative residual is {best:.3g}",
                       "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")
+
+
+#: Newton's method at a node has converged when |F(x, xi)| is below this, relative to max(1, |f_bar|, |g l|).
+NEWTON_RTOL = 1e-13
+#: The Jacobian dF/dx must have a reciprocal condition number above this (an isolated equilibrium).
+SINGULAR_RCOND = 1e-12
+
+
+def continuation(model: Model, z: np.ndarray) -> np.ndarray:
+    """Equilibria x with F(x, xi) = f_bar(x) + g(x) l(xi) = 0 at the points z, by Newton continuation.
+
+    Starts at the point nearest the centre of V (from ``abstract.manifold_guess``, else the origin, else
+    the centre of ``concrete.state_box``), then visits each next-nearest point, predicting from the nearest
+    solved one along the tangent dp/dxi = -(dF/dx)^-1 dF/dxi and correcting by Newton's method.
+
+    Returns
+    -------
+    ndarray, shape (n, N)
+        The equilibria.
+
+    Raises
+    ------
+    DesignError
+        If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
+    """
+    F, F_x, F_xi = _residual_functions(model)
+    n, N = model.n, z.shape[1]
+    centre = model.V.mean(axis=1)
+    first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
+
+    def newton(guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
+        x = guess.astype(float).copy()
+        for _ in range(50):
+            value = F(*x, *at)[:, 0]
+            Fx = F_x(*x, *at)
+            scale = max(1.0, float(np.abs(value).max()))
+            if not np.all(np.isfinite(Fx)) or np.linalg.cond(Fx) * SINGULAR_RCOND > 1:
+                return None
+            step = np.linalg.solve(Fx, -value)
+            x = x + step
+            if np.abs(F(*x, *at)[:, 0]).max() <= NEWTON_RTOL * scale and np.abs(step).max() <= 1e-10 * max(1.0, np.abs(x).max()):
+                return x
+        return x if np.abs(F(*x, *at)[:, 0]).max() <= 1e3 * NEWTON_RTOL * max(1.0, np.abs(x).max()) else None
+
+    starts = []
+    if model.spec.abstract.manifold_guess is not None:
+        starts.append(np.array(model.spec.abstract.manifold_guess, dtype=float))
+    starts.append(np.zeros(n))
+    if model.state_box is not None:
+        starts.append(model.state_box.mean(axis=1))
+    x0 = next((x for x in (newton(s, z[:, first]) for s in starts) if x is not None), None)
+    if x0 is None:
+        raise DesignError("abstract.manifold_guess", f"Newton's method finds no equilibrium f_bar(x) + g(x) l(xi) = 0 at xi = {np.round(z[:, first], 6).tolist()} from {len(starts)} start(s)",
+                          "a manifold_guess: n numbers near the equilibrium at the centre of V")
+    X = np.full((n, N), np.nan)
+    X[:, first] = x0
+    solved = np.zeros(N, dtype=bool)
+    solved[first] = True
+    distance = np.linalg.norm(z - z[:, [first]], axis=0)
+    nearest = np.full(N, first)
+    for _ in range(N - 1):
+        k = int(np.argmin(np.where(solved, np.inf, distance)))
+        j = nearest[k]
+        tangent = -np.linalg.solve(F_x(*X[:, j], *z[:, j]), F_xi(*X[:, j], *z[:, j]))
+        x = newton(X[:, j] + tangent @ (z[:, k] - z[:, j]), z[:, k])
+        if x is None:
+            raise DesignError("abstract.domain", f"the equilibrium branch is lost at xi = {np.round(z[:, k], 6).tolist()} (dF/dx singular or Newton diverges): p is not defined on all of V",
+                              "a smaller domain V, on which f_bar(x) + g(x) l(xi) = 0 has an isolated solution", check="pde_residual")
+        X[:, k], solved[k] = x, True
+        closer = np.linalg.norm(z - z[:, [k]], axis=0) < distance
+        distance, nearest = np.where(closer, np.linalg.norm(z - z[:, [k]], axis=0), distance), np.where(closer, k, nearest)
+    return X
+
+
+def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
+    """p for phi_bar = 0 without a closed form: Newton continuation on Chebyshev nodes, then a Chebyshev fit.
+
+    The equilibria are found at ``pde_max_degree + 1`` Chebyshev nodes per axis; the fitted degree is raised
+    until the relative residual of f(p(xi), l(xi)) = 0 on an independent grid is below ``pde_tolerance``.
+
+    Returns
+    -------
+    p, degree, residual : as :func:`solve_collocation`
+    """
+    tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
+    box = model.V
+    z = chebyshev.nodes(box, max_degree + 1)
+    X = continuation(model, z)
+    F, _, _ = _residual_functions(model)
+    check = _check_grid(box)
+    best = np.inf
+    for degree in range(1, max_degree + 1):
+        coeffs = chebyshev.fit(X, box, z, degree)
+        best = min(best, _relative_residual(model, coeffs, box, check, F))
+        if best <= tol:
+            return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
+    raise DesignError("abstract.domain", f"the numeric equilibrium manifold is not fitted to {tol:g} by Chebyshev polynomials of degree <= {max_degree}: the best relative residual is {best:.3g}",
+                      "a smaller domain V, or a larger abstract.pde_max_degree or pde_tolerance")
+
+
+#: ``domain: auto`` grows V while ||dp/dxi|| stays below this many times its largest value on kappa^-1(Y).
+AUTO_SLOPE_RATIO = 10.0
+AUTO_GRID = 20001
+
+
+def auto_search_box(model: Model) -> np.ndarray:
+    """Where ``domain: auto`` searches: the interval of xi with l(xi) in U (one abstract state, l affine).
+
+    Raises
+    ------
+    DesignError
+        For several abstract states, or an l that is not affine or does not bound xi.
+    """
+    if model.n_hat != 1 or model.p != 1:
+        raise DesignError("abstract.domain", f"'auto' handles one abstract state and one output (n_hat = {model.n_hat}, p = {model.p})", "a box [[lo, hi], ...] per abstract state")
+    xi = model.xi[0]
+    lo, hi = -np.inf, np.inf
+    for k, (e, (u_lo, u_hi)) in enumerate(zip(model.l, model.U)):
+        slope = sp.diff(e, xi)
+        if slope.free_symbols & {xi} or model.substitute(slope) == 0:
+            raise DesignError("abstract.l", f"'auto' needs each l_i affine and not constant in xi (l[{k}] = {e})", "a box for abstract.domain")
+        a, b = float(model.substitute(slope)), float(model.substitute(e.xreplace({xi: 0})))
+        ends = sorted(((u_lo - b) / a, (u_hi - b) / a))
+        lo, hi = max(lo, ends[0]), min(hi, ends[1])
+    if not lo < hi:
+        raise DesignError("abstract.l", "no xi has l(xi) in U", "l mapping some interval into U")
+    return np.array([[lo, hi]])
+
+
+def auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
+    """``abstract.domain: auto`` for one abstract state: the largest interval V around kappa^-1(Y) on which
+    l(xi) is in U, p is finite and C^1, kappa = h o p is strictly monotone (so p is injective and kappa(V)
+    covers Y), and the manifold is no steeper than ``AUTO_SLOPE_RATIO`` times its steepest point over
+    kappa^-1(Y) (beyond that dbar, hence the error bound, grows without helping the outputs in Y).
+
+    The search runs over the interval where l(xi) is in U (l affine in xi).
+
+    Raises
+    ------
+    DesignError
+        For several abstract states or outputs, an l that does not bound xi, or a Y that kappa does not
+        reach monotonically from a point of that interval.
+    """
+    lo, hi = auto_search_box(model)[0]
+    xi = model.xi[0]
+    xs = np.linspace(lo, hi, AUTO_GRID)
+    kappa = model.h.xreplace(dict(zip(model.x, p)))
+    k = model.numeric(kappa, [xi])(xs)[0, 0]
+    dk = model.numeric(kappa.diff(xi), [xi])(xs)[0, 0]
+    slope = np.linalg.norm(model.numeric(p.diff(xi), [xi])(xs)[:, 0, :], axis=0)
+    ok = np.isfinite(k) & np.isfinite(dk) & np.isfinite(slope) & (dk != 0)
+    Y = model.Y[0]
+    inside = ok & (k >= Y[0]) & (k <= Y[1])
+    if not inside.any():
+        raise DesignError("abstract.domain", f"'auto': kappa(xi) never enters Y = {Y.tolist()} for xi in [{lo:.6g}, {hi:.6g}] (where l(xi) is in U)",
+                          "an output_set that the equilibria reach, or a box for abstract.domain", check="V_covers_Y")
+    # The run of admissible points with one sign of dkappa that contains the first point in Y.
+    start = int(np.flatnonzero(inside)[0])
+    sign = np.sign(dk[start])
+    good = ok & (np.sign(dk) == sign)
+    left, right = start, start
+    while left > 0 and good[left - 1]:
+        left -= 1
+    while right < len(xs) - 1 and good[right + 1]:
+        right += 1
+    run_k = k[left:right + 1]
+    if not (run_k.min() <= Y[0] and Y[1] <= run_k.max()):
+        raise DesignError("abstract.domain", f"'auto': kappa is monotone only on [{xs[left]:.6g}, {xs[right]:.6g}], where it spans [{run_k.min():.6g}, {run_k.max():.6g}], not all of Y = {Y.tolist()}",
+                          "a smaller output_set, or a box for abstract.domain", check="V_covers_Y")
+    need = (k >= Y[0]) & (k <= Y[1]) & good
+    need[:left] = need[right + 1:] = False
+    cap = AUTO_SLOPE_RATIO * slope[need].max()
+    need_idx = np.flatnonzero(need)
+    a_idx, b_idx = need_idx[0], need_idx[-1]
+    while a_idx > left and slope[a_idx - 1] <= cap:
+        a_idx -= 1
+    while b_idx < right and slope[b_idx + 1] <= cap:
+        b_idx += 1
+    # Stay one grid cell inside an inadmissible neighbour (a pole or a turning point of kappa).
+    a_idx += a_idx > 0 and not good[a_idx - 1]
+    b_idx -= b_idx < len(xs) - 1 and not good[b_idx + 1]
+    return np.array([[xs[a_idx], xs[b_idx]]])
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
@@ -189,20 +392,35 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If the residual of the PDE on V is above tolerance.
     """
-    if model.V is None:
-        raise DesignError("abstract.domain", "'auto' is not supported by this version", "a box [[lo, hi], ...] per abstract state")
+    tolerance = RESIDUAL_RTOL
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
-        p, branches = solve_algebraic(model)
-        method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
+        try:
+            p, branches = solve_algebraic(model)
+            method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
+        except DesignError as closed_form_failure:
+            if model.V is None:
+                raise
+            try:
+                p, degree, fit_residual = solve_numeric_equilibria(model)
+            except DesignError as numeric_failure:
+                raise DesignError(numeric_failure.where, f"{closed_form_failure.what}; numerically: {numeric_failure.what}", numeric_failure.expected,
+                                  check=numeric_failure.check) from None
+            branches, tolerance = 1, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
+            method = f"Newton continuation on Chebyshev nodes + Chebyshev fit, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
     else:
         p, branches = solve_sylvester(model), 1
         method = "Sylvester equation A P + B Q = P S (scipy.linalg.solve_sylvester)"
         if p is None:
-            p, degree, fit_residual = solve_polynomial(model)
+            if model.V is None:
+                raise DesignError("abstract.domain", "'auto' needs a p defined independently of V (phi_bar = 0 with a closed form, or a linear plant)",
+                                  "a box [[lo, hi], ...] per abstract state for the PDE solver")
+            p, degree, fit_residual = solve_collocation(model)
+            tolerance = max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
             method = f"Chebyshev collocation, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
+    V = model.V if model.V is not None else auto_domain(model, p)
     dp = p.jacobian(model.xi)
 
-    grid = domain_grid(model.V, GRID_POINTS)
+    grid = domain_grid(V, GRID_POINTS)
     xi_args = list(model.xi)
     p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                       # (n, N)
     dp_grid = model.numeric(dp, xi_args)(*grid)                              # (n, n_hat, N)
@@ -214,8 +432,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     lhs = np.einsum("ijk,jk->ik", dp_grid, phi_grid)
     residual = float(np.abs(lhs - rhs).max())
     scale = float(max(1.0, np.abs(fbar).max(), np.abs(np.einsum("ijk,jk->ik", g, l_grid)).max()))
-    if not np.isfinite(residual) or residual > RESIDUAL_RTOL * scale:
-        raise NumericalError(NAME, f"residual of eq. SimuDesignCond1 on V is {residual:.3g} (scale {scale:.3g})", f"below {RESIDUAL_RTOL:g} relative")
+    if not np.isfinite(residual) or residual > tolerance * scale:
+        raise NumericalError(NAME, f"residual of eq. SimuDesignCond1 on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
 
     U = model.U
     l_lo, l_hi = l_grid.min(axis=1), l_grid.max(axis=1)
@@ -225,9 +443,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                           "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l", check="l_in_U")
 
     art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
-                                      "grid_points": int(grid.shape[1]), "residual_rtol": RESIDUAL_RTOL})
+                                      "grid_points": int(grid.shape[1]), "residual_rtol": tolerance,
+                                      "domain": "auto" if model.V is None else "spec"})
     art.exprs.update({"p": p, "dp_dxi": dp})
-    art.values.update({"xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
+    art.values.update({"V": V, "xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
                        "l_range": np.c_[l_lo, l_hi]})
     art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1)")
     art.checks["l_in_U"] = Check(float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]])), l_inside, "largest excursion of l(V) outside U (<= 0: l maps V into U)")

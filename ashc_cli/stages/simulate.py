@@ -25,6 +25,7 @@ import sympy as sp
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..expr import parse_expression
+from ..grids import domain_grid
 from ..model import TIME, Model, compile_flat
 
 NAME = "simulate"
@@ -33,6 +34,8 @@ UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
 TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
 M_RELATION_TOL = {"method": "DOP853", "rtol": 1e-11, "atol": 1e-11}
 SAMPLE_DT = 1e-3
+#: The measured error may exceed the a-posteriori bound by this fraction of the output span (integration error).
+POSTERIOR_FLOOR_RTOL = 1e-7
 #: psi must end each dwell within this fraction of the output span of its level.
 SETTLE_RTOL = 1e-4
 #: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
@@ -105,7 +108,7 @@ def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int, 
             raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V ({problem.status})", "levels inside kappa(V)")
         return np.asarray(xi.value, dtype=float)
     if model.n_hat != 1:
-        raise DesignError("simulate.tracking", "set-point references of a nonlinear kappa need a scalar abstraction in this version", "one abstract state, or an affine kappa")
+        return _reference_state_nonlinear(model, plant, level, where)
     lo, hi = model.V[0]
     grid = np.linspace(lo, hi, 20001)
     err = plant.kappa(grid)[0, 0] - level[0]
@@ -119,9 +122,24 @@ def reference_state(model: Model, plant: _Plant, level: np.ndarray, index: int, 
     return np.array([min(roots, key=abs)])
 
 
+def _reference_state_nonlinear(model: Model, plant: _Plant, level: np.ndarray, where: str) -> np.ndarray:
+    """Several abstract states, nonlinear kappa: bounded least squares on kappa(xi) = level from the points
+    of a coarse grid of V; of the exact solutions found, the least-norm one."""
+    starts = domain_grid(model.V, 5 ** model.n_hat)
+    bounds = (model.V[:, 0], model.V[:, 1])
+    found = []
+    for start in starts.T:
+        fit = sopt.least_squares(lambda s: plant.kappa(*s)[:, 0] - level, start, bounds=bounds, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if np.abs(fit.fun).max() <= 1e-10 * max(1.0, np.abs(level).max()):
+            found.append(fit.x)
+    if not found:
+        raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V", "levels inside kappa(V)")
+    return min(found, key=np.linalg.norm)
+
+
 def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
-                 q_kind: str, saturate: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The closed loop at one point: abstract input, interface output and both state derivatives.
+                 q_kind: str, saturate: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed loop at one point: abstract input, interface output, both state derivatives and theta v.
 
     Returns
     -------
@@ -132,17 +150,21 @@ def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarra
         eq. egqLS; K = 0 unless feedback linear_gain).
     dxi, dx : ndarray
         phi_bar(xi) + delta(xi) v and f_bar(x) + g(x) u.
+    r : ndarray (n,)
+        dp/dxi delta v - g(x) (u - l(xi) - K (x - p(xi))): what drives W away from decay in
+        W' <= -lambda W + 2 (p - x)^T M r (eq. iota; r = theta v through sqrt(M)^-1 when u is not clipped).
     """
     phi, delta, l, dpd, _, p = plant.at_xi(xi)
     f_bar, g, *_ = plant.at_x(x)
     v = np.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
-    u = l[:, 0] + plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) of eq. Interface (K = 0 for identity feedback)
+    u_nominal = l[:, 0] + plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) of eq. Interface (K = 0 for identity feedback)
+    u = u_nominal
     if q_kind == "least_squares":
         q = _pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. egqLS
         u = u + q @ v
     if saturate:
         u = np.clip(u, plant.U[:, 0], plant.U[:, 1])
-    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
 
 
 def _integrate(rhs, t_span, z0, t_eval, tol, what, events=None):
@@ -175,11 +197,17 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
 
     def rhs_for(xi_ref):
         def rhs(t, z):
-            _, _, dxi, dx = tracking_law(plant, z[:nh], z[nh:], xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
-            return np.r_[dxi, dx]
+            _, _, dxi, dx, r = tracking_law(plant, z[:nh], z[nh:-1], xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
+            # The comparison system of the a-posteriori bound: w' = -(lambda - eps) w + |sqrt(M) r|^2 / eps.
+            dw = -(lam - eps) * z[-1] + float(np.sum((plant.L.T @ r) ** 2)) / eps
+            return np.r_[dxi, dx, dw]
         return rhs
 
-    z = np.r_[xi0, x0]
+    lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
+    alpha_h = float(up["bound"].value("alpha_h"))
+    e0 = plant.p_map(*xi0)[:, 0] - x0
+    W0 = float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
+    z = np.r_[xi0, x0, W0]
     ts, zs, ref_idx, settle = [], [], [], []
     t0 = 0.0
     k = 0
@@ -198,12 +226,12 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     t = np.concatenate(ts)
     Z = np.concatenate(zs, axis=1)
     idx = np.concatenate(ref_idx)
-    xi, x = Z[:nh], Z[nh:]
+    xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
     xi_ref = np.stack([refs[i] for i in idx], axis=1)
     v = np.empty((model.m_hat, t.size))
     u = np.empty((model.m, t.size))
     for k in range(t.size):
-        v[:, k], u[:, k], _, _ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
+        v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
     psi = plant.kappa(*xi)[:, 0, :]
     y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
     e = psi - y
@@ -212,6 +240,12 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     gain = float(up["bound"].value("gain"))
     bound = gain * v_inf
     span = float(np.ptp(model.Y, axis=1).max())
+    # |psi - y| <= alpha_h^-1(W) <= sqrt(w / alpha_h): the a-posteriori bound (comparison lemma on the run's
+    # own theta and v), plus the integrator's accuracy, which no simulated error can be held below.
+    posterior = np.sqrt(np.maximum(w, 0.0) / alpha_h)
+    floor = POSTERIOR_FLOOR_RTOL * max(1.0, span)
+    posterior_ok = bool(np.all(err <= posterior + floor))
+    W = np.einsum("iN,ij,jN->N", plant.p_map(*xi)[:, 0, :] - x, np.asarray(up["stabilise"].value("M")), plant.p_map(*xi)[:, 0, :] - x)
     settle_ok = bool(max(settle) <= SETTLE_RTOL * span)
     U = model.U
     u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))
@@ -222,14 +256,22 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
         "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
         "tracking/max_abs_error": float(err.max()), "tracking/v_inf": v_inf, "tracking/u_min": float(u.min()),
         "tracking/u_max": float(u.max()), "tracking/uniform_bound": bound, "tracking/x0": x0,
-        "tracking/W0": float((plant.p_map(*xi0)[:, 0] - x0) @ np.asarray(up["stabilise"].value("M")) @ (plant.p_map(*xi0)[:, 0] - x0)),
+        "tracking/W0": W0, "tracking/W": W, "tracking/w_comparison": w, "tracking/posterior_bound": posterior,
+        "tracking/posterior_bound_max": float(posterior.max()),
+        "tracking/posterior_tightening": float(bound / posterior.max()) if posterior.max() > 0 else float("inf"),
     }
     checks = {
+        "tracking_error_within_posterior_bound": Check(float((err - posterior).max()), posterior_ok,
+                                                       f"max over the run of |psi - y| - sqrt(w(t) / alpha_h) (<= {POSTERIOR_FLOOR_RTOL:g} x output span, the integrator's accuracy)"),
         "tracking_error_within_bound": Check(float(err.max() - bound), bool(err.max() <= bound), "max |psi - y| - G ||v||_inf (<= 0: eq. egErrorBound holds)"),
         "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
         "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
         "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem ErrorBound applies)"),
     }
+    if model.state_box is not None:
+        box = model.state_box
+        excursion = float(max((box[:, 0:1] - x).max(), (x - box[:, 1:2]).max()))
+        checks["tracking_x_in_state_box"] = Check(excursion, excursion <= 0, "largest excursion of x outside concrete.state_box (<= 0: the Jacobian LMI and L_h hold along the run)")
     return values, checks
 
 
@@ -331,7 +373,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
 
 _METRICS = {
-    "tracking": ("max_abs_error", "v_inf", "u_min", "u_max", "uniform_bound", "W0"),
+    "tracking": ("max_abs_error", "v_inf", "u_min", "u_max", "uniform_bound", "W0", "posterior_bound_max", "posterior_tightening"),
     "m_relation": ("max_abs_error", "invariance_residual", "u_min", "u_max"),
 }
 
@@ -352,7 +394,8 @@ def headline(art: Artefact) -> str:
     parts = []
     if "tracking/t" in art.values:
         v = art.values
-        parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}")
+        post = f" (a posteriori {v['tracking/posterior_bound_max']:.4g})" if "tracking/posterior_bound_max" in v else ""
+        parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}{post}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
     return ", ".join(parts)

@@ -9,6 +9,9 @@ for all u in U; since the left side is affine in u it suffices to impose it at t
 The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
 the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.
 
+When f is not affine in x, the same LMI is imposed on a polytope that contains the Jacobian df/dx over
+``concrete.state_box`` x U (:func:`jacobian_polytope`); the certificate then holds for solutions in that box.
+
 ``feedback: linear_gain`` (a plant that is not incrementally stable, with g(x) = B constant) synthesises K so
 that k(z, x, u) = u + K (z - x) renders the pair incrementally stable: with X = M^-1 and Y = K X the
 condition (A(u) + B K)^T M + M (A(u) + B K) <= -lambda M becomes the LMI
@@ -22,6 +25,7 @@ import itertools
 import cvxpy as cp
 import numpy as np
 import scipy.linalg as sla
+import scipy.optimize as sopt
 import sympy as sp
 
 from ..artefacts import Artefact, Check
@@ -67,6 +71,85 @@ def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
                                   "A(u) affine in u so that the LMI at the vertices of U covers all of U")
     b = sp.simplify(model.f - A * model.x)
     return sp.simplify(A), b
+
+
+#: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices).
+MAX_VARYING_ENTRIES = 12
+RANGE_SAMPLES = 40000
+
+
+def jacobian_polytope(model: Model) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
+    """A polytope containing the Jacobian df/dx(x, u) for x in ``concrete.state_box`` and u in U.
+
+    For f not affine in x, V(x, z) = (x - z)^T M (x - z) decays at rate lambda along any pair of solutions
+    that stay in the (convex) state box if J^T M + M J <= -lambda M for every J = df/dx(s, u) with s in the
+    box (the mean-value form f(x, u) - f(z, u) = int_0^1 J(z + s (x - z), u) ds (x - z)).  Each entry of J
+    that varies is bounded over box x U (a grid, refined by bounded local searches, widened by 1e-9
+    relative), and the LMI is imposed at the 2^k vertices of the box of entry values, which contains J.
+
+    Returns
+    -------
+    J : sympy Matrix
+        df/dx(x, u).
+    A_list : list of ndarray
+        The vertex matrices.
+    ranges : ndarray, shape (k, 2)
+        The range of each varying entry.
+    meta : dict
+        Which entries vary.
+
+    Raises
+    ------
+    SpecError
+        Without ``concrete.state_box``.
+    DesignError
+        If more than ``MAX_VARYING_ENTRIES`` entries vary, or an entry is unbounded on the box.
+    """
+    if model.state_box is None:
+        raise SpecError("concrete.state_box", "missing: f(x, u) is not affine in x, so the incremental LMI is imposed on the Jacobian over a box of states",
+                        "one pair [lo, hi] per state (the region the design is certified on)")
+    J = model.f.jacobian(model.x)
+    args = list(model.x) + list(model.u)
+    box = np.r_[model.state_box, model.U]
+    varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(J, dtype=object)) if sp.sympify(e).free_symbols & set(args)]
+    if len(varying) > MAX_VARYING_ENTRIES:
+        raise DesignError("concrete", f"{len(varying)} Jacobian entries vary over the state box (at most {MAX_VARYING_ENTRIES}: the polytope has 2^k vertices)",
+                          "fewer state-dependent terms, or f affine in x")
+    per_axis = max(3, int(round(RANGE_SAMPLES ** (1.0 / len(box)))))
+    mesh = np.meshgrid(*[np.linspace(lo, hi, per_axis) for lo, hi in box], indexing="ij")
+    pts = np.stack([g.ravel() for g in mesh])
+    ranges = []
+    for i, j in varying:
+        fun = model.numeric([J[i, j]], args)
+        vals = np.broadcast_to(fun(*pts)[0, 0], pts.shape[1])
+        if not np.all(np.isfinite(vals)):
+            raise DesignError("concrete.state_box", f"df{i + 1}/d{model.x[j]} is not finite on the box", "a box on which f is C^1")
+        lo_hi = []
+        for sign, k in ((1.0, int(np.argmin(vals))), (-1.0, int(np.argmax(vals)))):
+            res = sopt.minimize(lambda z: sign * float(fun(*z)[0, 0]), pts[:, k], bounds=[tuple(b) for b in box], method="L-BFGS-B")
+            lo_hi.append(sign * min(sign * vals[k], float(res.fun)) if res.success else vals[k])
+        lo, hi = lo_hi
+        pad = 1e-9 * max(1.0, abs(lo), abs(hi))
+        ranges.append((lo - pad, hi + pad))
+    J0 = np.array(model.substitute(J.xreplace({a: 0 for a in args})), dtype=float)
+    A_list = []
+    for corner in itertools.product(*ranges):
+        A = J0.copy()
+        for (i, j), value in zip(varying, corner):
+            A[i, j] = value
+        A_list.append(A)
+    meta = {"jacobian_entries": [f"df{i + 1}/d{model.x[j]}" for i, j in varying],
+            "state_box": model.state_box.tolist(), "range_method": f"grid of {pts.shape[1]} points of box x U, refined by L-BFGS-B, widened 1e-9"}
+    return J, A_list, np.array(ranges).reshape(-1, 2), meta
+
+
+def jacobian_samples(model: Model, J: sp.Matrix, count: int = 2000, seed: int = 2) -> list[np.ndarray]:
+    """df/dx at random points of state_box x U (the numpy re-check of the Jacobian LMI)."""
+    rng = np.random.default_rng(seed)
+    box = np.r_[model.state_box, model.U]
+    pts = rng.uniform(box[:, 0:1], box[:, 1:2], size=(len(box), count))
+    values = np.broadcast_to(model.numeric(J, list(model.x) + list(model.u))(*pts), J.shape + (count,))
+    return list(np.moveaxis(values, -1, 0))
 
 
 def vertices(U: np.ndarray) -> np.ndarray:
@@ -212,11 +295,25 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         If the solver claims success but the numpy re-check fails.
     """
     st = model.spec.stabilisability
-    A_sym, b_sym = affine_form(model)
-    A_num = model.numeric(A_sym, list(model.u))
-    verts = vertices(model.U)
-    A_vertices = [A_num(*vtx) for vtx in verts]
     meta: dict = {"method": st.method, "feedback": st.feedback}
+    try:
+        A_sym, b_sym = affine_form(model)
+        affine = True
+    except DesignError as exc:
+        if "not affine in x" not in exc.what or model.state_box is None:
+            raise
+        affine = False
+    if affine:
+        A_num = model.numeric(A_sym, list(model.u))
+        verts = vertices(model.U)
+        A_vertices = [A_num(*vtx) for vtx in verts]
+    else:
+        if st.feedback == "linear_gain":
+            raise SpecError("stabilisability.feedback", "'linear_gain' with f not affine in x", "feedback: identity (the Jacobian LMI certifies the plant itself)")
+        A_sym, A_vertices, ranges, jmeta = jacobian_polytope(model)
+        b_sym = sp.zeros(model.n, 1)
+        verts = ranges
+        meta.update(jmeta, condition="J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (Jacobian polytope)")
     K = np.zeros((model.m, model.n))
 
     if st.feedback == "linear_gain":
@@ -252,8 +349,12 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
     vertex_margins = lmi_margins([A + B_K for A in A_vertices], M, lam)
-    sweep_u = sweep(model.U)
-    sweep_margins = lmi_margins([A_num(*uu) + B_K for uu in sweep_u], M, lam)
+    if affine:
+        sweep_u = sweep(model.U)
+        sweep_margins = lmi_margins([A_num(*uu) + B_K for uu in sweep_u], M, lam)
+    else:
+        sweep_u = np.zeros((0, model.m))
+        sweep_margins = lmi_margins(jacobian_samples(model, A_sym), M, lam)
     margin = float(max(vertex_margins.max(), sweep_margins.max()))
     eig_M = np.linalg.eigvalsh(M)
     if (st.method == "polytopic_lmi" or st.feedback == "linear_gain") and margin > 0:
