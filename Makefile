@@ -1,4 +1,4 @@
-# ashc: `make demo` designs and simulates the paper's Cuk converter; `make test` runs the suite.
+# ashc: `make demo` designs, simulates and reports on the paper's Cuk converter; `make test` runs the suite.
 # Both create .venv and install the package from pyproject.toml on first use.
 
 SHELL  := /bin/bash
@@ -21,6 +21,7 @@ install: $(BIN)/ashc
 demo: install
 	$(BIN)/ashc design $(SPEC) --out $(OUT)
 	$(BIN)/ashc simulate $(SPEC) --out $(OUT)
+	$(BIN)/ashc report $(SPEC) --out $(OUT) --runs 32 --t-final 10
 	$(BIN)/ashc summary $(OUT)
 
 test: install

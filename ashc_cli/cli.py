@@ -18,10 +18,11 @@ from typing import Annotated, Optional
 
 import typer
 
-from . import __version__
+from . import __version__, plots
 from .errors import AshcError, DesignError
-from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run
+from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run, run_falsify, run_for_verdict
 from .query import EVALUABLE, evaluate, parse_point, summary
+from .report import render
 from .spec import load_spec
 from .verdict import verdict
 
@@ -153,16 +154,7 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     """
     spec_obj = load_spec(spec)
     folder = out if out is not None else default_out(spec_obj)
-    arts, stopped = {}, None
-    show = _progress(True)
-    for stage in DESIGN:
-        try:
-            # One stage at a time, so a failing condition still leaves the verdict of the stages before it.
-            arts.update(run(spec_obj, folder, [stage], force=force and stage not in arts,
-                            on_stage=lambda report, stage=stage: show(report) if report.stage == stage else None))
-        except DesignError as exc:
-            stopped = (stage, exc)
-            break
+    arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
     solved, rows = verdict(arts, stopped)
     if as_json:
         _emit_json({"spec": spec_obj.name, "solved": solved, "rows": [r.as_dict() for r in rows]})
@@ -175,6 +167,134 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
                 typer.echo(f"              {r.detail}")
         typer.echo(f"Problem 1 solved: {'yes' if solved else 'no'}")
     if not solved:
+        raise typer.Exit(3)
+
+
+RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of random closed-loop runs (one vectorised batch).")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same batch.")]
+TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
+
+
+@app.command()
+@_guard
+def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
+    """Draw the paper's figures for this design as PNG files in <out>/plots/.
+
+    kappa_xi.png (kappa over V with Y), delta_compare.png (||theta|| for delta = I and the design's delta),
+    tracking_inputs/outputs.png (v, u; psi, y and |psi - y| with the uniform and a-posteriori bounds),
+    m_relation_inputs/outputs.png, and falsify.png when `ashc falsify` has run. Runs the stale stages
+    (simulate included) first.
+    """
+    spec_obj, folder, arts = _run(spec, out, ["simulate"], force, as_json)
+    extra = load_all(folder)
+    if "falsify" in extra and extra["falsify"].provenance.get("spec_sha256") == spec_obj.sha256:
+        arts["falsify"] = extra["falsify"]
+    paths = plots.write_all(spec_obj, arts, Path(folder) / "plots")
+    if as_json:
+        _emit_json({"figures": [str(p) for p in paths]})
+    else:
+        for p in paths:
+            typer.echo(str(p))
+
+
+@app.command()
+@_guard
+def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt = 0, t_final: TFinalOpt = None,
+            as_json: JsonOpt = False) -> None:
+    """Try to break the error bound: a batch of random closed-loop runs, vectorised over the batch.
+
+    Random initial states (a quarter on the manifold, the rest with W(0) > 0), random references with
+    kappa(xi_ref) in Y, random set-point gains and random bounded disturbances on v. Reports the largest
+    ratio of measured |psi - y| to the guaranteed bound sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup|v|
+    over all runs and times. Writes falsify.h5 either way; exit 3 if the ratio exceeds 1 (a violation).
+    """
+    spec_obj = load_spec(spec)
+    folder = out if out is not None else default_out(spec_obj)
+    from .falsify import SEGMENTS
+    with typer.progressbar(length=SEGMENTS, label=f"falsify: {runs} runs", file=sys.stderr) as bar:
+        done = [0]
+
+        def advance(k: int) -> None:
+            bar.update(k - done[0])
+            done[0] = k
+
+        _, art = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True), progress=advance)
+    entry = summary({"falsify": art})["falsify"]
+    if as_json:
+        _emit_json(entry)
+    else:
+        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {entry['max_ratio']:.4g} "
+                   f"(run {entry['worst_run']}, t = {entry['worst_time']:.4g} s), {entry['runs_leaving_V']} left V")
+    if entry["max_ratio"] > 1.0:
+        typer.echo(f"error: falsify: the bound is violated by a factor {entry['max_ratio']:.4g} in run {entry['worst_run']} at "
+                   f"t = {entry['worst_time']:.4g} s; the run is saved in {Path(folder) / 'falsify.h5'}", err=True)
+        raise typer.Exit(3)
+
+
+@app.command()
+@_guard
+def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt = 0, t_final: TFinalOpt = None,
+           force: ForceOpt = False) -> None:
+    """Write <out>/report.html: one self-contained page for a design review.
+
+    It holds the spec, the Problem 1 verdict, every stage's numbers and checks, the uniform and a-posteriori
+    bounds, the falsification result (running `ashc falsify` with --runs if it has not run on this spec)
+    and the figures of `ashc plot`, embedded. Exit 0 when written, also for a design that fails (the
+    page says why); exit 3 if the falsification finds a violation.
+    """
+    spec_obj = load_spec(spec)
+    folder = Path(out if out is not None else default_out(spec_obj))
+    arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
+    solved, rows = verdict(arts, stopped)
+    violated = False
+    if stopped is None:
+        arts.update(run(spec_obj, folder, ["simulate"], on_stage=_progress(True)))
+        present = load_all(folder)
+        if "falsify" in present and present["falsify"].provenance.get("spec_sha256") == spec_obj.sha256 and not force:
+            arts["falsify"] = present["falsify"]
+        else:
+            arts["falsify"] = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True))[1]
+        violated = float(arts["falsify"].value("max_ratio")) > 1.0
+    figures = plots.write_all(spec_obj, arts, folder / "plots")
+    page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, solved, rows, figures)
+    target = folder / "report.html"
+    tmp = target.with_suffix(".html.tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(target)
+    typer.echo(f"{target} ({len(page) // 1024} KiB): Problem 1 solved: {'yes' if solved else 'no'}")
+    if violated:
+        typer.echo("error: report: the falsification run violates the bound (see the report)", err=True)
+        raise typer.Exit(3)
+
+
+@app.command()
+@_guard
+def regress(
+    specs: Annotated[Path, typer.Argument(help="A folder of specs (every *.yaml in it).", show_default=False)],
+    golden: Annotated[Path, typer.Option("--golden", help="Folder of golden JSON files, one per spec name.")] = Path("tests/golden"),
+    out: Annotated[Optional[Path], typer.Option("--out", help="Where the designs go [default: outputs/regress].", show_default=False)] = None,
+    update: Annotated[bool, typer.Option("--update", help="Write the golden files from this run (keeping edited tolerances).")] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Rerun every spec in a folder and compare its summary with golden values, key by key.
+
+    Each golden file names the keys it checks (e.g. bound.gain) with a tolerance (rtol/atol, or at_most for
+    residuals). A difference is reported with the key, both values and the tolerance; exit 3 if any spec
+    differs or has no golden file (write them with --update, after checking the numbers).
+    """
+    from .regress import regress as run_regress
+
+    def show(row: dict) -> None:
+        typer.echo(f"{row['spec']:<28} {row['status']}", err=as_json)
+        for d in row["differences"]:
+            typer.echo(f"    {d}", err=as_json)
+
+    rows = run_regress(specs, golden, out if out is not None else Path("outputs") / "regress", update, progress=show)
+    if as_json:
+        _emit_json(rows)
+    bad = [r for r in rows if r["status"] in ("differs", "no golden")]
+    if bad:
+        typer.echo(f"error: regress: {len(bad)} of {len(rows)} spec(s) differ from {golden}: {', '.join(r['spec'] for r in bad)}", err=True)
         raise typer.Exit(3)
 
 

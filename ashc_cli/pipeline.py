@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from .artefacts import SCHEMA_VERSION, Artefact, read_artefact, write_artefact
-from .errors import ArtefactError
+from .errors import ArtefactError, DesignError
 from .model import build_model
 from .spec import Spec
+from . import falsify as falsify_mod
 from .stages import DESIGN, ORDER
 
 __all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers", "run",
@@ -27,6 +28,8 @@ __all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "stalen
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
+#: Artefacts made by commands that are not flow-chart stages (they read a finished design).
+EXTRAS = {falsify_mod.NAME: falsify_mod}
 
 
 @dataclass(frozen=True)
@@ -209,7 +212,55 @@ def load_all(out: str | Path) -> dict[str, Artefact]:
     ArtefactError
         If the folder holds no artefact at all.
     """
-    arts = {name: read_artefact(artefact_path(out, name)) for name in STAGES if artefact_path(out, name).exists()}
+    arts = {name: read_artefact(artefact_path(out, name)) for name in (*STAGES, *EXTRAS) if artefact_path(out, name).exists()}
     if not arts:
         raise ArtefactError(str(out), "holds no ashc artefact", "a folder written by `ashc design SPEC --out DIR`")
     return arts
+
+
+def design_model(spec: Spec, arts: dict[str, Artefact]):
+    """The spec's model with V fixed (``domain: auto`` takes the manifold stage's choice)."""
+    model = build_model(spec)
+    if model.V is None and "manifold" in arts:
+        model = dataclasses.replace(model, V=np.asarray(arts["manifold"].value("V"), dtype=float))
+    return model
+
+
+def run_falsify(spec: Spec, out: str | Path, runs: int, seed: int = 0, t_final: float | None = None, *,
+                on_stage: Callable[[StageReport], None] | None = None, progress=None) -> tuple[dict[str, Artefact], Artefact]:
+    """Bring the design up to date, run :func:`ashc_cli.falsify.falsify` and store ``falsify.h5``.
+
+    The artefact is written whatever the verdict (a violation must be kept to be studied).
+    """
+    arts = run(spec, out, DESIGN, on_stage=on_stage)
+    start = time.perf_counter()
+    art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress)
+    ups = ("stabilise", "manifold", "kappa", "delta", "bound")
+    write_artefact(artefact_path(out, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
+                   parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups})
+    art = read_artefact(artefact_path(out, falsify_mod.NAME))
+    if on_stage is not None:
+        on_stage(StageReport(falsify_mod.NAME, "ran", time.perf_counter() - start, falsify_mod.headline(art)))
+    return arts, art
+
+
+def run_for_verdict(spec: Spec, out: str | Path, *, force: bool = False,
+                    on_stage: Callable[[StageReport], None] | None = None) -> tuple[dict[str, Artefact], tuple | None]:
+    """Run the design stages one at a time, stopping at the first design condition that fails.
+
+    Returns
+    -------
+    arts : dict
+        The artefacts of the stages that succeeded.
+    stopped : (stage, DesignError) or None
+        Where and why the design stopped (for the Problem 1 verdict).
+    """
+    arts: dict[str, Artefact] = {}
+    for stage in DESIGN:
+        try:
+            # One stage at a time, so a failing condition still leaves the verdict of the stages before it.
+            arts.update(run(spec, out, [stage], force=force and stage not in arts,
+                            on_stage=lambda report, stage=stage: on_stage(report) if on_stage and report.stage == stage else None))
+        except DesignError as exc:
+            return arts, (stage, exc)
+    return arts, None

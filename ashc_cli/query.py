@@ -13,7 +13,7 @@ import sympy as sp
 
 from .artefacts import Artefact
 from .errors import ArtefactError, DesignError, SpecError
-from .pipeline import STAGES
+from .pipeline import EXTRAS, STAGES
 
 __all__ = ["summary", "EVALUABLE", "parse_point", "evaluate"]
 
@@ -43,7 +43,7 @@ def summary(arts: dict[str, Artefact]) -> dict:
     """
     out = {}
     for name, art in arts.items():
-        entry = STAGES[name].summarise(art)
+        entry = (STAGES.get(name) or EXTRAS[name]).summarise(art)
         entry["checks"] = {k: {"value": _num(c.value), "passed": c.passed, "description": c.description} for k, c in art.checks.items()}
         entry["provenance"] = {k: art.provenance.get(k) for k in ("spec_sha256", "created", "ashc_version", "sha256")}
         out[name] = entry

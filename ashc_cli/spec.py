@@ -156,6 +156,8 @@ class Spec(_Strict):
     abstract: Abstract
     interface: Interface = Field(default_factory=Interface)
     simulate: Simulate = Field(default_factory=Simulate)
+    #: Units for figure axes: keys are declared state/input names, ``t``, ``y`` (every output) or ``y1``, ``y2``, ...
+    units: dict[str, Annotated[str, Field(max_length=20)]] = Field(default_factory=dict)
 
     @property
     def sha256(self) -> str:
@@ -352,6 +354,7 @@ def check_shapes(spec: Spec) -> None:
     elif st.M is not None:
         raise SpecError("stabilisability.M", "given with method 'polytopic_lmi'", "method: given, or no M")
     _check_names(spec)
+    _check_units(spec)
     _check_simulate(spec, n, m, p, nh)
 
 
@@ -369,6 +372,14 @@ def _check_names(spec: Spec) -> None:
             if name in seen:
                 raise SpecError(where, f"name '{name}' is already used in {seen[name]}", "names unique across parameters, states and inputs")
             seen[name] = where
+
+
+def _check_units(spec: Spec) -> None:
+    c, a = spec.concrete, spec.abstract
+    allowed = {*c.states, *c.inputs, *a.states, *a.inputs, "t", "y", *(f"y{k + 1}" for k in range(len(c.h)))}
+    for key in spec.units:
+        if key not in allowed:
+            raise SpecError(f"units.{key}", "is not a declared state or input, t, or an output name", f"one of {', '.join(sorted(allowed))}")
 
 
 def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:

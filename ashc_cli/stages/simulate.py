@@ -236,7 +236,7 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
     e = psi - y
     err = np.linalg.norm(e, axis=0)
-    v_inf = float(np.abs(v).max())
+    v_inf = float(np.linalg.norm(v, axis=0).max())   # sup over t of |v(t)| (2-norm: theta v is bounded by ||theta|| |v|)
     gain = float(up["bound"].value("gain"))
     bound = gain * v_inf
     span = float(np.ptp(model.Y, axis=1).max())
