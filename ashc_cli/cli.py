@@ -16,10 +16,11 @@ import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
+import numpy as np
 import typer
 
 from . import __version__, plots
-from .errors import AshcError, DesignError
+from .errors import AshcError, DesignError, SpecError
 from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run, run_falsify, run_for_verdict
 from .query import EVALUABLE, evaluate, parse_point, summary
 from .report import render
@@ -265,6 +266,54 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     if violated:
         typer.echo("error: report: the falsification run violates the bound (see the report)", err=True)
         raise typer.Exit(3)
+
+
+@app.command()
+@_guard
+def sweep(
+    spec: SpecArg,
+    param: Annotated[list[str], typer.Option("--param", help="NAME=LO:HI:COUNT, a spec parameter and its values (repeat for a grid).", show_default=False)],
+    out: OutOpt = None,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) [default: a local cluster].", show_default=False)] = None,
+    workers: Annotated[int, typer.Option("--workers", min=1, max=256, help="Worker processes of the local cluster.")] = 2,
+    falsify_runs: Annotated[int, typer.Option("--falsify-runs", min=0, help="Also run `ashc falsify` with this many runs per solved design (0: no).")] = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Design the spec for every combination of parameter values, in parallel on Dask.
+
+    Each combination designs into <out>/sweep/<k>/; a failing design is recorded (solved: no, with the
+    reason) and the sweep goes on. Results: <out>/sweep.h5 (parameters, lambda, dbar_q0, gain, verdict,
+    falsify ratio, seconds, error per combination) and <out>/plots/sweep.png (headline numbers against
+    the first swept parameter).
+    """
+    from . import sweep as sweep_mod
+    from .artefacts import write_artefact
+
+    spec_obj = load_spec(spec)
+    folder = Path(out if out is not None else default_out(spec_obj))
+    axes = [sweep_mod.parse_param(p, spec_obj) for p in param]
+    names = [n for n, _ in axes]
+    if len(set(names)) != len(names):
+        raise SpecError("--param", f"a parameter is swept twice ({', '.join(names)})", "each parameter once")
+
+    def show(row: dict) -> None:
+        values = ", ".join(f"{k}={v:.6g}" for k, v in row["params"].items())
+        verdict_text = "solved" if row["solved"] else f"NOT solved: {row['error']}"
+        typer.echo(f"  {values}: lambda = {row['lambda']:.5g}, dbar_q0 = {row['dbar_q0']:.5g}, G = {row['gain']:.5g}, {verdict_text} ({row['seconds']:.1f} s)", err=True)
+
+    art = sweep_mod.sweep(spec_obj, axes, folder, scheduler, workers, falsify_runs, progress=show)
+    write_artefact(folder / "sweep.h5", art, spec_sha256=spec_obj.sha256, spec_name=spec_obj.name,
+                   parameters=dict(spec_obj.parameters), upstream={})
+    figure = sweep_mod.plot(art, folder / "plots" / "sweep.png")
+    v = art.values
+    result = {"combinations": int(len(v["solved"])), "solved": int(np.sum(v["solved"])), "parameters": names,
+              "table": str(folder / "sweep.h5"), "plot": str(figure), "wall_seconds": float(v["wall_seconds"]),
+              "workers": art.meta["workers"]}
+    if as_json:
+        _emit_json(result)
+    else:
+        typer.echo(f"sweep '{spec_obj.name}': {result['solved']}/{result['combinations']} combinations solved on {result['workers']} worker(s) "
+                   f"in {result['wall_seconds']:.1f} s; table {result['table']}, plot {result['plot']}")
 
 
 @app.command()
