@@ -8,7 +8,7 @@ BIN    := $(VENV)/bin
 SPEC   ?= specs/cuk_converter.yaml
 OUT    ?= outputs/cuk_converter
 
-.PHONY: install demo test fuzz docs clean
+.PHONY: install demo test bench fuzz docs clean
 
 $(BIN)/ashc: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,10 @@ demo: install
 
 test: install
 	$(BIN)/python -m pytest -q
+
+# Wall time and peak memory per stage on the ladder family (n = 4..128) and the Cuk spec; prints a table.
+bench: install
+	$(BIN)/python bench/bench.py
 
 # A longer fuzz than the suite's: FUZZ_EXAMPLES cases per property; hypothesis prints the counts.
 FUZZ_EXAMPLES ?= 20000

@@ -49,6 +49,7 @@ SpecArg = Annotated[Path, typer.Argument(help="The YAML spec (see spec-format.md
 OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Recompute every needed stage even if up to date.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (progress goes to stderr).")]
+NumericOpt = Annotated[Optional[bool], typer.Option("--numeric/--symbolic", help="Force the numeric fast paths (grids and interpolants) or the symbolic ones (sympy) [default: numeric above 12 states]. Add --force when switching on an existing folder.", show_default=False)]
 FrozenOpt = Annotated[bool, typer.Option("--frozen", help="Never rerun an upstream stage: fail (exit 5, naming the stage) if one is stale.")]
 
 
@@ -84,10 +85,10 @@ def _progress(to_stderr: bool):
     return show
 
 
-def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool, frozen: bool = False):
+def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool, frozen: bool = False, numeric: bool | None = None):
     spec = load_spec(spec_path)
     folder = out if out is not None else default_out(spec)
-    arts = run(spec, folder, targets, force=force, frozen=frozen, on_stage=_progress(as_json))
+    arts = run(spec, folder, targets, force=force, frozen=frozen, on_stage=_progress(as_json), numeric=numeric)
     return spec, folder, arts
 
 
@@ -107,8 +108,9 @@ _STAGE_HELP = {
 
 
 def _make_stage_command(stage: str):
-    def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, frozen: FrozenOpt = False) -> None:
-        _, _, arts = _run(spec, out, [stage], force, as_json, frozen)
+    def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, frozen: FrozenOpt = False,
+                numeric: NumericOpt = None) -> None:
+        _, _, arts = _run(spec, out, [stage], force, as_json, frozen, numeric)
         if as_json:
             _emit_json(summary({stage: arts[stage]})[stage])
 
@@ -123,13 +125,13 @@ for _stage in STAGES:
 
 @app.command()
 @_guard
-def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
+def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, numeric: NumericOpt = None) -> None:
     """Run the design stages stabilise..bound in order, skipping those already up to date.
 
     A stage is up to date when its artefact was made from the same spec (SHA-256) and the same upstream
     artefacts; --force redoes all. Prints one line per stage with its time and headline number.
     """
-    spec_obj, folder, arts = _run(spec, out, DESIGN, force, as_json)
+    spec_obj, folder, arts = _run(spec, out, DESIGN, force, as_json, numeric=numeric)
     checks = [c for name in DESIGN for c in arts[name].checks.values()]
     failed = [c.description for c in checks if not c.passed]
     if as_json:
@@ -314,6 +316,27 @@ def sweep(
     else:
         typer.echo(f"sweep '{spec_obj.name}': {result['solved']}/{result['combinations']} combinations solved on {result['workers']} worker(s) "
                    f"in {result['wall_seconds']:.1f} s; table {result['table']}, plot {result['plot']}")
+
+
+@app.command()
+@_guard
+def example(
+    kind: Annotated[str, typer.Argument(help="Which family: 'ladder' (an N-stage switched LC ladder, n = 4 N).", show_default=False)],
+    stages: Annotated[int, typer.Option("--stages", min=1, max=256, help="Number of stages N (n = 4 N states).")] = 1,
+    output: Annotated[Optional[Path], typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
+) -> None:
+    """Write the spec of a scalable example plant (for benchmarks and large designs)."""
+    from .examples import ladder
+
+    if kind != "ladder":
+        raise SpecError("KIND", f"'{kind}' is not an example family", "ladder")
+    text = ladder(stages)
+    if output is None:
+        typer.echo(text, nl=False)
+    else:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(text, encoding="utf-8")
+        typer.echo(f"{output}: {stages}-stage ladder, n = {4 * stages}")
 
 
 @app.command()

@@ -24,6 +24,11 @@ from .spec import Spec
 
 __all__ = ["Model", "build_model", "lambdify", "compile_flat", "tidy", "parameter_symbol", "state_symbol", "TIME"]
 
+#: Above this many states the stages use numbers instead of sympy where both work (measured with
+#: `make bench` on the ladder family: at n = 16 sympy.solve of the manifold and of kappa^-1 already take
+#: 19 s of a 24 s design, the numeric paths 2 s).
+NUMERIC_THRESHOLD = 12
+
 #: The time symbol of spec signals.
 TIME = sp.Symbol("t", real=True)
 
@@ -138,6 +143,8 @@ class Model:
     Y: np.ndarray
     V: np.ndarray | None
     state_box: np.ndarray | None = None
+    #: Force the numeric fast paths (True), the symbolic ones (False), or choose by size (None).
+    numeric_paths: bool | None = None
     names: dict[str, sp.Symbol] = field(default_factory=dict)
 
     @property
@@ -159,6 +166,11 @@ class Model:
     @property
     def m_hat(self) -> int:
         return self.v.shape[0]
+
+    @property
+    def use_numeric(self) -> bool:
+        """Whether stages take their numeric fast paths: forced by ``--numeric``, else for n > NUMERIC_THRESHOLD."""
+        return self.numeric_paths if self.numeric_paths is not None else self.n > NUMERIC_THRESHOLD
 
     @cached_property
     def f(self) -> sp.Matrix:

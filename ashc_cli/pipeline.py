@@ -147,6 +147,7 @@ def run(
     force: bool = False,
     frozen: bool = False,
     on_stage: Callable[[StageReport], None] | None = None,
+    numeric: bool | None = None,
 ) -> dict[str, Artefact]:
     """Bring the target stages (and what they need) up to date.
 
@@ -164,6 +165,8 @@ def run(
         Never recompute an upstream stage: refuse (naming the stage to rerun) if one is not up to date.
     on_stage : callable, optional
         Called with a :class:`StageReport` after each stage.
+    numeric : bool, optional
+        Force the numeric (True) or symbolic (False) paths; None chooses by size (``model.NUMERIC_THRESHOLD``).
 
     Returns
     -------
@@ -176,7 +179,7 @@ def run(
         With ``frozen``, if an upstream stage is not up to date.
     """
     targets = list(targets)
-    model = build_model(spec)
+    model = dataclasses.replace(build_model(spec), numeric_paths=numeric)
     remove_leftovers(out)
     arts: dict[str, Artefact] = {}
     reasons: dict = {}

@@ -110,39 +110,51 @@ def _series(ax, t, rows, names):
         ax.plot(t, row, label=names[j] if j < len(names) else None)
 
 
-def tracking_inputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_BoundedIn: the abstract input v and the concrete input u of the tracking run."""
+def _inputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str, abstract_first: bool):
+    """Two panels, abstract input v and concrete input u of a run, in the order of the paper's figure."""
     s = arts["simulate"].values
-    t = np.asarray(s["tracking/t"])
-    fig, (ax_v, ax_u) = _figure(2)
-    _series(ax_v, t, s["tracking/v"], spec.abstract.inputs)
-    _series(ax_u, t, s["tracking/u"], spec.concrete.inputs)
-    ax_v.set_ylabel(_label(spec, ", ".join(spec.abstract.inputs), spec.abstract.inputs[0]))
-    ax_u.set_ylabel(_label(spec, ", ".join(spec.concrete.inputs), spec.concrete.inputs[0]))
-    ax_u.set_xlabel(_label(spec, "t"))
+    t = np.asarray(s[f"{scenario}/t"])
+    fig, axes = _figure(2)
+    panels = [(s[f"{scenario}/v"], spec.abstract.inputs), (s[f"{scenario}/u"], spec.concrete.inputs)]
+    for ax, (rows, names) in zip(axes, panels if abstract_first else panels[::-1]):
+        _series(ax, t, rows, names)
+        ax.set_ylabel(_label(spec, ", ".join(names), names[0]))
+    axes[-1].set_xlabel(_label(spec, "t"))
     fig.tight_layout()
     return fig
 
 
-def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_BoundedOut: psi and y, and |psi - y| with the uniform and a-posteriori bounds."""
+def _outputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str):
+    """psi and y of a run (top) and the axes for |psi - y| (bottom, filled by the caller)."""
     s = arts["simulate"].values
-    t = np.asarray(s["tracking/t"])
+    t = np.asarray(s[f"{scenario}/t"])
     fig, (ax_y, ax_e) = _figure(2)
-    psi, y = np.atleast_2d(s["tracking/psi"]), np.atleast_2d(s["tracking/y"])
+    psi, y = np.atleast_2d(s[f"{scenario}/psi"]), np.atleast_2d(s[f"{scenario}/y"])
     for j in range(psi.shape[0]):
         ax_y.plot(t, psi[j], color=f"C{j}", label="psi" if j == 0 else None)
         ax_y.plot(t, y[j], color=f"C{j}", linestyle="--", label="y" if j == 0 else None)
-    ax_y.set_ylabel(_output_label(spec, 0, "psi, y") if psi.shape[0] == 1 else "psi, y")
+    single = psi.shape[0] == 1
+    ax_y.set_ylabel(_output_label(spec, 0, "psi, y") if single else "psi, y")
     ax_y.legend(loc="best")
-    err = np.linalg.norm(np.atleast_2d(s["tracking/e_y"]), axis=0)
+    err = np.linalg.norm(np.atleast_2d(s[f"{scenario}/e_y"]), axis=0)
     ax_e.plot(t, err, color="k", label="|psi - y|")
+    ax_e.set_ylabel(_output_label(spec, 0, "|psi - y|") if single else "|psi - y|")
+    ax_e.set_xlabel(_label(spec, "t"))
+    return fig, ax_e, t, err, s
+
+
+def tracking_inputs_figure(spec: Spec, arts: dict[str, Artefact]):
+    """Fig. Example_BoundedIn: the abstract input v and the concrete input u of the tracking run."""
+    return _inputs_figure(spec, arts, "tracking", abstract_first=True)
+
+
+def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
+    """Fig. Example_BoundedOut: psi and y, and |psi - y| with the uniform and a-posteriori bounds."""
+    fig, ax_e, t, err, s = _outputs_figure(spec, arts, "tracking")
     if "tracking/posterior_bound" in s:
         ax_e.plot(t, np.asarray(s["tracking/posterior_bound"]), color="C2", label="a-posteriori bound")
     ax_e.axhline(float(s["tracking/uniform_bound"]), color="C3", linestyle=":", label="uniform bound G ||v||")
     ax_e.set_yscale("symlog", linthresh=max(1e-6, float(err.max()) * 1e-3))
-    ax_e.set_ylabel(_output_label(spec, 0, "|e_y|") if psi.shape[0] == 1 else "|e_y|")
-    ax_e.set_xlabel(_label(spec, "t"))
     ax_e.legend(loc="best")
     fig.tight_layout()
     return fig
@@ -150,32 +162,12 @@ def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
 
 def m_relation_inputs_figure(spec: Spec, arts: dict[str, Artefact]):
     """Fig. Example_mRelationIn: u(t) and v = b(x) + c(x) u."""
-    s = arts["simulate"].values
-    t = np.asarray(s["m_relation/t"])
-    fig, (ax_u, ax_v) = _figure(2)
-    _series(ax_u, t, s["m_relation/u"], spec.concrete.inputs)
-    _series(ax_v, t, s["m_relation/v"], spec.abstract.inputs)
-    ax_u.set_ylabel(_label(spec, ", ".join(spec.concrete.inputs), spec.concrete.inputs[0]))
-    ax_v.set_ylabel(_label(spec, ", ".join(spec.abstract.inputs), spec.abstract.inputs[0]))
-    ax_v.set_xlabel(_label(spec, "t"))
-    fig.tight_layout()
-    return fig
+    return _inputs_figure(spec, arts, "m_relation", abstract_first=False)
 
 
 def m_relation_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
     """Fig. Example_mRelationOut: psi and y coincide (Theorem mRelatOutMatch); their difference below."""
-    s = arts["simulate"].values
-    t = np.asarray(s["m_relation/t"])
-    fig, (ax_y, ax_e) = _figure(2)
-    psi, y = np.atleast_2d(s["m_relation/psi"]), np.atleast_2d(s["m_relation/y"])
-    for j in range(psi.shape[0]):
-        ax_y.plot(t, psi[j], color=f"C{j}", label="psi" if j == 0 else None)
-        ax_y.plot(t, y[j], color=f"C{j}", linestyle="--", label="y" if j == 0 else None)
-    ax_y.set_ylabel(_output_label(spec, 0, "psi, y") if psi.shape[0] == 1 else "psi, y")
-    ax_y.legend(loc="best")
-    ax_e.plot(t, np.linalg.norm(np.atleast_2d(s["m_relation/e_y"]), axis=0), color="k")
-    ax_e.set_ylabel(_output_label(spec, 0, "|psi - y|") if psi.shape[0] == 1 else "|psi - y|")
-    ax_e.set_xlabel(_label(spec, "t"))
+    fig, *_ = _outputs_figure(spec, arts, "m_relation")
     fig.tight_layout()
     return fig
 

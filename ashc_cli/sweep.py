@@ -124,7 +124,7 @@ def sweep(spec: Spec, axes: list[tuple[str, np.ndarray]], out: Path, scheduler: 
         client = Client(cluster)
     else:
         try:
-            client = Client(scheduler, timeout=10)
+            client = Client(scheduler, timeout=5)
         except (OSError, TimeoutError) as exc:
             raise SpecError("--scheduler", f"no dask scheduler answers at {scheduler} ({exc})", "the address of a running dask.distributed scheduler") from None
     try:

@@ -194,7 +194,7 @@ def numeric_inverse(model: Model, kappa: sp.Matrix, xs: np.ndarray, y_grid: np.n
         residual = float(np.abs(chebyshev.evaluate(coeffs, box, y_grid[None, :])[0] - xs).max())
         if residual < best[1]:
             best = (coeffs, residual, degree)
-        if residual <= LEFT_INVERSE_TOL:
+        if residual <= LEFT_INVERSE_TOL / 100:   # well inside the tolerance: condition (ii) inherits the error
             break
     coeffs, residual, degree = best
     return chebyshev.to_sympy(coeffs, box, [y])[0], residual, degree

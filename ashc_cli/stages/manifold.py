@@ -27,7 +27,7 @@ from .. import chebyshev
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..grids import domain_grid
-from ..model import Model
+from ..model import Model, compile_flat
 
 NAME = "manifold"
 UPSTREAM: tuple[str, ...] = ()
@@ -54,8 +54,11 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
     """
     P = sp.Matrix(sp.symbols(f"_p0:{model.n}", real=True))
     equations = (model.f_bar + model.g * model.l).xreplace(dict(zip(model.x, P)))
+    # sympy.solve is given rational systems only: on transcendental ones (tanh, exp, sqrt of the unknowns) it
+    # can run for minutes, depending on the hash seed, before giving up; those go to Newton continuation.
+    rational = all(sp.sympify(e).is_rational_function(*P) for e in equations)
     try:
-        solutions = sp.solve(list(equations), list(P), dict=True)
+        solutions = sp.solve(list(equations), list(P), dict=True) if rational else []
     except NotImplementedError:
         solutions = []
     # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
@@ -73,7 +76,8 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
             best, best_score = p, score
     if best is not None:
         return best, len(solutions)
-    raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)",
+    what = "is not rational in x (sympy not tried)" if not rational else f"has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)"
+    raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 {what}",
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
 
 
@@ -115,17 +119,16 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
 
 
-def _residual_functions(model: Model):
-    """F(x, xi) = f_bar(x) + g(x) l(xi) and its Jacobians in x and xi, compiled for numpy (broadcasting)."""
+def _residual_function(model: Model, jacobian: bool = False):
+    """F(x, xi) = f_bar(x) + g(x) l(xi) (and dF/dx if asked), compiled for numpy (broadcasting)."""
     F = model.f_bar + model.g * model.l
     args = list(model.x) + list(model.xi)
-    return (model.numeric(F, args), model.numeric(F.jacobian(model.x), args), model.numeric(F.jacobian(model.xi), args))
+    return (model.numeric(F, args), model.numeric(F.jacobian(model.x), args)) if jacobian else model.numeric(F, args)
 
 
-def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, F) -> float:
-    """max |dp/dxi phi_bar - F(p, xi)| on z, relative to max(1, |dp/dxi phi_bar|, |F|)."""
+def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, F, phi: np.ndarray) -> float:
+    """max |dp/dxi phi_bar - F(p, xi)| on z (phi = phi_bar on z), relative to max(1, |dp/dxi phi_bar|, |F|)."""
     P = chebyshev.evaluate(coeffs, box, z)
-    phi = model.numeric(model.phi_bar, list(model.xi))(*z)[:, 0, :]
     lhs = sum(chebyshev.evaluate(chebyshev.derivative(coeffs, box, k), box, z) * phi[k] for k in range(model.n_hat))
     rhs = F(*P, *z)[:, 0, :]
     return float(np.abs(lhs - rhs).max() / max(1.0, np.abs(lhs).max(), np.abs(rhs).max()))
@@ -161,9 +164,10 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
     """
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box, n, nh = model.V, model.n, model.n_hat
-    F, F_x, _ = _residual_functions(model)
+    F, F_x = _residual_function(model, jacobian=True)
     phi_num = model.numeric(model.phi_bar, list(model.xi))
     check = _check_grid(box)
+    phi_check = phi_num(*check)[:, 0, :]
     coeffs = np.zeros((n,) + (1,) * nh)
     best = np.inf
     for degree in range(1, max_degree + 1):
@@ -187,7 +191,7 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
 
         fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
         coeffs = fit.x.reshape(grown.shape)
-        best = min(best, _relative_residual(model, coeffs, box, check, F))
+        best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
         if best <= tol:
             return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
     raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. SimuDesignCond1 on V to {tol:g}: the best relative residual is {best:.3g}",
@@ -217,24 +221,32 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
     DesignError
         If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
     """
-    F, F_x, F_xi = _residual_functions(model)
     n, N = model.n, z.shape[1]
+    F_sym = model.f_bar + model.g * model.l
+    args = list(model.x) + list(model.xi)
+    # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
+    flat = compile_flat(list(F_sym) + list(F_sym.jacobian(model.x)) + list(F_sym.jacobian(model.xi)), args, model.values)
+
+    def terms(x: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        values = np.array(flat(*x, *at), dtype=float)
+        return values[:n], values[n:n + n * n].reshape(n, n), values[n + n * n:].reshape(n, model.n_hat)
+
     centre = model.V.mean(axis=1)
     first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
 
     def newton(guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
         x = guess.astype(float).copy()
         for _ in range(50):
-            value = F(*x, *at)[:, 0]
-            Fx = F_x(*x, *at)
-            scale = max(1.0, float(np.abs(value).max()))
-            if not np.all(np.isfinite(Fx)) or np.linalg.cond(Fx) * SINGULAR_RCOND > 1:
+            value, Fx, _ = terms(x, at)
+            if not (np.all(np.isfinite(Fx)) and np.all(np.isfinite(value))) or np.linalg.cond(Fx) * SINGULAR_RCOND > 1:
                 return None
-            step = np.linalg.solve(Fx, -value)
-            x = x + step
-            if np.abs(F(*x, *at)[:, 0]).max() <= NEWTON_RTOL * scale and np.abs(step).max() <= 1e-10 * max(1.0, np.abs(x).max()):
+            # |F| is judged against the size of its terms, |dF/dx| |x|: round-off, not 1, is the floor.
+            scale = max(1.0, float(np.abs(Fx).max() * np.abs(x).max()))
+            if np.abs(value).max() <= NEWTON_RTOL * scale:
                 return x
-        return x if np.abs(F(*x, *at)[:, 0]).max() <= 1e3 * NEWTON_RTOL * max(1.0, np.abs(x).max()) else None
+            x = x + np.linalg.solve(Fx, -value)
+        value, Fx, _ = terms(x, at)
+        return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(np.abs(Fx).max() * np.abs(x).max())) else None
 
     starts = []
     if model.spec.abstract.manifold_guess is not None:
@@ -255,7 +267,8 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
     for _ in range(N - 1):
         k = int(np.argmin(np.where(solved, np.inf, distance)))
         j = nearest[k]
-        tangent = -np.linalg.solve(F_x(*X[:, j], *z[:, j]), F_xi(*X[:, j], *z[:, j]))
+        _, Fx, Fxi = terms(X[:, j], z[:, j])
+        tangent = -np.linalg.solve(Fx, Fxi)
         x = newton(X[:, j] + tangent @ (z[:, k] - z[:, j]), z[:, k])
         if x is None:
             raise DesignError("abstract.domain", f"the equilibrium branch is lost at xi = {np.round(z[:, k], 6).tolist()} (dF/dx singular or Newton diverges): p is not defined on all of V",
@@ -280,12 +293,13 @@ def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
     box = model.V
     z = chebyshev.nodes(box, max_degree + 1)
     X = continuation(model, z)
-    F, _, _ = _residual_functions(model)
+    F = _residual_function(model)
     check = _check_grid(box)
+    phi_check = np.zeros((model.n_hat, check.shape[1]))   # phi_bar = 0 here
     best = np.inf
     for degree in range(1, max_degree + 1):
         coeffs = chebyshev.fit(X, box, z, degree)
-        best = min(best, _relative_residual(model, coeffs, box, check, F))
+        best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
         if best <= tol:
             return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
     raise DesignError("abstract.domain", f"the numeric equilibrium manifold is not fitted to {tol:g} by Chebyshev polynomials of degree <= {max_degree}: the best relative residual is {best:.3g}",
@@ -395,6 +409,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     tolerance = RESIDUAL_RTOL
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
         try:
+            if model.use_numeric and model.V is not None:
+                raise DesignError("", "numeric fast path chosen (sympy not tried)")
             p, branches = solve_algebraic(model)
             method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
         except DesignError as closed_form_failure:
