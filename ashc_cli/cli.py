@@ -19,11 +19,10 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 
-from . import __version__, plots
+from . import __version__
 from .errors import AshcError, DesignError, SpecError
 from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run, run_falsify, run_for_verdict
 from .query import EVALUABLE, evaluate, parse_point, summary
-from .report import render
 from .spec import load_spec
 from .verdict import verdict
 
@@ -188,6 +187,8 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     m_relation_inputs/outputs.png, and falsify.png when `ashc falsify` has run. Runs the stale stages
     (simulate included) first.
     """
+    from . import plots  # matplotlib only for the commands that draw (cold start of the others)
+
     spec_obj, folder, arts = _run(spec, out, ["simulate"], force, as_json)
     extra = load_all(folder)
     if "falsify" in extra and extra["falsify"].provenance.get("spec_sha256") == spec_obj.sha256:
@@ -245,6 +246,9 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     and the figures of `ashc plot`, embedded. Exit 0 when written, also for a design that fails (the
     page says why); exit 3 if the falsification finds a violation.
     """
+    from . import plots
+    from .report import render
+
     spec_obj = load_spec(spec)
     folder = Path(out if out is not None else default_out(spec_obj))
     arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
