@@ -177,6 +177,12 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed
 TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
 
 
+def _current_falsify(spec, folder):
+    """The folder's falsify artefact if it was made from this spec, else None."""
+    art = load_all(folder).get("falsify")
+    return art if art is not None and art.provenance.get("spec_sha256") == spec.sha256 else None
+
+
 @app.command()
 @_guard
 def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
@@ -190,9 +196,9 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     from . import plots  # matplotlib only for the commands that draw (cold start of the others)
 
     spec_obj, folder, arts = _run(spec, out, ["simulate"], force, as_json)
-    extra = load_all(folder)
-    if "falsify" in extra and extra["falsify"].provenance.get("spec_sha256") == spec_obj.sha256:
-        arts["falsify"] = extra["falsify"]
+    current = _current_falsify(spec_obj, folder)
+    if current is not None:
+        arts["falsify"] = current
     paths = plots.write_all(spec_obj, arts, Path(folder) / "plots")
     if as_json:
         _emit_json({"figures": [str(p) for p in paths]})
@@ -256,11 +262,8 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     violated = False
     if stopped is None:
         arts.update(run(spec_obj, folder, ["simulate"], on_stage=_progress(True)))
-        present = load_all(folder)
-        if "falsify" in present and present["falsify"].provenance.get("spec_sha256") == spec_obj.sha256 and not force:
-            arts["falsify"] = present["falsify"]
-        else:
-            arts["falsify"] = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True))[1]
+        current = None if force else _current_falsify(spec_obj, folder)
+        arts["falsify"] = current if current is not None else run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True))[1]
         violated = float(arts["falsify"].value("max_ratio")) > 1.0
     figures = plots.write_all(spec_obj, arts, folder / "plots")
     page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, solved, rows, figures)

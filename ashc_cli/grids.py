@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["domain_grid", "sample_output_region", "sample_states_with_output"]
+__all__ = ["domain_grid", "maximise_on_box", "sample_output_region", "sample_states_with_output"]
 
 
 def domain_grid(V: np.ndarray, points: int) -> np.ndarray:
@@ -30,6 +30,35 @@ def domain_grid(V: np.ndarray, points: int) -> np.ndarray:
     axes = [np.linspace(lo, hi, per_axis) for lo, hi in V]
     mesh = np.meshgrid(*axes, indexing="ij")
     return np.stack([m.ravel() for m in mesh], axis=0)
+
+
+def maximise_on_box(pts: np.ndarray, vals: np.ndarray, value_at, box: np.ndarray, starts: int = 1) -> tuple[float, np.ndarray]:
+    """The largest value of a function on a box: its values on a grid, refined by bounded L-BFGS-B.
+
+    Parameters
+    ----------
+    pts, vals : ndarray, shapes (d, N) and (N,)
+        Grid points of the box (:func:`domain_grid`) and the function's values there.
+    value_at : callable
+        value_at(point (d,)) -> float, the function at one point (for the local searches).
+    box : ndarray, shape (d, 2)
+    starts : int
+        How many of the best grid points start a local search.
+
+    Returns
+    -------
+    best : float
+    at : ndarray, shape (d,)
+    """
+    import scipy.optimize as sopt
+
+    k = int(np.argmax(vals))
+    best, at = float(vals[k]), pts[:, k]
+    for k in np.argsort(vals)[-starts:]:
+        res = sopt.minimize(lambda x: -value_at(x), pts[:, k], bounds=[tuple(b) for b in box], method="L-BFGS-B")
+        if res.success and -res.fun > best:
+            best, at = float(-res.fun), res.x
+    return best, np.asarray(at, dtype=float)
 
 
 def sample_output_region(C: np.ndarray, Y: np.ndarray, box: np.ndarray, count: int, seed: int = 0) -> np.ndarray:

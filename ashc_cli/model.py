@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import scipy.optimize as sopt
 import sympy as sp
 
 from .errors import SpecError
 from .expr import NUMERIC_MODULES, parse_expression
+from .grids import domain_grid, maximise_on_box
 from .spec import Spec
 
 __all__ = ["Model", "build_model", "lambdify", "compile_flat", "tidy", "parameter_symbol", "state_symbol", "TIME"]
@@ -207,19 +207,9 @@ class Model:
             raise SpecError("concrete.state_box", "missing: h is not linear, so its Lipschitz constant L_h (Assumption 1) is computed over a box of states",
                             "one pair [lo, hi] per state")
         jac = self.numeric(self.h.jacobian(self.x), list(self.x))
-        box = self.state_box
-        per_axis = max(3, int(round(20000 ** (1.0 / self.n))))
-        mesh = np.meshgrid(*[np.linspace(lo, hi, per_axis) for lo, hi in box], indexing="ij")
-        pts = np.stack([g.ravel() for g in mesh])
-        J = np.moveaxis(jac(*pts), -1, 0)                                   # (N, p, n)
-        norms = np.linalg.norm(J, ord=2, axis=(1, 2))
-        best_k = np.argsort(norms)[-5:]
-        best, at = float(norms.max()), pts[:, int(np.argmax(norms))]
-        for k in best_k:
-            res = sopt.minimize(lambda x: -float(np.linalg.norm(jac(*x), 2)), pts[:, k], bounds=[tuple(b) for b in box], method="L-BFGS-B")
-            if res.success and -res.fun > best:
-                best, at = float(-res.fun), res.x
-        return best, np.asarray(at, dtype=float)
+        pts = domain_grid(self.state_box, 20000)
+        norms = np.linalg.norm(np.moveaxis(jac(*pts), -1, 0), ord=2, axis=(1, 2))
+        return maximise_on_box(pts, norms, lambda x: float(np.linalg.norm(jac(*x), 2)), self.state_box, starts=5)
 
     def substitute(self, expr):
         """An expression with the parameter values put in (for numbers, never for shown formulas)."""

@@ -200,8 +200,8 @@ def run(
             reasons[name] = None
             status = "ran"
         arts[name] = art
-        if name == "manifold" and model.V is None:   # abstract.domain: auto, chosen by the manifold stage
-            model = dataclasses.replace(model, V=np.asarray(art.value("V"), dtype=float))
+        if name == "manifold":
+            model = with_domain(model, art)
         if on_stage is not None:
             on_stage(StageReport(name, status, time.perf_counter() - start, mod.headline(art)))
     return arts
@@ -221,12 +221,16 @@ def load_all(out: str | Path) -> dict[str, Artefact]:
     return arts
 
 
+def with_domain(model, manifold: Artefact):
+    """The model with V fixed: ``abstract.domain: auto`` takes the manifold stage's choice."""
+    if model.V is not None:
+        return model
+    return dataclasses.replace(model, V=np.asarray(manifold.value("V"), dtype=float))
+
+
 def design_model(spec: Spec, arts: dict[str, Artefact]):
-    """The spec's model with V fixed (``domain: auto`` takes the manifold stage's choice)."""
-    model = build_model(spec)
-    if model.V is None and "manifold" in arts:
-        model = dataclasses.replace(model, V=np.asarray(arts["manifold"].value("V"), dtype=float))
-    return model
+    """The spec's model with V fixed, for work on a finished design (falsify)."""
+    return with_domain(build_model(spec), arts["manifold"])
 
 
 def run_falsify(spec: Spec, out: str | Path, runs: int, seed: int = 0, t_final: float | None = None, *,

@@ -56,11 +56,15 @@ def _status(passed: bool | None) -> str:
     return '<span class="pass">pass</span>' if passed else '<span class="fail">fail</span>'
 
 
+def _row(status: bool | None, *cells: str) -> str:
+    """A table row: a pass/fail cell, then the text cells (escaped)."""
+    return f"<tr><td>{_status(status)}</td>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>"
+
+
 def _stage_section(name: str, entry: dict) -> str:
     rows = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(_fmt(v))}</td></tr>"
                    for k, v in entry.items() if k not in ("checks", "provenance"))
-    checks = "".join(f"<tr><td>{_status(c['passed'])}</td><td>{html.escape(k)}</td><td>{html.escape(_fmt(c['value']))}</td>"
-                     f"<td>{html.escape(c['description'])}</td></tr>" for k, c in entry.get("checks", {}).items())
+    checks = "".join(_row(c["passed"], k, _fmt(c["value"]), c["description"]) for k, c in entry.get("checks", {}).items())
     prov = entry.get("provenance", {})
     return (f"<h3>{html.escape(name)}</h3><table>{rows}</table>"
             + (f"<table><tr><th></th><th>check</th><th>value</th><th>meaning</th></tr>{checks}</table>" if checks else "")
@@ -94,10 +98,8 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bo
 
     parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>measured</th><th>reference</th><th>detail</th></tr>")
     for r in rows:
-        status = {"pass": True, "fail": False}.get(r.status)
         value = "" if r.value is None else f"{r.value:.4g}"
-        parts.append(f"<tr><td>{_status(status)}</td><td>{html.escape(r.condition)}</td><td>{value}</td>"
-                     f"<td>{html.escape(r.reference)}</td><td>{html.escape(r.detail or '')}</td></tr>")
+        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, value, r.reference, r.detail or ""))
     parts.append("</table>")
 
     parts.append("<h2>Error bounds</h2><table>")

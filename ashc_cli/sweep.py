@@ -67,8 +67,7 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
         data["parameters"] = {**data.get("parameters", {}), **params}
         spec = Spec.model_validate(data)
         arts, stopped = run_for_verdict(spec, out)
-        row["solved"], _ = verdict(arts, stopped)
-        row["solved"] = bool(row["solved"])
+        row["solved"] = bool(verdict(arts, stopped)[0])
         if "stabilise" in arts:
             row["lambda"] = float(arts["stabilise"].value("lambda"))
         if "bound" in arts:

@@ -20,9 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ashc_cli.pipeline import DESIGN
+
 ROOT = Path(__file__).resolve().parents[1]
 ASHC = [str(Path(sys.executable).with_name("ashc"))]
-STAGES = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
+STAGES = DESIGN
 
 
 #: A fresh wrapper per measurement, so RUSAGE_CHILDREN's maximum RSS is that of this one command.

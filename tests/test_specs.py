@@ -79,6 +79,12 @@ def designed(spec, tmp_path_factory):
     return {"out": out, "model": build_model(load_spec(spec))}
 
 
+def stored_p(design, *xi):
+    """The manifold stage's p evaluated at the points xi (one array per abstract state): shape (n, N)."""
+    model = design["model"]
+    return model.numeric(read_artefact(design["out"] / "manifold.h5").exprs["p"], list(model.xi))(*xi)[:, 0, :]
+
+
 def assert_runs_hold(out):
     """Tracking error within G ||v||_inf (eq. egErrorBound), and the m-relation outputs matching."""
     sim = read_artefact(out / "simulate.h5").values
@@ -136,12 +142,10 @@ def cascade(tmp_path_factory):
 
 def test_polynomial_pde_solver_finds_the_exact_manifold(cascade):
     # The exact solution of eq. SimuDesignCond1 for this plant is p(xi) = [xi, xi^2] (see the spec header).
-    model = cascade["model"]
     art = read_artefact(cascade["out"] / "manifold.h5")
     assert art.meta["method"].startswith("Chebyshev collocation, degree 2")
     xi = np.linspace(0, 1, 201)
-    p = model.numeric(art.exprs["p"], list(model.xi))(xi)[:, 0, :]
-    assert np.abs(p - np.stack([xi, xi**2])).max() < 1e-10
+    assert np.abs(stored_p(cascade, xi) - np.stack([xi, xi**2])).max() < 1e-10
     assert art.values["residual"] < 1e-10
 
 
@@ -179,15 +183,13 @@ def spring(tmp_path_factory):
 def test_continuation_manifold_matches_an_independent_root_solve(spring):
     # Equilibria under u = xi (spec header): (1 + c_d) x2 + c_3 x2^3 = xi, then x1 + k_s tanh(x1) = x2.
     import scipy.optimize as sopt
-    model = spring["model"]
     art = read_artefact(spring["out"] / "manifold.h5")
     assert art.meta["method"].startswith("Newton continuation")
     k_s, c_d, c_3 = 0.5, 1.5, 0.2
     xs = np.linspace(-2.5, 2.5, 41)
     x2 = np.array([sopt.brentq(lambda s, t=t: (1 + c_d) * s + c_3 * s**3 - t, -5, 5, xtol=1e-15) for t in xs])
     x1 = np.array([sopt.brentq(lambda s, t=t: s + k_s * np.tanh(s) - t, -5, 5, xtol=1e-15) for t in x2])
-    p = model.numeric(art.exprs["p"], list(model.xi))(xs)[:, 0, :]
-    assert np.abs(p - np.stack([x1, x2])).max() < 1e-9   # pde_tolerance 1e-10 relative, on a residual scale ~ 1
+    assert np.abs(stored_p(spring, xs) - np.stack([x1, x2])).max() < 1e-9   # pde_tolerance 1e-10 relative, on a residual scale ~ 1
 
 
 def test_spring_certificates_use_the_state_box(spring):
@@ -227,8 +229,7 @@ def test_two_state_pde_finds_the_exact_manifold_and_inverse(two):
     assert man.meta["method"].startswith("Chebyshev collocation")
     g1, g2 = np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21))
     g1, g2 = g1.ravel(), g2.ravel()
-    p = model.numeric(man.exprs["p"], list(model.xi))(g1, g2)[:, 0, :]
-    assert np.abs(p - np.stack([g1, g2, 2 * g1 * g2])).max() < 1e-10
+    assert np.abs(stored_p(two, g1, g2) - np.stack([g1, g2, 2 * g1 * g2])).max() < 1e-10
     m = model.numeric(read_artefact(two["out"] / "inverse.h5").exprs["m"], list(model.x))
     x = np.array([0.3, 0.4, 0.1])
     assert np.allclose(m(*x)[:, 0], [(0.3 + 0.1) / (1 + 2 * 0.4), 0.4], atol=1e-12)  # m = [(x1 + x3)/(1 + 2 x2), x2]

@@ -277,16 +277,16 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     p_grid = np.asarray(man.value("p_grid"))
     h_num = model.numeric(model.h, list(model.x))
     y_grid = h_num(*p_grid)[0, 0]
-    branches = closed_form_branches(model, kappa, [y])
+    branches = [b[0] for b in closed_form_branches(model, kappa, [y])]
     method = "closed form (sympy.solve of kappa(m) = y)"
     residuals = []
     for branch in branches:
-        m_y = model.numeric([branch[0]], [y])
+        m_y = model.numeric([branch], [y])
         residuals.append(float(np.nanmax(np.abs(m_y(y_grid)[0, 0] - grid[0])) if np.all(np.isfinite(m_y(y_grid))) else np.inf))
     if not branches or min(residuals) > LEFT_INVERSE_TOL:
         numeric = numeric_inverse(model, kappa, grid[0], y_grid, y)
         if numeric is not None:
-            branches, residuals = [[numeric[0]]], [numeric[1]]
+            branches, residuals = [numeric[0]], [numeric[1]]
             method = f"Chebyshev interpolant of kappa^-1 on kappa(V), degree {numeric[2]} (no closed form)"
     if not branches:
         raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V", "a kappa that is invertible on V", check="left_inverse")
@@ -298,7 +298,6 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone", check="left_inverse")
-    branches = [b[0] for b in branches]
     m_of_y = tidy(sp.Matrix([branches[best]]))[0]
     m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
 

@@ -53,7 +53,7 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         If no closed-form solution exists, or none is real and finite on V.
     """
     P = sp.Matrix(sp.symbols(f"_p0:{model.n}", real=True))
-    equations = (model.f_bar + model.g * model.l).xreplace(dict(zip(model.x, P)))
+    equations = _manifold_field(model).xreplace(dict(zip(model.x, P)))
     # sympy.solve is given rational systems only: on transcendental ones (tanh, exp, sqrt of the unknowns) it
     # can run for minutes, depending on the hash seed, before giving up; those go to Newton continuation.
     rational = all(sp.sympify(e).is_rational_function(*P) for e in equations)
@@ -119,9 +119,14 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
 
 
+def _manifold_field(model: Model) -> sp.Matrix:
+    """F(x, xi) = f_bar(x) + g(x) l(xi): the right side of eq. SimuDesignCond1 before x = p(xi)."""
+    return model.f_bar + model.g * model.l
+
+
 def _residual_function(model: Model, jacobian: bool = False):
-    """F(x, xi) = f_bar(x) + g(x) l(xi) (and dF/dx if asked), compiled for numpy (broadcasting)."""
-    F = model.f_bar + model.g * model.l
+    """F(x, xi) (and dF/dx if asked), compiled for numpy (broadcasting)."""
+    F = _manifold_field(model)
     args = list(model.x) + list(model.xi)
     return (model.numeric(F, args), model.numeric(F.jacobian(model.x), args)) if jacobian else model.numeric(F, args)
 
@@ -222,7 +227,7 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
     """
     n, N = model.n, z.shape[1]
-    F_sym = model.f_bar + model.g * model.l
+    F_sym = _manifold_field(model)
     args = list(model.x) + list(model.xi)
     # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
     flat = compile_flat(list(F_sym) + list(F_sym.jacobian(model.x)) + list(F_sym.jacobian(model.xi)), args, model.values)
@@ -406,22 +411,25 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If the residual of the PDE on V is above tolerance.
     """
-    tolerance = RESIDUAL_RTOL
+    # A closed form must solve the PDE to round-off; a fitted p to the spec's pde_tolerance.
+    tolerance, fitted_tolerance = RESIDUAL_RTOL, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
-        try:
-            if model.use_numeric and model.V is not None:
-                raise DesignError("", "numeric fast path chosen (sympy not tried)")
-            p, branches = solve_algebraic(model)
-            method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
-        except DesignError as closed_form_failure:
-            if model.V is None:
-                raise
+        p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
+        if not (model.use_numeric and model.V is not None):
+            try:
+                p, branches = solve_algebraic(model)
+                method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
+            except DesignError as exc:
+                if model.V is None:
+                    raise
+                closed_form_failure = exc.what
+        if p is None:
             try:
                 p, degree, fit_residual = solve_numeric_equilibria(model)
             except DesignError as numeric_failure:
-                raise DesignError(numeric_failure.where, f"{closed_form_failure.what}; numerically: {numeric_failure.what}", numeric_failure.expected,
+                raise DesignError(numeric_failure.where, f"{closed_form_failure}; numerically: {numeric_failure.what}", numeric_failure.expected,
                                   check=numeric_failure.check) from None
-            branches, tolerance = 1, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
+            branches, tolerance = 1, fitted_tolerance
             method = f"Newton continuation on Chebyshev nodes + Chebyshev fit, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
     else:
         p, branches = solve_sylvester(model), 1
@@ -431,7 +439,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                 raise DesignError("abstract.domain", "'auto' needs a p defined independently of V (phi_bar = 0 with a closed form, or a linear plant)",
                                   "a box [[lo, hi], ...] per abstract state for the PDE solver")
             p, degree, fit_residual = solve_collocation(model)
-            tolerance = max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
+            tolerance = fitted_tolerance
             method = f"Chebyshev collocation, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
     V = model.V if model.V is not None else auto_domain(model, p)
     dp = p.jacobian(model.xi)

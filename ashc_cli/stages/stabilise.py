@@ -25,11 +25,11 @@ import itertools
 import cvxpy as cp
 import numpy as np
 import scipy.linalg as sla
-import scipy.optimize as sopt
 import sympy as sp
 
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError, SpecError
+from ..grids import domain_grid, maximise_on_box
 from ..model import Model, tidy
 
 NAME = "stabilise"
@@ -115,20 +115,16 @@ def jacobian_polytope(model: Model) -> tuple[sp.Matrix, list[np.ndarray], np.nda
     if len(varying) > MAX_VARYING_ENTRIES:
         raise DesignError("concrete", f"{len(varying)} Jacobian entries vary over the state box (at most {MAX_VARYING_ENTRIES}: the polytope has 2^k vertices)",
                           "fewer state-dependent terms, or f affine in x")
-    per_axis = max(3, int(round(RANGE_SAMPLES ** (1.0 / len(box)))))
-    mesh = np.meshgrid(*[np.linspace(lo, hi, per_axis) for lo, hi in box], indexing="ij")
-    pts = np.stack([g.ravel() for g in mesh])
+    pts = domain_grid(box, RANGE_SAMPLES)
     ranges = []
     for i, j in varying:
         fun = model.numeric([J[i, j]], args)
         vals = np.broadcast_to(fun(*pts)[0, 0], pts.shape[1])
         if not np.all(np.isfinite(vals)):
             raise DesignError("concrete.state_box", f"df{i + 1}/d{model.x[j]} is not finite on the box", "a box on which f is C^1")
-        lo_hi = []
-        for sign, k in ((1.0, int(np.argmin(vals))), (-1.0, int(np.argmax(vals)))):
-            res = sopt.minimize(lambda z: sign * float(fun(*z)[0, 0]), pts[:, k], bounds=[tuple(b) for b in box], method="L-BFGS-B")
-            lo_hi.append(sign * min(sign * vals[k], float(res.fun)) if res.success else vals[k])
-        lo, hi = lo_hi
+        hi, _ = maximise_on_box(pts, vals, lambda z, fun=fun: float(fun(*z)[0, 0]), box)
+        neg_lo, _ = maximise_on_box(pts, -vals, lambda z, fun=fun: -float(fun(*z)[0, 0]), box)
+        lo = -neg_lo
         pad = 1e-9 * max(1.0, abs(lo), abs(hi))
         ranges.append((lo - pad, hi + pad))
     J0 = np.array(model.substitute(J.xreplace({a: 0 for a in args})), dtype=float)
@@ -303,14 +299,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     st = model.spec.stabilisability
     meta: dict = {"method": st.method, "feedback": st.feedback}
-    try:
-        A_sym, b_sym = affine_form(model)
-        affine = True
-    except DesignError as exc:
-        if "not affine in x" not in exc.what or model.state_box is None:
-            raise
-        affine = False
+    # Without a state box a plant not affine in x is refused by affine_form, with its reason.
+    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in model.f.jacobian(model.x))
     if affine:
+        A_sym, b_sym = affine_form(model)
         A_num = model.numeric(A_sym, list(model.u))
         verts = vertices(model.U)
         A_vertices = [A_num(*vtx) for vtx in verts]
