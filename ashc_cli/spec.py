@@ -82,6 +82,10 @@ class Stabilisability(_Strict):
     decay_rate: Union[Annotated[float, Field(gt=0, allow_inf_nan=False)], Literal["maximise"]]
     feedback: Literal["identity", "linear_gain"] = "identity"
     M: list[list[FiniteFloat]] | None = None
+    #: The form of M searched by ``polytopic_lmi``: ``full``, ``diagonal`` (n unknowns, a sparse LMI: fast for
+    #: large networks), or ``auto`` (full up to ``stabilise.FULL_MAX_STATES`` states, else diagonal first and
+    #: full only if the diagonal LMI is infeasible).
+    structure: Literal["auto", "full", "diagonal"] = "auto"
 
 
 DeltaSpec = Union[Literal["identity", "flatten"], list[list[Expr]], Expr]

@@ -71,6 +71,7 @@ CASES: tuple[Case, ...] = (
     Case("param-not-number", "a parameter that is not a number", edits=(("E: 12.0", "E: twelve"),), fragment="parameters.E"),
     Case("enum-method", "an unknown stabilisability method", edits=(("method: polytopic_lmi", "method: lmi"),), fragment="stabilisability.method"),
     Case("rate-negative", "a negative decay rate", edits=(("decay_rate: 2.0", "decay_rate: -2"),), fragment="stabilisability.decay_rate"),
+    Case("enum-structure", "an unknown form of M", edits=(("decay_rate: 2.0", "decay_rate: 2.0\n  structure: banded"),), fragment="stabilisability.structure: Input should be 'auto', 'full' or 'diagonal' (got 'banded')"),
     Case("given-no-M", "method given without M", edits=(("method: polytopic_lmi", "method: given"),), fragment="stabilisability.M: missing"),
     Case("given-M-asymmetric", "a given M that is not symmetric", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[ 0.4804, 0.0202,"),), fragment="stabilisability.M: is not symmetric"),
     Case("given-M-indefinite", "a given M that is not positive definite", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[-0.4804, 0.0102,"),), code=3, fragment="is not positive definite"),

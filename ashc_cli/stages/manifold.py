@@ -27,7 +27,7 @@ from .. import chebyshev
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..grids import domain_grid
-from ..model import Model, compile_flat
+from ..model import Model, compile_flat, sparse_jacobian
 
 NAME = "manifold"
 UPSTREAM: tuple[str, ...] = ()
@@ -128,7 +128,7 @@ def _residual_function(model: Model, jacobian: bool = False):
     """F(x, xi) (and dF/dx if asked), compiled for numpy (broadcasting)."""
     F = _manifold_field(model)
     args = list(model.x) + list(model.xi)
-    return (model.numeric(F, args), model.numeric(F.jacobian(model.x), args)) if jacobian else model.numeric(F, args)
+    return (model.numeric(F, args), model.numeric(sparse_jacobian(F, model.x), args)) if jacobian else model.numeric(F, args)
 
 
 def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, F, phi: np.ndarray) -> float:
@@ -230,7 +230,7 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
     F_sym = _manifold_field(model)
     args = list(model.x) + list(model.xi)
     # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
-    flat = compile_flat(list(F_sym) + list(F_sym.jacobian(model.x)) + list(F_sym.jacobian(model.xi)), args, model.values)
+    flat = compile_flat(list(F_sym) + list(sparse_jacobian(F_sym, model.x)) + list(sparse_jacobian(F_sym, model.xi)), args, model.values)
 
     def terms(x: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         values = np.array(flat(*x, *at), dtype=float)

@@ -7,7 +7,9 @@ With f(x, u) = A(u) x + b(u) and A affine in u (eq. ConvertSystemLinear), V(x, z
 
 for all u in U; since the left side is affine in u it suffices to impose it at the vertices of the box U.
 The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
-the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.
+the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.  M is searched
+in full, or diagonal (``stabilisability.structure``; ``auto`` tries a diagonal M first above
+:data:`FULL_MAX_STATES` states, where the dense SDP grows like n^6: 13 s at n = 64, 300 s and 7.7 GiB at 128).
 
 When f is not affine in x, the same LMI is imposed on a polytope that contains the Jacobian df/dx over
 ``concrete.state_box`` x U (:func:`jacobian_polytope`); the certificate then holds for solutions in that box.
@@ -30,7 +32,7 @@ import sympy as sp
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError, SpecError
 from ..grids import domain_grid, maximise_on_box
-from ..model import Model, tidy
+from ..model import Model, sparse_jacobian, tidy
 
 NAME = "stabilise"
 UPSTREAM: tuple[str, ...] = ()
@@ -42,6 +44,12 @@ MARGIN_TOL = 1e-7
 #: Relative width at which the bisection on lambda stops.
 BISECTION_RTOL = 1e-4
 SWEEP_POINTS = 201
+#: The bisection raises its lower end to the rate an M found certifies, less this relative amount (so that
+#: the numpy re-check sees a strictly negative margin, not a rounding-level zero).
+CERTIFIED_BACKOFF = 1e-6
+#: ``structure: auto`` searches a full M up to this many states (one Clarabel solve takes 0.65 s at n = 32
+#: and 13 s at n = 64 on the 2-core machine), and a diagonal M first above it.
+FULL_MAX_STATES = 32
 #: With a synthesised feedback the decay rate is searched up to this cap (1/s) by ``maximise``.
 FEEDBACK_MAX_RATE = 100.0
 
@@ -59,12 +67,14 @@ def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
     DesignError
         If f is not affine in x, or A is not affine in u.
     """
-    A = model.f.jacobian(model.x)
+    A = sparse_jacobian(model.f, model.x)
     xs, us = set(model.x), list(model.u)
     for (i, j), e in np.ndenumerate(np.array(A, dtype=object)):
         if e.free_symbols & xs:
             raise DesignError("concrete", f"f(x, u) is not affine in x: df{i + 1}/d{model.x[j]} = {e} depends on x",
                               "f(x, u) = A(u) x + b(u) for stabilisability.method polytopic_lmi or given")
+        if not e.free_symbols & set(us):
+            continue
         for a, b in itertools.product(us, us):
             second = sp.diff(e, a, b)
             if second != 0 and sp.simplify(second) != 0:   # simplify only what is not plainly zero
@@ -108,7 +118,7 @@ def jacobian_polytope(model: Model) -> tuple[sp.Matrix, list[np.ndarray], np.nda
     if model.state_box is None:
         raise SpecError("concrete.state_box", "missing: f(x, u) is not affine in x, so the incremental LMI is imposed on the Jacobian over a box of states",
                         "one pair [lo, hi] per state (the region the design is certified on)")
-    J = model.f.jacobian(model.x)
+    J = sparse_jacobian(model.f, model.x)
     args = list(model.x) + list(model.u)
     box = np.r_[model.state_box, model.U]
     varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(J, dtype=object)) if sp.sympify(e).free_symbols & set(args)]
@@ -174,7 +184,29 @@ def _solve(problem: cp.Problem, what: str) -> cp.Problem:
     return problem
 
 
-def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, float, str]:
+def _unknown(n: int, structure: str) -> tuple[cp.Variable, cp.Expression, list]:
+    """The matrix unknown of eq. egLMI in the given structure, and the constraint M >= eps I for it.
+
+    ``full``: a symmetric n x n variable (n (n + 1) / 2 unknowns, a dense LMI).  ``diagonal``: M = diag(d), n
+    unknowns; the LMI then has the sparsity of A + A^T, which Clarabel's chordal decomposition splits into
+    small cones, and M >= eps I is the linear constraint d >= eps (a network of stages is often diagonally
+    stable with the stored energy as certificate).
+    """
+    if structure == "diagonal":
+        d = cp.Variable(n)
+        return d, cp.diag(d), [d >= M_MIN_EIG]
+    M = cp.Variable((n, n), symmetric=True)
+    return M, M, [M >> M_MIN_EIG * np.eye(n)]
+
+
+def _matrix(var: cp.Variable, structure: str) -> np.ndarray:
+    """The numeric M (symmetrised) of a solved unknown."""
+    if structure == "diagonal":
+        return np.diag(np.asarray(var.value, dtype=float))
+    return 0.5 * (var.value + var.value.T)
+
+
+def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
     """Find M maximising the margin of eq. egLMI at the given vertices for a fixed lambda.
 
     Parameters
@@ -183,6 +215,8 @@ def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, 
         A(u) at the vertices of U.
     lam : float
         The decay rate lambda.
+    structure : {"full", "diagonal"}
+        The form of M searched (see :func:`_unknown`).
 
     Returns
     -------
@@ -198,25 +232,26 @@ def solve_lmi(A_list: list[np.ndarray], lam: float) -> tuple[np.ndarray | None, 
     # First without the cone M >= eps I (a third of the work at n = 64): when some A + lambda/2 I is Hurwitz,
     # the LMI with t < 0 already forces M > 0 (Lyapunov), and M is checked; otherwise solve with the cone.
     for with_cone in (False, True):
-        M = cp.Variable((n, n), symmetric=True)
+        var, M, positive = _unknown(n, structure)
         t = cp.Variable()
-        constraints = [cp.trace(M) == n] + ([M >> M_MIN_EIG * eye] if with_cone else [])
+        constraints = [cp.trace(M) == n] + (positive if with_cone else [])
         constraints += [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
-        problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g}")
-        if M.value is None or t.value is None:
+        problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g} ({structure} M)")
+        if var.value is None or t.value is None:
             if with_cone:
                 return None, np.inf, str(problem.status)
             continue
-        Mv = 0.5 * (M.value + M.value.T)
+        Mv = _matrix(var, structure)
         if with_cone or (float(t.value) < -MARGIN_TOL and np.linalg.eigvalsh(Mv).min() >= M_MIN_EIG):
             return Mv, float(t.value), str(problem.status)
     return None, np.inf, "infeasible"
 
 
-def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float) -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
+def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full") -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
     """Find M and K with (A + B K)^T M + M (A + B K) <= t M-congruent margin, for a fixed lambda.
 
-    Solved in X = M^-1, Y = K X: A X + X A^T + B Y + Y^T B^T + lambda X <= t I, X >= eps I, trace(X) = n.
+    Solved in X = M^-1, Y = K X: A X + X A^T + B Y + Y^T B^T + lambda X <= t I, X >= eps I, trace(X) = n
+    (X diagonal for ``structure = "diagonal"``, so M is diagonal too).
 
     Returns
     -------
@@ -226,25 +261,25 @@ def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float) -> t
     status : str
     """
     n, m = B.shape
-    X = cp.Variable((n, n), symmetric=True)
+    var, X, positive = _unknown(n, structure)
     Y = cp.Variable((m, n))
     t = cp.Variable()
     eye = np.eye(n)
-    constraints = [X >> M_MIN_EIG * eye, cp.trace(X) == n]
+    constraints = positive + [cp.trace(X) == n]
     constraints += [A @ X + X @ A.T + B @ Y + Y.T @ B.T + lam * X << t * eye for A in A_list]
-    problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the feedback LMI at lambda = {lam:g}")
-    if X.value is None or t.value is None:
+    problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the feedback LMI at lambda = {lam:g} ({structure} M)")
+    if var.value is None or t.value is None:
         return None, None, np.inf, str(problem.status)
-    Xv = 0.5 * (X.value + X.value.T)
-    M = np.linalg.inv(Xv)
+    M = np.linalg.inv(_matrix(var, structure))
     return 0.5 * (M + M.T), Y.value @ M, float(t.value), str(problem.status)
 
 
-def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None) -> tuple[float, np.ndarray | None]:
+def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, structure: str = "full") -> tuple[float, np.ndarray | None]:
     """The largest lambda for which eq. egLMI is feasible, by bisection, and its M.
 
     lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces
-    Re eig(A) <= -lambda / 2), which brackets the search.
+    Re eig(A) <= -lambda / 2), which brackets the search.  Each M found certifies its own rate
+    (:func:`largest_decay_rate_for`), often well above the trial value, and that raises the lower end.
     """
     if B is None:
         upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
@@ -256,13 +291,14 @@ def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None) ->
     while hi - lo > BISECTION_RTOL * upper:
         mid = 0.5 * (lo + hi)
         if B is None:
-            M, t, _ = solve_lmi(A_list, mid)
-            found = M
+            M, t, _ = solve_lmi(A_list, mid, structure)
+            found, closed_loop = M, A_list
         else:
-            M, K, t, _ = solve_lmi_feedback(A_list, B, mid)
+            M, K, t, _ = solve_lmi_feedback(A_list, B, mid, structure)
             found = None if M is None else (M, K)
+            closed_loop = None if M is None else [A + B @ K for A in A_list]
         if M is not None and t < -MARGIN_TOL:
-            lo, best = mid, found
+            lo, best = max(mid, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(closed_loop, M))), found
         else:
             hi = mid
     return lo, best
@@ -300,7 +336,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     st = model.spec.stabilisability
     meta: dict = {"method": st.method, "feedback": st.feedback}
     # Without a state box a plant not affine in x is refused by affine_form, with its reason.
-    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in model.f.jacobian(model.x))
+    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in sparse_jacobian(model.f, model.x))
     if affine:
         A_sym, b_sym = affine_form(model)
         A_num = model.numeric(A_sym, list(model.u))
@@ -330,21 +366,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n, M >= {M_MIN_EIG} I",
                     objective="minimise t subject to A(u_k)^T M + M A(u_k) + lambda M <= t I at every vertex u_k",
                     margin_tol=MARGIN_TOL)
-        if st.decay_rate == "maximise":
-            lam, M = largest_decay_rate(A_vertices)
-            if M is None:
-                raise DesignError("stabilisability", "no decay rate lambda > 0 makes eq. egLMI feasible (A(u) is not Hurwitz at some vertex of U)",
-                                  "an incrementally stable plant, or a stabilising feedback (issue: linear_gain)")
-            meta.update(bisection_rtol=BISECTION_RTOL)
-        else:
-            lam = float(st.decay_rate)
-            M, t, status = solve_lmi(A_vertices, lam)
-            meta.update(status=status, optimal_margin=t)
-            if M is None or t >= -MARGIN_TOL:
-                best, _ = largest_decay_rate(A_vertices)
-                hint = (f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0
-                        else "a plant with A(u) Hurwitz at every vertex of U, or feedback: linear_gain (g constant)")
-                raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g})", hint, check="lmi_margin")
+        M, lam, meta = _search(A_vertices, st, structures(st.structure, model.n), meta)
 
     B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
     vertex_margins = lmi_margins([A + B_K for A in A_vertices], M, lam)
@@ -375,6 +397,43 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     return art
 
 
+def structures(choice: str, n: int) -> list[str]:
+    """The forms of M to try, in order, for ``stabilisability.structure`` (see :data:`FULL_MAX_STATES`)."""
+    if choice != "auto":
+        return [choice]
+    return ["full"] if n <= FULL_MAX_STATES else ["diagonal", "full"]
+
+
+def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> tuple[np.ndarray, float, dict]:
+    """M and lambda of eq. egLMI (identity feedback), trying each structure of M in turn.
+
+    A later structure is tried only when the earlier one finds no M (at the requested rate, or with any
+    positive rate for ``maximise``); ``meta["structure"]`` records the one used and ``meta["tried"]`` all.
+    """
+    tried = []
+    for structure in tries:
+        tried.append(structure)
+        if st.decay_rate == "maximise":
+            lam, M = largest_decay_rate(A_vertices, structure=structure)
+            if M is not None:
+                meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL)
+                return M, lam, meta
+            continue
+        lam = float(st.decay_rate)
+        M, t, status = solve_lmi(A_vertices, lam, structure)
+        if M is not None and t < -MARGIN_TOL:
+            meta.update(structure=structure, tried=tried, status=status, optimal_margin=t)
+            return M, lam, meta
+    if st.decay_rate == "maximise":
+        raise DesignError("stabilisability", "no decay rate lambda > 0 makes eq. egLMI feasible (A(u) is not Hurwitz at some vertex of U)",
+                          "an incrementally stable plant, or a stabilising feedback (issue: linear_gain)")
+    best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
+    hint = (f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0
+            else "a plant with A(u) Hurwitz at every vertex of U, or feedback: linear_gain (g constant)")
+    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g}{'' if tried == ['full'] else ', M ' + ' or '.join(tried)})",
+                      hint, check="lmi_margin")
+
+
 def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict):
     """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X."""
     if st.method != "polytopic_lmi":
@@ -382,10 +441,12 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
     if any(e.free_symbols & set(model.x) for e in model.g):
         raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g", "g independent of x, or feedback identity")
     B = np.array(model.substitute(model.g), dtype=float)
+    structure = "diagonal" if st.structure == "diagonal" else "full"   # auto: the feedback LMI is searched in full
     meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M^-1) = n, M^-1 >= {M_MIN_EIG} I",
-                objective="minimise t subject to A X + X A^T + B Y + Y^T B^T + lambda X <= t I at every vertex; K = Y X^-1, M = X^-1")
+                objective="minimise t subject to A X + X A^T + B Y + Y^T B^T + lambda X <= t I at every vertex; K = Y X^-1, M = X^-1",
+                structure=structure)
     if st.decay_rate == "maximise":
-        lam, found = largest_decay_rate(A_vertices, B)
+        lam, found = largest_decay_rate(A_vertices, B, structure)
         if found is None:
             raise DesignError("stabilisability", "no feedback gain K makes (A + B K) incrementally stable with a positive decay rate",
                               "a stabilisable pair (A, B)", check="lmi_margin")
@@ -393,10 +454,10 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
         meta.update(bisection_rtol=BISECTION_RTOL, rate_cap=FEEDBACK_MAX_RATE)
     else:
         lam = float(st.decay_rate)
-        M, K, t, status = solve_lmi_feedback(A_vertices, B, lam)
+        M, K, t, status = solve_lmi_feedback(A_vertices, B, lam, structure)
         meta.update(status=status, optimal_margin=t)
         if M is None or t >= -MARGIN_TOL:
-            best, _ = largest_decay_rate(A_vertices, B)
+            best, _ = largest_decay_rate(A_vertices, B, structure)
             raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g} (best margin {t:.3g})",
                               f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'", check="lmi_margin")
     return M, np.asarray(K, dtype=float), lam, meta
