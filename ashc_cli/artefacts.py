@@ -157,8 +157,10 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
             fh.attrs["spec_name"] = spec_name
             fh.attrs["parameters"] = json.dumps(parameters, sort_keys=True)
             fh.attrs["upstream"] = json.dumps(upstream, sort_keys=True)
-            fh.attrs["packages"] = json.dumps(package_versions(), sort_keys=True)
-            fh.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            packages = package_versions()
+            created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            fh.attrs["packages"] = json.dumps(packages, sort_keys=True)
+            fh.attrs["created"] = created
             fh.attrs["ashc_version"] = __version__
             fh.attrs["meta"] = json.dumps(art.meta, sort_keys=True, default=_json_default)
             values = fh.create_group("values")
@@ -182,8 +184,9 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    art.provenance = {"spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters, "upstream": upstream,
-                      "sha256": sha, "schema_version": SCHEMA_VERSION}
+    # The same provenance read_artefact gives, so a just-written artefact needs no reading back.
+    art.provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters,
+                      "upstream": upstream, "packages": packages, "created": created, "ashc_version": __version__, "sha256": sha}
     return sha
 
 

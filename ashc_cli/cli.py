@@ -20,7 +20,7 @@ import numpy as np
 import typer
 
 from . import __version__
-from .errors import AshcError, DesignError, SpecError
+from .errors import AshcError, SpecError
 from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run, run_falsify, run_for_verdict
 from .query import EVALUABLE, evaluate, parse_point, summary
 from .spec import load_spec
@@ -84,9 +84,14 @@ def _progress(to_stderr: bool):
     return show
 
 
-def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool, frozen: bool = False, numeric: bool | None = None):
+def _load(spec_path: Path, out: Path | None):
+    """The spec and its artefact folder (``--out``, or outputs/<spec name>)."""
     spec = load_spec(spec_path)
-    folder = out if out is not None else default_out(spec)
+    return spec, Path(out if out is not None else default_out(spec))
+
+
+def _run(spec_path: Path, out: Path | None, targets, force: bool, as_json: bool, frozen: bool = False, numeric: bool | None = None):
+    spec, folder = _load(spec_path, out)
     arts = run(spec, folder, targets, force=force, frozen=frozen, on_stage=_progress(as_json), numeric=numeric)
     return spec, folder, arts
 
@@ -154,8 +159,7 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     (ii), the rank of delta, condition (B), ...) with pass/fail, then "Problem 1 solved: yes/no".
     Exit status 0 only for yes, 3 for no.
     """
-    spec_obj = load_spec(spec)
-    folder = out if out is not None else default_out(spec_obj)
+    spec_obj, folder = _load(spec, out)
     arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
     solved, rows = verdict(arts, stopped)
     if as_json:
@@ -199,7 +203,7 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     current = _current_falsify(spec_obj, folder)
     if current is not None:
         arts["falsify"] = current
-    paths = plots.write_all(spec_obj, arts, Path(folder) / "plots")
+    paths = plots.write_all(spec_obj, arts, folder / "plots")
     if as_json:
         _emit_json({"figures": [str(p) for p in paths]})
     else:
@@ -218,8 +222,7 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     ratio of measured |psi - y| to the guaranteed bound sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup|v|
     over all runs and times. Writes falsify.h5 either way; exit 3 if the ratio exceeds 1 (a violation).
     """
-    spec_obj = load_spec(spec)
-    folder = out if out is not None else default_out(spec_obj)
+    spec_obj, folder = _load(spec, out)
     from .falsify import SEGMENTS
     with typer.progressbar(length=SEGMENTS, label=f"falsify: {runs} runs", file=sys.stderr) as bar:
         done = [0]
@@ -237,7 +240,7 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
                    f"(run {entry['worst_run']}, t = {entry['worst_time']:.4g} s), {entry['runs_leaving_V']} left V")
     if entry["max_ratio"] > 1.0:
         typer.echo(f"error: falsify: the bound is violated by a factor {entry['max_ratio']:.4g} in run {entry['worst_run']} at "
-                   f"t = {entry['worst_time']:.4g} s; the run is saved in {Path(folder) / 'falsify.h5'}", err=True)
+                   f"t = {entry['worst_time']:.4g} s; the run is saved in {folder / 'falsify.h5'}", err=True)
         raise typer.Exit(3)
 
 
@@ -255,8 +258,7 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     from . import plots
     from .report import render
 
-    spec_obj = load_spec(spec)
-    folder = Path(out if out is not None else default_out(spec_obj))
+    spec_obj, folder = _load(spec, out)
     arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
     solved, rows = verdict(arts, stopped)
     violated = False
@@ -298,8 +300,7 @@ def sweep(
     from . import sweep as sweep_mod
     from .artefacts import write_artefact
 
-    spec_obj = load_spec(spec)
-    folder = Path(out if out is not None else default_out(spec_obj))
+    spec_obj, folder = _load(spec, out)
     axes = [sweep_mod.parse_param(p, spec_obj) for p in param]
     names = [n for n, _ in axes]
     if len(set(names)) != len(names):

@@ -22,7 +22,7 @@ from .expr import NUMERIC_MODULES, parse_expression
 from .grids import domain_grid, maximise_on_box
 from .spec import Spec
 
-__all__ = ["Model", "build_model", "lambdify", "compile_flat", "tidy", "parameter_symbol", "state_symbol", "TIME"]
+__all__ = ["Model", "build_model", "lambdify", "compile_flat", "compile_terms", "sparse_jacobian", "tidy", "parameter_symbol", "state_symbol", "TIME"]
 
 #: Above this many states the stages use numbers instead of sympy where both work (measured with
 #: `make bench` on the ladder family: at n = 16 sympy.solve of the manifold and of kappa^-1 already take
@@ -70,6 +70,33 @@ def compile_flat(
     subs = {k: sp.Float(v) for k, v in (values or {}).items()}
     flat = [sp.sympify(e).xreplace(subs) for e in exprs]
     return sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=True)
+
+
+def compile_terms(
+    terms: Sequence[sp.MatrixBase],
+    args: Sequence[sp.Symbol],
+    values: Mapping[sp.Symbol, float] | None = None,
+) -> Callable[[np.ndarray], list[np.ndarray]]:
+    """Compile several matrices into one fused function of a point or of a batch of points.
+
+    ``f(point)`` with point of shape (d,) returns one array per matrix, of that matrix's shape (r, c);
+    ``f(points)`` with shape (d, N) returns arrays of shape (N, r, c).  One compiled call evaluates every
+    term (the right-hand sides of the closed loops in ``simulate`` and ``falsify``).
+    """
+    shapes = [t.shape for t in terms]
+    ends = np.cumsum([0] + [r * c for r, c in shapes]).tolist()
+    pieces = [(slice(a, b), shape) for a, b, shape in zip(ends[:-1], ends[1:], shapes)]
+    fun = compile_flat([e for t in terms for e in t], args, values)
+
+    def evaluate(points: np.ndarray) -> list[np.ndarray]:
+        if np.ndim(points) == 1:   # one point: the ODE right-hand side, called thousands of times
+            flat = np.array(fun(*points), dtype=float)
+            return [flat[where].reshape(shape) for where, shape in pieces]
+        N = points.shape[1]
+        flat = np.stack([np.broadcast_to(np.asarray(v, dtype=float), (N,)) for v in fun(*points)], axis=1)
+        return [flat[:, where].reshape((N,) + shape) for where, shape in pieces]
+
+    return evaluate
 
 
 def lambdify(
@@ -226,7 +253,8 @@ class Model:
         return sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.values.items()})
 
 
-#: Expressions with more operations than this are kept as derived: sympy's simplify can take minutes on them.
+#: Expressions with more operations than this are kept as derived: rewriting them gains little, and sympy's
+#: simplify (which the kappa stage still asks for) can take minutes on them.
 SIMPLIFY_MAX_OPS = 400
 
 

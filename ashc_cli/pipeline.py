@@ -245,7 +245,6 @@ def run_falsify(spec: Spec, out: str | Path, runs: int, seed: int = 0, t_final: 
     ups = ("stabilise", "manifold", "kappa", "delta", "bound")
     write_artefact(artefact_path(out, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups})
-    art = read_artefact(artefact_path(out, falsify_mod.NAME))
     if on_stage is not None:
         on_stage(StageReport(falsify_mod.NAME, "ran", time.perf_counter() - start, falsify_mod.headline(art)))
     return arts, art

@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from .artefacts import Artefact  # noqa: E402
 from .spec import Spec  # noqa: E402
 
-__all__ = ["write_all", "FIGURES"]
+__all__ = ["write_all", "save", "FIGURES"]
 
 COLUMN_WIDTH = 3.5  # inches
 STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7, "xtick.labelsize": 7,
@@ -197,6 +197,16 @@ FIGURES = {
 }
 
 
+def save(fig, path: Path) -> Path:
+    """Save a figure as PNG atomically (a reader never sees half a file) and close it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, bbox_inches="tight")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
 def write_all(spec: Spec, arts: dict[str, Artefact], folder: str | Path) -> list[Path]:
     """Draw every figure the artefacts allow and save it under ``folder``; returns the paths written."""
     folder = Path(folder)
@@ -206,11 +216,5 @@ def write_all(spec: Spec, arts: dict[str, Artefact], folder: str | Path) -> list
         for name, (draw, needs, key) in FIGURES.items():
             if not all(n in arts for n in needs) or (key is not None and key not in arts["simulate"].values):
                 continue
-            fig = draw(spec, arts)
-            path = folder / name
-            tmp = path.with_suffix(".tmp.png")
-            fig.savefig(tmp, bbox_inches="tight")
-            plt.close(fig)
-            tmp.replace(path)  # atomic: a reader never sees half a PNG
-            written.append(path)
+            written.append(save(draw(spec, arts), folder / name))
     return written

@@ -20,7 +20,7 @@ from pathlib import Path
 from .errors import ArtefactError, SpecError
 from .pipeline import DESIGN, run_for_verdict
 from .query import summary
-from .spec import load_spec
+from .spec import Spec, load_spec
 from .verdict import verdict
 
 __all__ = ["TOLERANCES", "compare", "collect", "regress"]
@@ -82,9 +82,8 @@ def compare(key: str, new, golden: dict) -> str | None:
     return None
 
 
-def collect(spec_path: Path, out: Path) -> dict:
+def collect(spec: Spec, out: Path) -> dict:
     """Design one spec (stage by stage, so a failing design still has a verdict) and return its summary."""
-    spec = load_spec(spec_path)
     arts, stopped = run_for_verdict(spec, out / spec.name)
     solved, _ = verdict(arts, stopped)
     result = summary({k: arts[k] for k in DESIGN if k in arts})
@@ -109,8 +108,9 @@ def regress(specs: Path, golden: Path, out: Path, update: bool = False, progress
         raise SpecError(str(specs), "holds no *.yaml spec", "a folder of specs (e.g. specs/)")
     rows = []
     for path in paths:
-        result = collect(path, Path(out))
-        name = load_spec(path).name
+        spec = load_spec(path)
+        result = collect(spec, Path(out))
+        name = spec.name
         gold_path = Path(golden) / f"{name}.json"
         if update:
             old = json.loads(gold_path.read_text()) if gold_path.exists() else {"keys": {}}

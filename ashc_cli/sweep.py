@@ -160,12 +160,7 @@ def sweep(spec: Spec, axes: list[tuple[str, np.ndarray]], out: Path, scheduler: 
 
 def plot(art: Artefact, path: Path) -> Path:
     """lambda, dbar_q0 and the gain G against the first swept parameter (failed combinations marked)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .plots import COLUMN_WIDTH, STYLE
+    from .plots import COLUMN_WIDTH, STYLE, plt, save
 
     v = art.values
     x = np.asarray(v["parameter_values"])[:, 0]
@@ -181,7 +176,4 @@ def plot(art: Artefact, path: Path) -> Path:
         axes[0].legend(loc="best")
         axes[-1].set_xlabel(art.meta["parameters"][0])
         fig.tight_layout()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path)
-        plt.close(fig)
-    return path
+        return save(fig, path)

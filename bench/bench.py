@@ -41,6 +41,15 @@ def run_child(cmd: list[str], timeout: float) -> tuple[float, float, str, int]:
     return wall, (kib[-1] / 1024.0 if kib else float("nan")), proc.stdout + proc.stderr, proc.returncode
 
 
+def measure(case: str, n: int, cmd: list[str], timeout: float) -> dict:
+    """One table row: ``ashc design`` in a fresh process (a timeout gives NaN and exit -1)."""
+    try:
+        wall, mem, text, rc = run_child(cmd, timeout)
+    except subprocess.TimeoutExpired:
+        wall, mem, text, rc = float("nan"), float("nan"), "", -1
+    return {"case": case, "n": n, "total": wall, "mem": mem, "rc": rc, **parse_progress(text)}
+
+
 def parse_progress(text: str) -> dict[str, float]:
     times = {}
     for line in text.splitlines():
@@ -60,20 +69,16 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         # Cold start: `ashc --help`, and the bare import time of the dependencies a design needs.
-        help_wall, help_mem, _, _ = run_child(ASHC + ["--help"], args.timeout)
+        help_wall, *_ = run_child(ASHC + ["--help"], args.timeout)
         imports = "import numpy, scipy.linalg, scipy.optimize, scipy.integrate, sympy, cvxpy, clarabel, h5py, pydantic, yaml, typer"
         import_wall, _, _, _ = run_child([sys.executable, "-c", imports], args.timeout)
-        cuk_wall, cuk_mem, cuk_text, cuk_rc = run_child(ASHC + ["design", "specs/cuk_converter.yaml", "--out", str(tmp / "cuk")], args.timeout)
-        rows.append({"case": "Cuk (n = 4)", "n": 4, "total": cuk_wall, "mem": cuk_mem, "rc": cuk_rc, **parse_progress(cuk_text)})
+        rows.append(measure("Cuk (n = 4)", 4, ASHC + ["design", "specs/cuk_converter.yaml", "--out", str(tmp / "cuk")], args.timeout))
+        cuk_wall = rows[0]["total"]
         for N in args.stages:
             spec = tmp / f"ladder_{N}.yaml"
             subprocess.run(ASHC + ["example", "ladder", "--stages", str(N), "--output", str(spec)], check=True, capture_output=True, cwd=ROOT)
-            try:
-                wall, mem, text, rc = run_child(ASHC + ["design", str(spec), "--out", str(tmp / f"l{N}")], args.timeout)
-            except subprocess.TimeoutExpired:
-                wall, mem, text, rc = float("nan"), float("nan"), "", -1
-            rows.append({"case": f"ladder N = {N}", "n": 4 * N, "total": wall, "mem": mem, "rc": rc, **parse_progress(text)})
-            print(f"  measured ladder N = {N} (n = {4 * N}): {wall:.1f} s", file=sys.stderr, flush=True)
+            rows.append(measure(f"ladder N = {N}", 4 * N, ASHC + ["design", str(spec), "--out", str(tmp / f"l{N}")], args.timeout))
+            print(f"  measured ladder N = {N} (n = {4 * N}): {rows[-1]['total']:.1f} s", file=sys.stderr, flush=True)
 
     header = "| case | n | " + " | ".join(STAGES) + " | total (s) | peak RSS (MiB) | exit |"
     print(header)
@@ -91,7 +96,7 @@ def main() -> int:
               f"over n = {ladder[0]['n']}..{ladder[-1]['n']} (least squares on log-log)")
     print(f"cold start: `ashc --help` {help_wall:.2f} s; bare import of the dependencies {import_wall:.2f} s; "
           f"Cuk `ashc design` {cuk_wall:.2f} s = {cuk_wall / import_wall:.1f} x the import time (target <= 2.5 x)")
-    print(json.dumps({"rows": rows}), file=open(ROOT / "bench" / "last.json", "w"))
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows}) + "\n")
     return 0
 
 

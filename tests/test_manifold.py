@@ -1,6 +1,5 @@
 """Tests of stage 2, the invariant manifold p (eq. SimuDesignCond1)."""
 
-import numpy as np
 import pytest
 import sympy as sp
 

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from ashc_cli.artefacts import read_artefact
-from ashc_cli.pipeline import run
 from ashc_cli.stages import simulate
 
 

@@ -79,6 +79,12 @@ def designed(spec, tmp_path_factory):
     return {"out": out, "model": build_model(load_spec(spec))}
 
 
+def stored_m(design):
+    """The inverse stage's m(x), compiled for numpy: m(*x) has shape (n_hat, 1, N)."""
+    model = design["model"]
+    return model.numeric(read_artefact(design["out"] / "inverse.h5").exprs["m"], list(model.x))
+
+
 def stored_p(design, *xi):
     """The manifold stage's p evaluated at the points xi (one array per abstract state): shape (n, N)."""
     model = design["model"]
@@ -150,8 +156,7 @@ def test_polynomial_pde_solver_finds_the_exact_manifold(cascade):
 
 
 def test_cascade_left_inverse_and_runs(cascade):
-    model = cascade["model"]
-    m = model.numeric(read_artefact(cascade["out"] / "inverse.h5").exprs["m"], list(model.x))
+    m = stored_m(cascade)
     y = np.linspace(0.2, 1.5, 27)
     assert np.allclose(m(y / 2, y / 2)[0, 0], (-1 + np.sqrt(1 + 4 * y)) / 2, atol=1e-10)
     assert_runs_hold(cascade["out"])
@@ -224,13 +229,12 @@ def two(tmp_path_factory):
 
 
 def test_two_state_pde_finds_the_exact_manifold_and_inverse(two):
-    model = two["model"]
     man = read_artefact(two["out"] / "manifold.h5")
     assert man.meta["method"].startswith("Chebyshev collocation")
     g1, g2 = np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21))
     g1, g2 = g1.ravel(), g2.ravel()
     assert np.abs(stored_p(two, g1, g2) - np.stack([g1, g2, 2 * g1 * g2])).max() < 1e-10
-    m = model.numeric(read_artefact(two["out"] / "inverse.h5").exprs["m"], list(model.x))
+    m = stored_m(two)
     x = np.array([0.3, 0.4, 0.1])
     assert np.allclose(m(*x)[:, 0], [(0.3 + 0.1) / (1 + 2 * 0.4), 0.4], atol=1e-12)  # m = [(x1 + x3)/(1 + 2 x2), x2]
     assert_runs_hold(two["out"])

@@ -98,7 +98,7 @@ def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_gr
 def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """The left inverse m(x) = P^+ (x - p0) of an affine p(xi) = P xi + p0, and its checks."""
     p = man.expr("p")
-    P = np.array(model.substitute(p.jacobian(model.xi)), dtype=float)
+    P = np.array(model.substitute(man.expr("dp_dxi")), dtype=float)
     p0 = np.array(model.substitute(p.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
     sv = np.linalg.svd(P, compute_uv=False)
     if sv.min() <= 1e-12 * max(1.0, sv.max()):
@@ -112,7 +112,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
 
     # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope).
     kappa = kap.expr("kappa")
-    K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
+    K = np.array(model.substitute(kap.expr("dkappa_dxi")), dtype=float)
     k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
     Y, V = model.Y, model.V
     missing = []
@@ -172,6 +172,18 @@ def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) ->
     return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
 
 
+def branch_residuals(model: Model, branches: list[list[sp.Expr]], ys: list[sp.Symbol], y_grid: np.ndarray, grid: np.ndarray) -> list[float]:
+    """max |m(kappa(xi)) - xi| over the grid of V for each candidate m(y) (inf where it is not finite there).
+
+    ``y_grid`` (p, N) holds kappa at the grid points ``grid`` (n_hat, N).
+    """
+    residuals = []
+    for branch in branches:
+        values = np.broadcast_to(model.numeric(branch, ys)(*y_grid)[:, 0, :], grid.shape)
+        residuals.append(float(np.abs(values - grid).max()) if np.all(np.isfinite(values)) else np.inf)
+    return residuals
+
+
 def numeric_inverse(model: Model, kappa: sp.Matrix, xs: np.ndarray, y_grid: np.ndarray, y: sp.Symbol) -> tuple[sp.Expr, float, int] | None:
     """kappa^-1 as a Chebyshev interpolant on kappa(V), for one abstract state with kappa strictly monotone.
 
@@ -213,12 +225,9 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     h_num = model.numeric(model.h, list(model.x))
     y_grid = h_num(*p_grid)[:, 0, :]
-    best, best_residual = None, np.inf
-    for branch in closed_form_branches(model, kappa, ys):
-        values = np.broadcast_to(model.numeric(branch, ys)(*y_grid)[:, 0, :], grid.shape)
-        residual = float(np.abs(values - grid).max()) if np.all(np.isfinite(values)) else np.inf
-        if residual < best_residual:
-            best, best_residual = branch, residual
+    branches = closed_form_branches(model, kappa, ys)
+    residuals = branch_residuals(model, branches, ys, y_grid, grid)
+    best, best_residual = (branches[int(np.argmin(residuals))], min(residuals)) if branches else (None, np.inf)
     if best is None or best_residual > LEFT_INVERSE_TOL:
         raise DesignError("abstract", f"no closed-form solution m(y) of kappa(m) = y is a left inverse of p on V (best residual {best_residual:.3g})",
                           "a kappa sympy can invert on V (e.g. triangular), or an affine p", check="left_inverse")
@@ -266,7 +275,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     man, kap = upstream["manifold"], upstream["kappa"]
     p, kappa = man.expr("p"), kap.expr("kappa")
-    if not any(e.free_symbols & set(model.xi) for e in p.jacobian(model.xi)):
+    if not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi")):
         return run_linear(model, man, kap)
     if model.n_hat != model.p:
         raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
@@ -279,12 +288,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     p_grid = np.asarray(man.value("p_grid"))
     h_num = model.numeric(model.h, list(model.x))
     y_grid = h_num(*p_grid)[0, 0]
-    branches = [b[0] for b in closed_form_branches(model, kappa, [y])]
+    candidates = closed_form_branches(model, kappa, [y])
+    residuals = branch_residuals(model, candidates, [y], y_grid[None, :], grid)
+    branches = [b[0] for b in candidates]
     method = "closed form (sympy.solve of kappa(m) = y)"
-    residuals = []
-    for branch in branches:
-        m_y = model.numeric([branch], [y])
-        residuals.append(float(np.nanmax(np.abs(m_y(y_grid)[0, 0] - grid[0])) if np.all(np.isfinite(m_y(y_grid))) else np.inf))
     if not branches or min(residuals) > LEFT_INVERSE_TOL:
         numeric = numeric_inverse(model, kappa, grid[0], y_grid, y)
         if numeric is not None:

@@ -279,8 +279,9 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
             raise DesignError("abstract.domain", f"the equilibrium branch is lost at xi = {np.round(z[:, k], 6).tolist()} (dF/dx singular or Newton diverges): p is not defined on all of V",
                               "a smaller domain V, on which f_bar(x) + g(x) l(xi) = 0 has an isolated solution", check="pde_residual")
         X[:, k], solved[k] = x, True
-        closer = np.linalg.norm(z - z[:, [k]], axis=0) < distance
-        distance, nearest = np.where(closer, np.linalg.norm(z - z[:, [k]], axis=0), distance), np.where(closer, k, nearest)
+        to_k = np.linalg.norm(z - z[:, [k]], axis=0)
+        closer = to_k < distance
+        distance, nearest = np.where(closer, to_k, distance), np.where(closer, k, nearest)
     return X
 
 

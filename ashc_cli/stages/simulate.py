@@ -26,7 +26,7 @@ from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..expr import parse_expression
 from ..grids import domain_grid
-from ..model import TIME, Model, compile_flat
+from ..model import TIME, Model, compile_flat, compile_terms
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
@@ -55,32 +55,21 @@ class _Plant:
         self.n, self.m, self.nh, self.mh, self.p = model.n, model.m, model.n_hat, model.m_hat, model.p
         xi_terms = [model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"), up["manifold"].expr("p")]
         x_terms = [model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), up["inverse"].expr("m")]
-        self._xi_shapes = [t.shape for t in xi_terms]
-        self._x_shapes = [t.shape for t in x_terms]
-        self._xi_f = compile_flat([e for t in xi_terms for e in t], list(model.xi), model.values)
-        self._x_f = compile_flat([e for t in x_terms for e in t], list(model.x), model.values)
+        self._xi_f = compile_terms(xi_terms, list(model.xi), model.values)
+        self._x_f = compile_terms(x_terms, list(model.x), model.values)
         self.p_map = model.numeric(up["manifold"].expr("p"), list(model.xi))
         self.kappa = model.numeric(up["kappa"].expr("kappa"), list(model.xi))
         self.L = np.asarray(up["bound"].value("L"))
         self.K = np.asarray(up["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
         self.U = model.U
 
-    @staticmethod
-    def _split(values: list, shapes: list[tuple[int, int]]) -> list[np.ndarray]:
-        flat = np.array(values, dtype=float)
-        out, k = [], 0
-        for r, c in shapes:
-            out.append(flat[k:k + r * c].reshape(r, c))
-            k += r * c
-        return out
-
     def at_xi(self, xi: np.ndarray) -> list[np.ndarray]:
         """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1), p (n,1)] at xi."""
-        return self._split(self._xi_f(*xi), self._xi_shapes)
+        return self._xi_f(xi)
 
     def at_x(self, x: np.ndarray) -> list[np.ndarray]:
         """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x."""
-        return self._split(self._x_f(*x), self._x_shapes)
+        return self._x_f(x)
 
 
 def _pinv(a: np.ndarray) -> np.ndarray:
@@ -205,8 +194,9 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
 
     lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
     alpha_h = float(up["bound"].value("alpha_h"))
+    M = np.asarray(up["stabilise"].value("M"))
     e0 = plant.p_map(*xi0)[:, 0] - x0
-    W0 = float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
+    W0 = float(e0 @ M @ e0)
     z = np.r_[xi0, x0, W0]
     ts, zs, ref_idx, settle = [], [], [], []
     t0 = 0.0
@@ -245,7 +235,8 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     posterior = np.sqrt(np.maximum(w, 0.0) / alpha_h)
     floor = POSTERIOR_FLOOR_RTOL * max(1.0, span)
     posterior_ok = bool(np.all(err <= posterior + floor))
-    W = np.einsum("iN,ij,jN->N", plant.p_map(*xi)[:, 0, :] - x, np.asarray(up["stabilise"].value("M")), plant.p_map(*xi)[:, 0, :] - x)
+    e_p = plant.p_map(*xi)[:, 0, :] - x
+    W = np.einsum("iN,ij,jN->N", e_p, M, e_p)
     settle_ok = bool(max(settle) <= SETTLE_RTOL * span)
     U = model.U
     u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))

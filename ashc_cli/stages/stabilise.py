@@ -54,8 +54,10 @@ FULL_MAX_STATES = 32
 FEEDBACK_MAX_RATE = 100.0
 
 
-def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
+def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
     """Write f(x, u) = A(u) x + b(u) symbolically (eq. ConvertSystemLinear).
+
+    ``J``, if given, is df/dx already computed (A is that Jacobian when f is affine in x).
 
     Returns
     -------
@@ -67,13 +69,13 @@ def affine_form(model: Model) -> tuple[sp.Matrix, sp.Matrix]:
     DesignError
         If f is not affine in x, or A is not affine in u.
     """
-    A = sparse_jacobian(model.f, model.x)
+    A = sparse_jacobian(model.f, model.x) if J is None else J
     xs, us = set(model.x), list(model.u)
     for (i, j), e in np.ndenumerate(np.array(A, dtype=object)):
         if e.free_symbols & xs:
             raise DesignError("concrete", f"f(x, u) is not affine in x: df{i + 1}/d{model.x[j]} = {e} depends on x",
                               "f(x, u) = A(u) x + b(u) for stabilisability.method polytopic_lmi or given")
-        if not e.free_symbols & set(us):
+        if not e.free_symbols.intersection(us):
             continue
         for a, b in itertools.product(us, us):
             second = sp.diff(e, a, b)
@@ -88,7 +90,7 @@ MAX_VARYING_ENTRIES = 12
 RANGE_SAMPLES = 40000
 
 
-def jacobian_polytope(model: Model) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
+def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
     """A polytope containing the Jacobian df/dx(x, u) for x in ``concrete.state_box`` and u in U.
 
     For f not affine in x, V(x, z) = (x - z)^T M (x - z) decays at rate lambda along any pair of solutions
@@ -118,10 +120,10 @@ def jacobian_polytope(model: Model) -> tuple[sp.Matrix, list[np.ndarray], np.nda
     if model.state_box is None:
         raise SpecError("concrete.state_box", "missing: f(x, u) is not affine in x, so the incremental LMI is imposed on the Jacobian over a box of states",
                         "one pair [lo, hi] per state (the region the design is certified on)")
-    J = sparse_jacobian(model.f, model.x)
+    J = sparse_jacobian(model.f, model.x) if J is None else J
     args = list(model.x) + list(model.u)
     box = np.r_[model.state_box, model.U]
-    varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(J, dtype=object)) if sp.sympify(e).free_symbols & set(args)]
+    varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(J, dtype=object)) if e.free_symbols & set(args)]
     if len(varying) > MAX_VARYING_ENTRIES:
         raise DesignError("concrete", f"{len(varying)} Jacobian entries vary over the state box (at most {MAX_VARYING_ENTRIES}: the polytope has 2^k vertices)",
                           "fewer state-dependent terms, or f affine in x")
@@ -336,16 +338,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     st = model.spec.stabilisability
     meta: dict = {"method": st.method, "feedback": st.feedback}
     # Without a state box a plant not affine in x is refused by affine_form, with its reason.
-    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in sparse_jacobian(model.f, model.x))
+    J = sparse_jacobian(model.f, model.x)
+    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in J)
     if affine:
-        A_sym, b_sym = affine_form(model)
+        A_sym, b_sym = affine_form(model, J)
         A_num = model.numeric(A_sym, list(model.u))
         verts = vertices(model.U)
         A_vertices = [A_num(*vtx) for vtx in verts]
     else:
         if st.feedback == "linear_gain":
             raise SpecError("stabilisability.feedback", "'linear_gain' with f not affine in x", "feedback: identity (the Jacobian LMI certifies the plant itself)")
-        A_sym, A_vertices, ranges, jmeta = jacobian_polytope(model)
+        A_sym, A_vertices, ranges, jmeta = jacobian_polytope(model, J)
         b_sym = sp.zeros(model.n, 1)
         verts = ranges
         meta.update(jmeta, condition="J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (Jacobian polytope)")
