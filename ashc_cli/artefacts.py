@@ -147,21 +147,17 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # The provenance read_artefact gives back (plus the file's sha256), so a written artefact needs no reading back.
+    provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters,
+                  "upstream": upstream, "packages": package_versions(), "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  "ashc_version": __version__}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         with h5py.File(tmp, "w") as fh:
-            fh.attrs["schema_version"] = SCHEMA_VERSION
             fh.attrs["stage"] = art.stage
-            fh.attrs["spec_sha256"] = spec_sha256
-            fh.attrs["spec_name"] = spec_name
-            fh.attrs["parameters"] = json.dumps(parameters, sort_keys=True)
-            fh.attrs["upstream"] = json.dumps(upstream, sort_keys=True)
-            packages = package_versions()
-            created = datetime.now(timezone.utc).isoformat(timespec="seconds")
-            fh.attrs["packages"] = json.dumps(packages, sort_keys=True)
-            fh.attrs["created"] = created
-            fh.attrs["ashc_version"] = __version__
+            for key, value in provenance.items():
+                fh.attrs[key] = json.dumps(value, sort_keys=True) if isinstance(value, dict) else value
             fh.attrs["meta"] = json.dumps(art.meta, sort_keys=True, default=_json_default)
             values = fh.create_group("values")
             for key, value in art.values.items():
@@ -184,9 +180,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    # The same provenance read_artefact gives, so a just-written artefact needs no reading back.
-    art.provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters,
-                      "upstream": upstream, "packages": packages, "created": created, "ashc_version": __version__, "sha256": sha}
+    art.provenance = {**provenance, "sha256": sha}
     return sha
 
 

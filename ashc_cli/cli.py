@@ -21,7 +21,7 @@ import typer
 
 from . import __version__
 from .errors import AshcError, SpecError
-from .pipeline import DESIGN, STAGES, StageReport, default_out, load_all, run, run_falsify, run_for_verdict
+from .pipeline import DESIGN, STAGES, Folder, StageReport, artefact_path, default_out, load_all, run, run_falsify, run_for_verdict
 from .query import EVALUABLE, evaluate, parse_point, summary
 from .spec import load_spec
 from .verdict import verdict
@@ -181,10 +181,12 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed
 TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
 
 
-def _current_falsify(spec, folder):
+def _current_falsify(spec, folder: Folder):
     """The folder's falsify artefact if it was made from this spec, else None."""
-    art = load_all(folder).get("falsify")
-    return art if art is not None and art.provenance.get("spec_sha256") == spec.sha256 else None
+    if not artefact_path(folder.path, "falsify").exists():
+        return None
+    art = folder.read("falsify")
+    return art if art.provenance.get("spec_sha256") == spec.sha256 else None
 
 
 @app.command()
@@ -200,7 +202,7 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     from . import plots  # matplotlib only for the commands that draw (cold start of the others)
 
     spec_obj, folder, arts = _run(spec, out, ["simulate"], force, as_json)
-    current = _current_falsify(spec_obj, folder)
+    current = _current_falsify(spec_obj, Folder(folder))
     if current is not None:
         arts["falsify"] = current
     paths = plots.write_all(spec_obj, arts, folder / "plots")
@@ -259,13 +261,14 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     from .report import render
 
     spec_obj, folder = _load(spec, out)
-    arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
+    seen = Folder(folder)  # one view of the folder for the design, simulate and falsify runs below
+    arts, stopped = run_for_verdict(spec_obj, seen, force=force, on_stage=_progress(True))
     solved, rows = verdict(arts, stopped)
     violated = False
     if stopped is None:
-        arts.update(run(spec_obj, folder, ["simulate"], on_stage=_progress(True)))
-        current = None if force else _current_falsify(spec_obj, folder)
-        arts["falsify"] = current if current is not None else run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True))[1]
+        arts.update(run(spec_obj, seen, ["simulate"], on_stage=_progress(True)))
+        current = None if force else _current_falsify(spec_obj, seen)
+        arts["falsify"] = current if current is not None else run_falsify(spec_obj, seen, runs, seed, t_final, on_stage=_progress(True))[1]
         violated = float(arts["falsify"].value("max_ratio")) > 1.0
     figures = plots.write_all(spec_obj, arts, folder / "plots")
     page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, solved, rows, figures)

@@ -4,6 +4,8 @@ A stage's artefact is *up to date* when it was written with the current schema v
 the same SHA-256, and from upstream artefacts whose files have the SHA-256s it recorded (and which are up
 to date themselves).  :func:`run` walks the stages a target needs in flow-chart order, reads those that are
 up to date and recomputes the rest, writing each artefact atomically before the next stage starts.
+A :class:`Folder` remembers what one command has read, written and judged, so that commands calling
+:func:`run` several times (``check``, ``report``, ``regress``, ``sweep``) read and parse each file once.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +25,8 @@ from .spec import Spec
 from . import falsify as falsify_mod
 from .stages import DESIGN, ORDER
 
-__all__ = ["STAGES", "DESIGN", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers", "run",
-           "load_all", "StageReport"]
+__all__ = ["STAGES", "DESIGN", "Folder", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers",
+           "run", "run_falsify", "run_for_verdict", "load_all", "StageReport"]
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
@@ -52,6 +54,44 @@ def artefact_path(out: str | Path, stage: str) -> Path:
     return Path(out) / f"{stage}.h5"
 
 
+@dataclass
+class Folder:
+    """An artefact folder as one command sees it: each artefact read at most once, each stage judged once.
+
+    Attributes
+    ----------
+    path : Path
+        The folder.
+    arts : dict of str to Artefact
+        Artefacts read from it or written to it by this command.
+    reasons : dict of str to (str or None)
+        :func:`staleness` of each stage judged so far (None: up to date).
+    written : set of str
+        Stages this command has (re)computed: a ``force`` does not compute them again.
+    """
+
+    path: Path
+    arts: dict[str, Artefact] = field(default_factory=dict)
+    reasons: dict[str, str | None] = field(default_factory=dict)
+    written: set[str] = field(default_factory=set)
+
+    def read(self, stage: str) -> Artefact:
+        """The stage's artefact, read from its file the first time only."""
+        if stage not in self.arts:
+            self.arts[stage] = read_artefact(artefact_path(self.path, stage))
+        return self.arts[stage]
+
+    def wrote(self, stage: str, art: Artefact) -> None:
+        """Record an artefact just written (with its provenance filled by ``write_artefact``)."""
+        self.arts[stage], self.reasons[stage] = art, None
+        self.written.add(stage)
+
+
+def as_folder(out: str | Path | Folder) -> Folder:
+    """A :class:`Folder` for ``out`` (itself if it is one already)."""
+    return out if isinstance(out, Folder) else Folder(Path(out))
+
+
 def needed(targets: Iterable[str]) -> list[str]:
     """The targets and every stage upstream of them, in flow-chart order."""
     want: set[str] = set()
@@ -64,15 +104,15 @@ def needed(targets: Iterable[str]) -> list[str]:
     return [name for name in STAGES if name in want]
 
 
-def staleness(spec: Spec, out: str | Path, stage: str, _cache: dict | None = None) -> str | None:
+def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
     """Why a stage's artefact is not up to date, or None if it is.
 
     Parameters
     ----------
     spec : Spec
         The current spec.
-    out : str or Path
-        The artefact folder.
+    out : str, Path or Folder
+        The artefact folder (a :class:`Folder` remembers the artefacts read and the stages judged).
     stage : str
         The stage to examine.
 
@@ -81,16 +121,15 @@ def staleness(spec: Spec, out: str | Path, stage: str, _cache: dict | None = Non
     str or None
         A reason (missing, unreadable, other spec, other schema, upstream changed) or None.
     """
-    cache = {} if _cache is None else _cache
-    if stage in cache:
-        return cache[stage]
-    path = artefact_path(out, stage)
+    folder = as_folder(out)
+    if stage in folder.reasons:
+        return folder.reasons[stage]
     reason = None
-    if not path.exists():
+    if not artefact_path(folder.path, stage).exists():
         reason = "no artefact yet"
     else:
         try:
-            prov = read_artefact(path).provenance
+            prov = folder.read(stage).provenance
         except ArtefactError:
             prov = None
             reason = "artefact unreadable"
@@ -101,14 +140,13 @@ def staleness(spec: Spec, out: str | Path, stage: str, _cache: dict | None = Non
                 reason = "made from another spec (SHA-256 differs)"
             else:
                 for up in STAGES[stage].UPSTREAM:
-                    if staleness(spec, out, up, cache) is not None:
+                    if staleness(spec, folder, up) is not None:
                         reason = f"upstream stage {up} is not up to date"
                         break
-                    up_sha = read_artefact(artefact_path(out, up)).provenance["sha256"]
-                    if prov["upstream"].get(up) != up_sha:
+                    if prov["upstream"].get(up) != folder.read(up).provenance["sha256"]:
                         reason = f"upstream artefact {up}.h5 changed since"
                         break
-    cache[stage] = reason
+    folder.reasons[stage] = reason
     return reason
 
 
@@ -141,7 +179,7 @@ def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
 
 def run(
     spec: Spec,
-    out: str | Path,
+    out: str | Path | Folder,
     targets: Iterable[str],
     *,
     force: bool = False,
@@ -155,12 +193,12 @@ def run(
     ----------
     spec : Spec
         The validated spec.
-    out : str or Path
-        The artefact folder.
+    out : str, Path or Folder
+        The artefact folder; pass one :class:`Folder` to several calls so they read each artefact once.
     targets : iterable of str
         Stage names wanted.
     force : bool
-        Recompute every needed stage even if up to date.
+        Recompute every needed stage even if up to date (once per :class:`Folder`).
     frozen : bool
         Never recompute an upstream stage: refuse (naming the stage to rerun) if one is not up to date.
     on_stage : callable, optional
@@ -178,26 +216,25 @@ def run(
     ArtefactError
         With ``frozen``, if an upstream stage is not up to date.
     """
-    targets = list(targets)
+    targets, folder = list(targets), as_folder(out)
     model = dataclasses.replace(build_model(spec), numeric_paths=numeric)
-    remove_leftovers(out)
+    remove_leftovers(folder.path)
     arts: dict[str, Artefact] = {}
-    reasons: dict = {}
     for name in needed(targets):
         mod = STAGES[name]
         start = time.perf_counter()
-        reason = "forced" if force else staleness(spec, out, name, reasons)
+        reason = "forced" if force and name not in folder.written else staleness(spec, folder, name)
         if frozen and name not in targets and reason is not None:
             raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"rerun `ashc {name} SPEC`, or drop --frozen")
         if reason is None:
-            art = read_artefact(artefact_path(out, name))
+            art = folder.read(name)
             status = "up to date"
         else:
             check_upstream(spec, name, arts)
             art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
-            write_artefact(artefact_path(out, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
+            write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM})
-            reasons[name] = None
+            folder.wrote(name, art)
             status = "ran"
         arts[name] = art
         if name == "manifold":
@@ -233,24 +270,25 @@ def design_model(spec: Spec, arts: dict[str, Artefact]):
     return with_domain(build_model(spec), arts["manifold"])
 
 
-def run_falsify(spec: Spec, out: str | Path, runs: int, seed: int = 0, t_final: float | None = None, *,
+def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, t_final: float | None = None, *,
                 on_stage: Callable[[StageReport], None] | None = None, progress=None) -> tuple[dict[str, Artefact], Artefact]:
     """Bring the design up to date, run :func:`ashc_cli.falsify.falsify` and store ``falsify.h5``.
 
     The artefact is written whatever the verdict (a violation must be kept to be studied).
     """
-    arts = run(spec, out, DESIGN, on_stage=on_stage)
+    folder = as_folder(out)
+    arts = run(spec, folder, DESIGN, on_stage=on_stage)
     start = time.perf_counter()
     art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress)
     ups = ("stabilise", "manifold", "kappa", "delta", "bound")
-    write_artefact(artefact_path(out, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
+    write_artefact(artefact_path(folder.path, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups})
     if on_stage is not None:
         on_stage(StageReport(falsify_mod.NAME, "ran", time.perf_counter() - start, falsify_mod.headline(art)))
     return arts, art
 
 
-def run_for_verdict(spec: Spec, out: str | Path, *, force: bool = False,
+def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False,
                     on_stage: Callable[[StageReport], None] | None = None) -> tuple[dict[str, Artefact], tuple | None]:
     """Run the design stages one at a time, stopping at the first design condition that fails.
 
@@ -262,10 +300,11 @@ def run_for_verdict(spec: Spec, out: str | Path, *, force: bool = False,
         Where and why the design stopped (for the Problem 1 verdict).
     """
     arts: dict[str, Artefact] = {}
+    folder = as_folder(out)
     for stage in DESIGN:
         try:
             # One stage at a time, so a failing condition still leaves the verdict of the stages before it.
-            arts.update(run(spec, out, [stage], force=force and stage not in arts,
+            arts.update(run(spec, folder, [stage], force=force,
                             on_stage=lambda report, stage=stage: on_stage(report) if on_stage and report.stage == stage else None))
         except DesignError as exc:
             return arts, (stage, exc)

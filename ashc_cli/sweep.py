@@ -55,7 +55,7 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
 
     Runs in a worker process; returns plain data.  Every ashc error becomes a failed row.
     """
-    from .pipeline import run_falsify, run_for_verdict
+    from .pipeline import Folder, run_falsify, run_for_verdict
     from .spec import Spec
     from .verdict import verdict
 
@@ -66,7 +66,8 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
         data = dict(spec_json)
         data["parameters"] = {**data.get("parameters", {}), **params}
         spec = Spec.model_validate(data)
-        arts, stopped = run_for_verdict(spec, out)
+        folder = Folder(Path(out))  # the falsify run below reuses the artefacts the design read or wrote
+        arts, stopped = run_for_verdict(spec, folder)
         row["solved"] = bool(verdict(arts, stopped)[0])
         if "stabilise" in arts:
             row["lambda"] = float(arts["stabilise"].value("lambda"))
@@ -76,7 +77,7 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
         if stopped is not None:
             row["error"] = stopped[1].line()
         elif falsify_runs > 0:
-            row["falsify_ratio"] = float(run_falsify(spec, out, falsify_runs)[1].value("max_ratio"))
+            row["falsify_ratio"] = float(run_falsify(spec, folder, falsify_runs)[1].value("max_ratio"))
     except AshcError as exc:
         row["error"] = exc.line()
     except Exception as exc:  # a bug in one combination must not stop the sweep; it is recorded

@@ -2,8 +2,9 @@
 
 import shutil
 
+from ashc_cli import pipeline
 from ashc_cli.artefacts import read_artefact, write_artefact
-from ashc_cli.pipeline import DESIGN, needed, run, staleness
+from ashc_cli.pipeline import DESIGN, Folder, needed, run, run_for_verdict, staleness
 from ashc_cli.spec import load_spec, parse_spec_text
 
 from .conftest import CUK_PAPER_M
@@ -55,3 +56,21 @@ def test_corrupt_artefact_is_stale(paper_out, tmp_path):
     (out / "kappa.h5").write_bytes(b"garbage")
     assert staleness(spec, out, "kappa") == "artefact unreadable"
     assert staleness(spec, out, "manifold") is None
+
+
+def test_a_folder_reads_each_artefact_once(paper_out, tmp_path, monkeypatch):
+    # check/report/regress run the design one stage at a time: each file is still read (and parsed) once.
+    spec = load_spec(CUK_PAPER_M)
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    reads = []
+    monkeypatch.setattr(pipeline, "read_artefact", lambda path: reads.append(path.name) or read_artefact(path))
+    arts, stopped = run_for_verdict(spec, out)
+    assert stopped is None and set(arts) == set(DESIGN)
+    assert sorted(reads) == sorted(f"{s}.h5" for s in DESIGN)
+
+    # force: every stage recomputed (and written) once per Folder, not once per later stage that needs it.
+    written = []
+    monkeypatch.setattr(pipeline, "write_artefact", lambda path, art, **kw: written.append(path.name) or write_artefact(path, art, **kw))
+    run_for_verdict(spec, Folder(out), force=True)
+    assert written == [f"{s}.h5" for s in DESIGN]
