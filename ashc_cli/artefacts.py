@@ -7,7 +7,7 @@ Layout of ``<out>/<stage>.h5``::
                              tolerances, integrator, ...)
     /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
     /exprs/<name>     attrs shape; datasets srepr (exact, read back by a whitelist) and text (readable)
-    /checks/<name>    attrs value (float), passed (bool), description (str)
+    /checks/<name>    attrs value (float), passed (bool), description (str), evidence (proved | sampled | simulated)
 
 A write goes to a temporary file in the same folder and is renamed over the target only once complete,
 so an interrupted run leaves the previous artefact intact.
@@ -36,7 +36,7 @@ from .expr import from_srepr
 __all__ = ["SCHEMA_VERSION", "Artefact", "Check", "write_artefact", "read_artefact", "file_sha256", "package_versions"]
 
 #: Bumped whenever the layout or the meaning of a stored value changes; older artefacts are stale.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic")
 _STR = h5py.string_dtype()
@@ -54,11 +54,16 @@ class Check:
         Whether the number meets the condition.
     description : str
         What was measured and against what threshold.
+    evidence : str
+        How the claim was established: ``proved`` (rigorous: ball arithmetic over the whole set, exact or
+        symbolic arithmetic, or the vertex argument), ``sampled`` (on a finite set of points: it can miss a
+        violation between them) or ``simulated`` (observed along simulated runs).
     """
 
     value: float
     passed: bool
     description: str
+    evidence: str = "sampled"
 
 
 @dataclass
@@ -175,6 +180,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
                 grp.attrs["value"] = float(chk.value)
                 grp.attrs["passed"] = bool(chk.passed)
                 grp.attrs["description"] = chk.description
+                grp.attrs["evidence"] = chk.evidence
         sha = file_sha256(tmp)
         os.replace(tmp, path)
     except BaseException:
@@ -233,7 +239,8 @@ def read_artefact(path: str | Path) -> Artefact:
                 entries = [from_srepr(s.decode() if isinstance(s, bytes) else s, str(path)) for s in grp["srepr"][()]]
                 art.exprs[name] = sp.Matrix(shape[0], shape[1], entries) if entries else sp.zeros(*shape)
             for name, grp in fh["checks"].items():
-                art.checks[name] = Check(float(grp.attrs["value"]), bool(grp.attrs["passed"]), str(grp.attrs["description"]))
+                art.checks[name] = Check(float(grp.attrs["value"]), bool(grp.attrs["passed"]), str(grp.attrs["description"]),
+                                         str(grp.attrs.get("evidence", "sampled")))
     except ArtefactError:
         raise
     except (OSError, KeyError, ValueError, TypeError) as exc:

@@ -25,6 +25,7 @@ from .pipeline import DESIGN, STAGES, Folder, StageReport, artefact_path, defaul
 from .query import EVALUABLE, evaluate, parse_point, summary
 from .spec import load_spec
 from .verdict import verdict
+from .stages.bound import region_text
 
 app = typer.Typer(
     name="ashc",
@@ -142,8 +143,10 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
         _emit_json(summary({name: arts[name] for name in DESIGN}))
     else:
         b = arts["bound"].values
-        typer.echo(f"design '{spec_obj.name}' in {folder}: {len(checks) - len(failed)}/{len(checks)} checks passed; "
-                   f"|psi - y| <= {b['gain']:.5g} ||v||_inf when W(xi0, x0) = 0")
+        proved = sum(c.evidence == "proved" for c in checks)
+        typer.echo(f"design '{spec_obj.name}' in {folder}: {len(checks) - len(failed)}/{len(checks)} checks passed "
+                   f"({proved} proved, {len(checks) - proved} sampled); "
+                   f"|psi - y| <= {b['gain']:.5g} ||v||_inf {region_text(b)}")
     if failed:
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
         raise typer.Exit(3)
@@ -168,7 +171,7 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
         typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
         for r in rows:
             value = "" if r.value is None else f"{r.value:.4g}"
-            typer.echo(f"  {r.status:<11} {r.condition:<42} {value:>11}   {r.reference}")
+            typer.echo(f"  {r.status:<11} {r.evidence:<9} {r.condition:<42} {value:>11}   {r.reference}")
             if r.status == "fail":
                 typer.echo(f"              {r.detail}")
         typer.echo(f"Problem 1 solved: {'yes' if solved else 'no'}")
@@ -176,7 +179,7 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
         raise typer.Exit(3)
 
 
-RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of random closed-loop runs (one vectorised batch).")]
+RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of closed-loop runs, shared among the search strategies (one vectorised batch).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same batch.")]
 TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
 
@@ -217,12 +220,16 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
 @_guard
 def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt = 0, t_final: TFinalOpt = None,
             as_json: JsonOpt = False) -> None:
-    """Try to break the error bound: a batch of random closed-loop runs, vectorised over the batch.
+    """Search for a run that breaks the certified error bound (one vectorised batch of closed loops).
 
-    Random initial states (a quarter on the manifold, the rest with W(0) > 0), random references with
-    kappa(xi_ref) in Y, random set-point gains and random bounded disturbances on v. Reports the largest
-    ratio of measured |psi - y| to the guaranteed bound sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup|v|
-    over all runs and times. Writes falsify.h5 either way; exit 3 if the ratio exceeds 1 (a violation).
+    Strategies share the runs: random set-point runs; an adversary on the manifold (W0 = 0) choosing the
+    sign of v that makes W grow fastest; bang-bang square waves; the linearised worst case at points of V;
+    starts on the boundary of the certified region W0 = w0_max_certified (or over a wide range of W0 when
+    the bound is global); and a refinement of the best runs by an evolution strategy. Every run keeps
+    W0 <= w0_max_certified and ||v|| <= min(v_max, v_max_certified), and xi in V. Reports the largest ratio
+    of |psi - y| to sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup|v| over all runs (max_ratio) and over
+    the runs started on the manifold (max_ratio_w0_zero, where only G ||v|| counts). Writes falsify.h5
+    either way; exit 3 if a ratio exceeds 1 (a violation).
     """
     spec_obj, folder = _load(spec, out)
     from .falsify import SEGMENTS
@@ -238,8 +245,10 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     if as_json:
         _emit_json(entry)
     else:
-        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {entry['max_ratio']:.4g} "
-                   f"(run {entry['worst_run']}, t = {entry['worst_time']:.4g} s), {entry['runs_leaving_V']} left V")
+        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {entry['max_ratio']:.6g} "
+                   f"(run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, t = {entry['worst_time']:.4g} s); "
+                   f"started on the manifold (W0 = 0): {entry.get('max_ratio_w0_zero', float('nan')):.6g} "
+                   f"({entry.get('strategy_of_worst_w0_zero', '-')}); {entry['runs_leaving_V']} left V")
     if entry["max_ratio"] > 1.0:
         typer.echo(f"error: falsify: the bound is violated by a factor {entry['max_ratio']:.4g} in run {entry['worst_run']} at "
                    f"t = {entry['worst_time']:.4g} s; the run is saved in {folder / 'falsify.h5'}", err=True)
@@ -399,7 +408,8 @@ def summary_command(
                 continue
             typer.echo(f"  {key} = {value}")
         for key, chk in entry["checks"].items():
-            typer.echo(f"  check {key}: {'pass' if chk['passed'] else 'FAIL'} ({chk['value']:.4g})")
+            value = chk["value"] if isinstance(chk["value"], str) else f"{chk['value']:.4g}"
+            typer.echo(f"  check {key}: {'pass' if chk['passed'] else 'FAIL'} ({value}, {chk.get('evidence', 'sampled')})")
 
 
 @app.command(name="eval")

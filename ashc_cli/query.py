@@ -14,8 +14,13 @@ import sympy as sp
 from .artefacts import Artefact
 from .errors import ArtefactError, DesignError, SpecError
 from .pipeline import EXTRAS, STAGES
+from .stages.inverse import certified_set, format_box, outside_certified_set
 
 __all__ = ["summary", "EVALUABLE", "parse_point", "evaluate"]
+
+#: Functions built from m: evaluated only at states x whose output h(x) lies where m is certified
+#: (``inverse.m_domain``).
+BUILT_FROM_M = ("m", "b", "c")
 
 #: Names ``ashc eval`` knows, with the stage and stored expression each comes from.
 EVALUABLE = {
@@ -44,7 +49,8 @@ def summary(arts: dict[str, Artefact]) -> dict:
     out = {}
     for name, art in arts.items():
         entry = (STAGES.get(name) or EXTRAS[name]).summarise(art)
-        entry["checks"] = {k: {"value": _num(c.value), "passed": c.passed, "description": c.description} for k, c in art.checks.items()}
+        entry["checks"] = {k: {"value": _num(c.value), "passed": c.passed, "description": c.description, "evidence": c.evidence}
+                           for k, c in art.checks.items()}
         entry["provenance"] = {k: art.provenance.get(k) for k in ("spec_sha256", "created", "ashc_version", "sha256")}
         out[name] = entry
     return out
@@ -130,11 +136,14 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     Raises
     ------
     SpecError
-        If the name is unknown, a needed variable is missing, or a given name is not a design variable.
+        If the name is unknown, a needed variable is missing, or a given name is not a design variable; or,
+        for m and the b, c built from it, if y = h(x) at the point lies outside the set where m is certified
+        (``inverse.m_domain``): m is a left inverse there only, and a Chebyshev interpolant extrapolates.
     ArtefactError
-        If the stage holding the function has not been run.
+        If the stage holding the function has not been run (for m, b, c: also the inverse stage), or the
+        inverse artefact does not record where m is certified.
     DesignError
-        If the function is not real at the point (e.g. m outside the region where it is real).
+        If the function is not real at the point.
     """
     if name not in EVALUABLE:
         raise SpecError("NAME", f"'{name}' cannot be evaluated", f"one of {', '.join(EVALUABLE)}")
@@ -146,6 +155,8 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     unknown = set(point) - _known_names(arts) - set(params)
     if unknown:
         raise SpecError("--at", f"unknown variable(s) {', '.join(sorted(unknown))}", "the spec's own state names")
+    if name in BUILT_FROM_M:
+        _require_certified(arts, name, point)
     if key is not None:
         values = _values(art.expr(key), point, params, name)
     else:
@@ -153,6 +164,22 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     if np.any(np.isnan(values)):
         raise DesignError(name, f"{name} is not real at {point}", "a point where it is defined (see `ashc summary`)")
     return values.tolist()
+
+
+def _require_certified(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> None:
+    """Refuse to evaluate m (or b, c, built from it) at a state whose output h(x) is outside ``inverse.m_domain``."""
+    if "inverse" not in arts:
+        raise ArtefactError("inverse", f"no inverse.h5 artefact in this folder (it records where m, and so {name}, is certified)",
+                            "run `ashc inverse SPEC --out DIR` first")
+    inv = arts["inverse"]
+    box, set_name, _ = certified_set(inv)
+    h = inv.expr("h")
+    y = _values(h, point, inv.provenance.get("parameters", {}), name)
+    if outside_certified_set(box, y):
+        shown = f"{y[0]:.6g}" if y.size == 1 else "[" + ", ".join(f"{v:.6g}" for v in y) + "]"
+        built = "" if name == "m" else f" ({name} is built from m)"
+        raise SpecError(f"eval {name}", f"y = h(x) = {shown} is outside the set where m is certified{built}, y in {set_name} = {format_box(box)}",
+                        f"a state x with h(x) in {format_box(box)} (inverse.m_domain)")
 
 
 def _theta(art: Artefact, point: dict[str, float], params: dict[str, float]) -> np.ndarray:

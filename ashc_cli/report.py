@@ -13,6 +13,8 @@ import html
 import json
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .artefacts import Artefact
 from .query import summary
@@ -96,16 +98,20 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bo
              f"<p>ashc {html.escape(__version__)}. The method of \"Approximate Simulation-based Hierarchical Control of Nonlinear Systems\".</p>",
              f"<p class=\"verdict {'pass' if solved else 'fail'}\">Problem 1 solved: {'yes' if solved else 'no'}</p>"]
 
-    parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>measured</th><th>reference</th><th>detail</th></tr>")
+    parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>evidence</th><th>measured</th><th>reference</th><th>detail</th></tr>")
     for r in rows:
         value = "" if r.value is None else f"{r.value:.4g}"
-        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, value, r.reference, r.detail or ""))
+        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, r.evidence, value, r.reference, r.detail or ""))
     parts.append("</table>")
 
     parts.append("<h2>Error bounds</h2><table>")
     if "bound" in summ:
         b = summ["bound"]
+        region = ("global: every W(xi0, x0) and every v" if not np.isfinite(b.get("w0_max_certified", np.inf))
+                  else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.6g} and ||v||_inf &lt;= {b['v_max_certified']:.6g} ({html.escape(b.get('region_limits', ''))})")
         parts.append(f"<tr><th>uniform gain G (eq. egErrorBound, paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g} ||v||_inf when W(xi0, x0) = 0</td></tr>"
+                     f"<tr><th>certified region</th><td>{region}</td></tr>"
+                     f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.6g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"
                      f"<tr><th>comparison-lemma form</th><td>{b['gain_comparison']:.6g} ||v||_inf (ERRATA item 7)</td></tr>"
                      f"<tr><th>dbar (q = 0): design delta / delta = I</th><td>{b['dbar_q0']:.6g} / {b['dbar_q0_identity']:.6g}</td></tr>"
                      f"<tr><th>alpha_h, epsilon</th><td>{b['alpha_h']:.6g}, {b['epsilon']:.6g}</td></tr>")
@@ -122,8 +128,11 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bo
     if "falsify" in summ:
         f = summ["falsify"]
         ok = f["max_ratio"] <= 1.0
-        parts.append(f"<p>{f['runs']} random closed-loop runs (seed {f['seed']}): largest measured error / guaranteed bound = "
-                     f"<b>{f['max_ratio']:.4g}</b> (run {f['worst_run']}, t = {f['worst_time']:.4g} s); {_status(ok)}. "
+        parts.append(f"<p>{f['runs']} searched closed-loop runs (seed {f['seed']}; random, adversarial, linearised worst case, "
+                     f"boundary of the certified region, refined): largest measured error / guaranteed bound = "
+                     f"<b>{f['max_ratio']:.6g}</b> (run {f['worst_run']}, {html.escape(str(f.get('strategy_of_worst', 'random')))}, "
+                     f"t = {f['worst_time']:.4g} s); started on the manifold (W0 = 0, only G ||v||_inf counts): "
+                     f"<b>{f.get('max_ratio_w0_zero', float('nan')):.4g}</b>; {_status(ok)}. "
                      f"{f['runs_leaving_V']} run(s) left V (not counted after that).</p>")
     else:
         parts.append("<p class=\"na\">not run</p>")

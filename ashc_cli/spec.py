@@ -109,10 +109,16 @@ class Abstract(_Strict):
 
 
 class Interface(_Strict):
-    """The interface u_w = l(xi) + q(xi, x) v (eqs. Interface, egInterface, egInterfaceSat)."""
+    """The interface u_w = l(xi) + q(xi, x) v (eqs. Interface, egInterface, egInterfaceSat).
+
+    ``saturate``: ``true`` clips each input channel of l + K (x - p) + q v to its bounds (eq. egInterfaceSat);
+    ``scale`` multiplies the whole correction K (x - p) + q v by the one factor s in [0, 1] that brings u
+    into U (so the correction keeps its direction, and the uniform bound of an identity-feedback design
+    holds for any number of inputs); ``false`` applies it unclipped (u may leave U).
+    """
 
     q: Literal["zero", "least_squares"] = "least_squares"
-    saturate: bool = True
+    saturate: Union[bool, Literal["scale"]] = True
 
 
 class SetpointController(_Strict):

@@ -31,6 +31,7 @@ class Row:
     status: str           # "pass", "fail" or "not reached"
     value: float | None
     detail: str
+    evidence: str = "-"   # "proved", "sampled" or "simulated" (how the stage established it); "-" when not reached
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -46,6 +47,7 @@ ROWS = (
     ("l maps V into U", "Thm. SimuDesign", "simulation function", "manifold", "l_in_U"),
     ("V covers Y", "eq. SimuLocalRequire", "simulation function", "inverse", "V_covers_Y"),
     ("condition (B)", "Prop. condB", "simulation function", "bound", "condition_B"),
+    ("region where the bound is certified", "Thm. ErrorBound, Def. simuFunction", "simulation function", "bound", "certified_region"),
     ("p injective on V (left inverse)", "Thm. mCondi, step 1", "m-relation", "inverse", "left_inverse"),
     ("condition (i)", "Thm. mCondi (i)", "m-relation", "inverse", "condition_i"),
     ("condition (ii)", "Thm. mCondi (ii), Cor. mRelateGeo", "m-relation", "inverse", "condition_ii"),
@@ -76,14 +78,14 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
         if stage in arts and check in arts[stage].checks:
             chk = arts[stage].checks[check]
             value = float(chk.value) if np.isfinite(chk.value) else None
-            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, chk.description))
+            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, chk.description, chk.evidence))
         elif stopped is not None and stopped[0] == stage and getattr(stopped[1], "check", None) in (check, None):
             # The failure is about this row (or about the stage as a whole, e.g. an unsupported case).
-            rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line()))
+            rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
         else:
             reason = f"stage {stage} did not complete" if stopped is not None else f"no {stage} artefact"
             rows.append(Row(condition, reference, requirement, "not reached", None, reason))
     if stopped is not None and not any(r.status == "fail" for r in rows):
-        rows.append(Row("design stage " + stopped[0], "-", "-", "fail", None, stopped[1].line()))
+        rows.append(Row("design stage " + stopped[0], "-", "-", "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
     solved = all(r.status == "pass" for r in rows)
     return solved, rows

@@ -112,8 +112,8 @@ CASES: tuple[Case, ...] = (
     # --- simulation ------------------------------------------------------------------------------------------
     Case("sim-xi0-outside-V", "xi0 outside V", edits=(("xi0: [0.6156]", "xi0: [0.99]"),), targets=("simulate",), code=3, fragment="is outside V"),
     Case("sim-level-unreachable", "a reference level kappa never reaches on V", edits=(("reference_levels: [-19.11,", "reference_levels: [-130,"),), targets=("simulate",), code=3, fragment="is not reached by kappa"),
-    Case("sim-leaves-m-real", "the m-relation run leaves where m is real", edits=(("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"), ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"')),
-         targets=("simulate",), drop_tracking=True, code=3, fragment="reaches the edge of [-126.915, 126.915], where m is real"),
+    Case("sim-leaves-m-real", "the m-relation run leaves where m is certified", edits=(("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"), ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"')),
+         targets=("simulate",), drop_tracking=True, code=3, fragment="leaves kappa(V) = [-126.188, 0], where m is certified"),
     Case("sim-u-bad-name", "an unknown name in the m-relation input signal", edits=(('u: "0.3*triangle(t - 2)', 'u: "0.3*triangle(s - 2)'),), targets=("simulate",), drop_tracking=True, code=2, fragment="unknown name 's'"),
 )
 

@@ -37,6 +37,10 @@ def test_numeric_and_symbolic_paths_agree_on_a_mid_size_ladder(tmp_path):
     assert sym["manifold"].meta["method"].startswith("closed form")
     assert num["manifold"].meta["method"].startswith("Newton continuation")
     assert np.allclose(sym["manifold"].values["p_grid"], num["manifold"].values["p_grid"], rtol=1e-8, atol=1e-9)
-    for key in ("alpha_h", "dbar_q0", "dbar_q0_identity", "gain"):
+    for key in ("alpha_h_sampled", "dbar_q0_sampled", "dbar_q0_identity"):
         assert num["bound"].values[key] == pytest.approx(sym["bound"].values[key], rel=1e-7), key
+    # dbar_q0 and G use the proved upper bound of the branch and bound, which stops once its gap is below
+    # 1e-6 relative, on each path's own formula for p: the two bounds agree to that gap, not to 1e-7.
+    for key in ("dbar_q0", "gain"):
+        assert num["bound"].values[key] == pytest.approx(sym["bound"].values[key], rel=3e-6), key
     assert num["inverse"].values["left_inverse_residual"] < 1e-9

@@ -84,3 +84,86 @@ def test_p_not_injective_is_refused():
 def test_Y_beyond_where_m_is_real_is_refused():
     with pytest.raises(DesignError, match="where m is real"):
         run_inverse_with(("output_set: [[-120, 0]]", "output_set: [[-130, 0]]"))
+
+
+# --- where m is certified (values/m_domain): kappa(V), or where m is real within it, or Y ---------------------
+
+def test_m_certified_on_kappa_V_within_where_it_is_real(paper_design):
+    # Cuk: m is real for |y| <= 126.91 (a radicand), but it is a left inverse with m(x) in V only for y in
+    # kappa(V) = [kappa(0.95), kappa(0)] = [-126.1875, 0], which lies inside: that is the certified set.
+    art = paper_design["inverse"]
+    lo, hi = art.values["kappa_range"][0]
+    assert np.array_equal(art.values["m_domain"], [[lo, hi]])
+    assert lo == pytest.approx(-126.1875, abs=1e-4) and hi == 0.0 and math.copysign(1, art.values["m_domain"][0, 1]) == 1
+    assert art.meta["m_domain_set"] == "kappa(V)" and "outside V" in art.meta["m_domain"]
+    line = inverse.headline(art)
+    assert "m real for y in [-126.915, 126.915]; certified for y in kappa(V) = [-126.188, 0]" in line
+    assert "inf" not in line and "-0]" not in line
+    entry = inverse.summarise(art)
+    assert entry["m_domain"] == [[lo, 0.0]] and entry["m_domain_set"] == "kappa(V)"
+    assert entry["m_real_interval"] == pytest.approx([-126.914863, 126.914863])
+    assert str(art.exprs["h"][0]) == "x4"
+
+
+def test_outside_certified_set():
+    box = np.array([[-126.1875, 0.0]])
+    assert not inverse.outside_certified_set(box, [0.0]) and not inverse.outside_certified_set(box, [-126.1875])
+    assert not inverse.outside_certified_set(box, [0.5e-9 * 126.1875])     # within DOMAIN_RTOL of the width
+    assert inverse.outside_certified_set(box, [1e-6]) and inverse.outside_certified_set(box, [-126.19])
+    assert inverse.outside_certified_set(box, [math.nan])
+    two = np.array([[0.1, 1.0], [0.1, 0.9]])
+    assert inverse.outside_certified_set(two, [0.05, 0.3]) and not inverse.outside_certified_set(two, [0.5, 0.5])
+    assert inverse.format_box(two) == "[0.1, 1] x [0.1, 0.9]"
+
+
+def _design_inverse(text, tmp_path, numeric=None):
+    from ashc_cli.pipeline import run
+    return run(parse_spec_text(text), tmp_path, ["inverse"], numeric=numeric)["inverse"]
+
+
+def test_chebyshev_inverse_certified_exactly_on_kappa_V(tmp_path):
+    # The numeric left inverse is a polynomial fitted on kappa(V); beyond it, it extrapolates (the issue's
+    # m(v32 = 90) = 2.8e9). Neither m_real_interval nor m_domain may claim more than kappa(V).
+    from ashc_cli.examples import ladder
+    art = _design_inverse(ladder(1), tmp_path, numeric=True)
+    assert art.meta["method"].startswith("Chebyshev")
+    k_range = np.asarray(art.values["kappa_range"])
+    assert np.array_equal(art.values["m_domain"], k_range) and np.array_equal(art.values["m_real_interval"], k_range[0])
+    assert np.all(np.isfinite(art.values["m_domain"]))
+    line = inverse.headline(art)
+    assert "inf" not in line and "certified for y in kappa(V) = [" in line
+    assert all(np.isfinite(c.value) for c in art.checks.values())
+    entry = inverse.summarise(art)
+    assert None not in entry["m_real_interval"] and entry["m_domain"] == k_range.tolist()
+
+
+def test_linear_inverse_real_everywhere_but_certified_on_kappa_V(tmp_path):
+    from .conftest import SPECS
+    art = _design_inverse((SPECS / "unstable_linear.yaml").read_text(), tmp_path)
+    assert list(art.values["m_real_interval"]) == [-np.inf, np.inf]   # linear: proved
+    assert np.array_equal(art.values["m_domain"], art.values["kappa_range"])
+    assert inverse.headline(art).endswith("m real for every y (linear); certified for y in kappa(V) = [-1.5, 1.5]")
+
+
+def _m_relation_only(*pairs):
+    """The Cuk spec with the tracking scenario dropped and the m-relation scenario edited."""
+    from .conftest import CUK
+    text = CUK.read_text()
+    for old, new in pairs:
+        assert old in text
+        text = text.replace(old, new)
+    return text[:text.index("  tracking:")] + text[text.index("  m_relation:"):]
+
+
+@pytest.mark.parametrize("pairs, message", [
+    # starts above kappa(V), where m is real (x4 = 10 < 126.91) but not certified
+    ((("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 10]"),),
+     r"simulate\.m_relation\.x0: y = h\(x0\) = 10 is outside the set where m is certified, y in kappa\(V\) = \[-126\.188, 0\]"),
+    # driven below kappa(V) (before m stops being real at -126.91)
+    ((("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"), ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"')),
+     r"simulate\.m_relation: at t = 0\.78\d* s the output y = -126\.188 leaves kappa\(V\) = \[-126\.188, 0\], where m is certified; x = "),
+])
+def test_m_relation_run_stays_where_m_is_certified(tmp_path, pairs, message):
+    from ashc_cli.pipeline import run
+    with pytest.raises(DesignError, match=message):
+        run(parse_spec_text(_m_relation_only(*pairs)), tmp_path, ["simulate"])

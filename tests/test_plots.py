@@ -38,7 +38,7 @@ def test_report_is_one_self_contained_page(reported):
     assert len(images) == len(FIGURES)
     assert all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in images)
     assert "http://" not in page and "https://" not in page and "<script" not in page
-    for text in ("invariance PDE residual", "a-posteriori bound", "random closed-loop runs", "name: nonlinear_cascade"):
+    for text in ("invariance PDE residual", "a-posteriori bound", "searched closed-loop runs", "name: nonlinear_cascade"):
         assert text in page
 
 

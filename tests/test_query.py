@@ -1,9 +1,17 @@
 """Tests of summary and eval on artefacts (ashc_cli.query)."""
 
+import json
+import re
+
+import numpy as np
 import pytest
 
-from ashc_cli.errors import ArtefactError, DesignError, SpecError
+from ashc_cli.artefacts import Artefact
+from ashc_cli.errors import ArtefactError, SpecError
+from ashc_cli.pipeline import load_all
 from ashc_cli.query import evaluate, parse_point, summary
+
+from .conftest import ashc
 
 
 def test_parse_point():
@@ -21,8 +29,14 @@ def test_evaluate(paper_design):
         evaluate(paper_design, "p", {"xi": 0.1, "zeta": 1})
     with pytest.raises(SpecError, match="cannot be evaluated"):
         evaluate(paper_design, "W", {"xi": 0.1})
-    with pytest.raises(DesignError, match="not real"):
-        evaluate(paper_design, "m", {"x1": 0, "x2": 0, "x3": 0, "x4": 500})
+    # m (real only for |x4| <= 126.91) is certified for y = x4 in kappa(V) = [-126.19, 0]: refused beyond, as
+    # are b and c (built from m), before anything is evaluated.
+    for name, x4 in (("m", 500), ("m", -126.5), ("m", 1.0), ("b", -130), ("c", 3)):
+        with pytest.raises(SpecError, match=r"outside the set where m is certified.*y in kappa\(V\) = \[-126\.188, 0\]"):
+            evaluate(paper_design, name, {"x1": 0, "x2": 0, "x3": 0, "x4": x4})
+    assert evaluate(paper_design, "m", {"x4": 0.0}) == pytest.approx([0.0], abs=1e-15)
+    with pytest.raises(SpecError, match="b needs a value for x4"):
+        evaluate(paper_design, "b", {"x1": 0, "x2": 0, "x3": 0})
     partial = {k: v for k, v in paper_design.items() if k != "delta"}
     with pytest.raises(ArtefactError, match="no delta.h5"):
         evaluate(partial, "b", {"x1": 0, "x2": 0, "x3": 0, "x4": -1})
@@ -33,3 +47,78 @@ def test_summary_has_checks(paper_design):
     assert set(data) == set(paper_design)
     assert data["stabilise"]["checks"]["lmi_margin"]["passed"] is True
     assert data["bound"]["gain"] > 0
+
+
+def test_inverse_without_m_domain_is_refused(paper_design):
+    # An inverse.h5 of an older ashc does not say where m is certified: m is not evaluated from it.
+    old = paper_design["inverse"]
+    stripped = Artefact(stage="inverse", values={k: v for k, v in old.values.items() if k != "m_domain"}, exprs=old.exprs,
+                        checks=old.checks, meta=old.meta, provenance=old.provenance)
+    with pytest.raises(ArtefactError, match="records no m_domain"):
+        evaluate({**paper_design, "inverse": stripped}, "m", {"x4": -7.0})
+
+
+# --- through the CLI: exit code and the one-line message -------------------------------------------------
+
+def _cli_eval(out, name, at):
+    return ashc("eval", str(out), name, "--at", at)
+
+
+def test_cuk_eval_m_only_where_certified(cli_run):
+    out = cli_run["out"]
+    inside = _cli_eval(out, "m", "x4=-6.9732")
+    assert inside.returncode == 0 and inside.stdout.strip() == "m(x4=-6.9732) = [0.3677045851]"
+    beyond = _cli_eval(out, "m", "x4=-126.5")       # m is still real there, but m(x) lies outside V
+    assert beyond.returncode == 2, beyond.stderr
+    assert beyond.stderr == ("error: eval m: y = h(x) = -126.5 is outside the set where m is certified, y in kappa(V) = [-126.188, 0]; "
+                             "expected a state x with h(x) in [-126.188, 0] (inverse.m_domain)\n")
+    assert beyond.stdout == ""
+    b = _cli_eval(out, "b", "x1=1,x2=2,x3=3,x4=20")
+    assert b.returncode == 2 and "(b is built from m)" in b.stderr and "[-126.188, 0]" in b.stderr
+
+
+def test_cuk_headline_and_summary_have_no_infinite_interval(cli_run):
+    line = next(l for l in cli_run["design"].stdout.splitlines() if l.startswith("inverse"))
+    assert "m real for y in [-126.915, 126.915]; certified for y in kappa(V) = [-126.188, 0]" in line and "inf" not in line
+    entry = json.loads(ashc("summary", str(cli_run["out"]), "--json", check=True).stdout)["inverse"]
+    assert entry["m_domain"] == [[pytest.approx(-126.18750467), 0.0]] and entry["m_domain_set"] == "kappa(V)"
+    assert "inf" not in json.dumps(entry).replace("m_real_on_Y", "") and None not in entry["m_real_interval"]
+
+
+@pytest.fixture(scope="module")
+def ladder_numeric(tmp_path_factory):
+    """A 2-stage ladder (n = 8) designed on the numeric path: m is a Chebyshev interpolant of kappa^-1."""
+    folder = tmp_path_factory.mktemp("ladder2")
+    spec = folder / "ladder2.yaml"
+    ashc("example", "ladder", "--stages", "2", "--output", str(spec), check=True)
+    design = ashc("design", str(spec), "--out", str(folder / "out"), "--numeric", check=True)
+    return {"out": folder / "out", "design": design}
+
+
+def test_ladder_m_refused_above_kappa_V(ladder_numeric):
+    # The issue: m(v32 = 90) returned 2.76e9 with exit 0 on the 64-state ladder (an extrapolated polynomial).
+    out = ladder_numeric["out"]
+    arts = load_all(out)
+    entry = summary(arts)["inverse"]
+    assert entry["method"].startswith("Chebyshev")
+    (lo, hi), = entry["m_domain"]
+    assert [lo, hi] == entry["kappa_range"][0] == entry["m_real_interval"]
+    shown = f"y in kappa(V) = [{lo:.6g}, {hi:.6g}]"
+    for name, at in (("m", "v8=90"), ("b", "i1=0,v2=1,i7=0,v8=90")):
+        proc = _cli_eval(out, name, at)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        assert proc.stderr.startswith(f"error: eval {name}: y = h(x) = 90 is outside the set where m is certified") and proc.stderr.count("\n") == 1
+        assert shown in proc.stderr and proc.stdout == ""
+    for name, at in (("m", {"v8": lo - 1e-3}), ("m", {"v8": hi + 1e-3}), ("c", {"i1": 0, "v2": 1, "i7": 0, "v8": 90})):
+        with pytest.raises(SpecError, match=rf"eval {name}: .*outside the set where m is certified.*{re.escape(shown)}"):
+            evaluate(arts, name, at)
+    assert np.isfinite(evaluate(arts, "m", {"v8": (lo + hi) / 2})[0]) and np.isfinite(evaluate(arts, "m", {"v8": hi})[0])
+    mid = _cli_eval(out, "m", f"v8={(lo + hi) / 2}")
+    assert mid.returncode == 0 and mid.stdout.startswith("m(v8=")
+
+
+def test_ladder_headline_and_summary_have_no_inf(ladder_numeric):
+    line = next(l for l in ladder_numeric["design"].stdout.splitlines() if l.startswith("inverse"))
+    assert "inf" not in line and "m (Chebyshev interpolant of kappa^-1) certified for y in kappa(V) = [9.61316, 22.2206]" in line
+    entry = summary(load_all(ladder_numeric["out"]))["inverse"]
+    assert "inf" not in json.dumps(entry) and None not in entry["m_real_interval"]

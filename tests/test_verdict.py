@@ -1,6 +1,7 @@
 """Tests of the Problem 1 verdict (ashc_cli.verdict) and `ashc check` through the real entry point."""
 
 import json
+import re
 
 from ashc_cli.errors import DesignError
 from ashc_cli.verdict import ROWS, verdict
@@ -45,4 +46,4 @@ def test_check_cli_yes_and_no(tmp_path):
     proc = ashc("check", str(spec), "--out", str(tmp_path / "no"))
     assert proc.returncode == 3
     assert "Problem 1 solved: no" in proc.stdout
-    assert "fail        V covers Y" in proc.stdout
+    assert re.search(r"fail +(proved|sampled) +V covers Y", proc.stdout), proc.stdout

@@ -16,17 +16,40 @@ With W(xi, x) = (p(xi) - x)^T M (p(xi) - x) (eq. egSimuFunc) and the interface u
   |psi - y| <= G ||v||_inf when W(xi0, x0) = 0.  This keeps the factor 2 of Theorem ErrorBound's max-form
   (the paper's form); ``gain_comparison`` = G / sqrt(2) is what the comparison lemma gives for linear eta
   (ERRATA item 7).
+
+What the interface does to that argument (:func:`interface_dbar`, :func:`certified_region`):
+
+* the saturated interface applies u - l = S (K e + q v) with e = x - p(xi).  Clipping channel by channel
+  (``saturate: true``) gives S = diag(s), s in [0, 1]^m; ``saturate: scale`` gives S = s I.  For identity
+  feedback theta_S = sqrt(M) (dp/dxi delta - g S q) is affine in S, so its norm is largest at a vertex:
+  with one input or ``scale`` the vertices are q = 0 and the least-squares q, and the least-squares q never
+  does worse than q = 0, so dbar_q0 bounds every S; with several inputs clipped channel by channel the
+  vertices are the 2^m clipping patterns, whose theta can be far larger (one channel clipped, another
+  applied in full).  For a constant g that sup over V and the patterns is computed (``dbar_saturation``);
+  for a state-dependent g it is not bounded on V x R^n and no uniform bound is certified;
+* with ``feedback: linear_gain`` a clipped K e turns the certified A + B K back into A, so the certificate
+  is local: it holds while no channel clips, i.e. on the sublevel set {W <= c} for which
+  |K_i e| + |q_i v| <= the room of l_i(xi) in U_i on V.  With a state box (a Jacobian LMI or a nonlinear h)
+  it holds while x stays in the box: on {W <= c} with p(V) + {e : e^T M e <= c} inside it.  Both sets are
+  forward invariant when ||v|| <= v_c = sqrt(c eps (lambda - eps)) / dbar, since then W(t) <= max(W0, c).
+  ``w0_max_certified`` = c and ``v_max_certified`` = v_c (inf when the bound is global).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.optimize as sopt
+import sympy as sp
 
+from .. import proofs
 from ..artefacts import Artefact, Check
+from ..proofs import PROVED, SAMPLED
 from ..errors import DesignError
 from ..grids import domain_grid
 from ..model import Model
+
+#: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
+MAX_PATTERN_INPUTS = 12
 
 NAME = "bound"
 UPSTREAM = ("stabilise", "manifold", "delta")
@@ -88,6 +111,172 @@ def sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, f
     return best, float(best_x)
 
 
+def constant_g(model: Model) -> np.ndarray | None:
+    """g as a number matrix (n, m) when it does not depend on x, else None."""
+    if model.g.free_symbols & set(model.x):
+        return None
+    return np.asarray(model.numeric(model.g, list(model.x))(*np.zeros(model.n)), dtype=float).reshape(model.n, model.m)
+
+
+def least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """q = (sqrt(M) g)^+ sqrt(M) dp/dxi delta (eq. egqLS) for a constant g at N points: (N, m, m_hat)."""
+    A = np.einsum("ij,jkN->Nik", L.T, dpd)
+    return np.linalg.pinv(L.T @ g)[None] @ A
+
+
+def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """max over the clipping patterns s in {0, 1}^m of ||sqrt(M) (dp/dxi delta - g diag(s) q)|| at N points.
+
+    The sup of ||theta|| over every per-channel clipping factor s in [0, 1]^m (``saturate: true``): theta is
+    affine in s, so its norm (convex) is largest at a vertex of the cube.
+    """
+    m = g.shape[1]
+    A = np.einsum("ij,jkN->Nik", L.T, dpd)                        # (N, n, m_hat)
+    q = least_squares_q(L, g, dpd)                               # (N, m, m_hat)
+    B = L.T @ g                                                  # (n, m)
+    best = np.zeros(A.shape[0])
+    for k in range(2 ** m):
+        s = np.array([(k >> i) & 1 for i in range(m)], dtype=float)
+        theta = A - (B * s[None, :])[None] @ q
+        best = np.maximum(best, np.linalg.norm(theta, ord=2, axis=(1, 2)))
+    return best
+
+
+def interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: float) -> tuple[float, str]:
+    """The sup of ||theta|| over V, the states and every factor the saturated interface can apply.
+
+    Returns
+    -------
+    dbar : float
+        dbar_q0 where it bounds every saturation factor; the sup over the clipping patterns for several
+        inputs clipped channel by channel with a constant g; inf where no uniform bound exists.
+    how : str
+        Why (shown in the artefact and by ``ashc check``).
+    """
+    itf = model.spec.interface
+    feedback = model.spec.stabilisability.feedback
+    if itf.q == "zero" or itf.saturate is not True or model.m == 1 or feedback == "linear_gain":
+        return dbar_q0, ("q = 0 value: bounds the least-squares q pointwise and every saturation factor of one input, "
+                         "of the scaled correction (saturate: scale) and of the unsaturated region of a feedback design")
+    g = constant_g(model)
+    if g is None or model.m > MAX_PATTERN_INPUTS:
+        why = "g depends on x" if g is None else f"more than {MAX_PATTERN_INPUTS} inputs"
+        return np.inf, (f"interface.saturate: true clips the {model.m} channels of the least-squares correction separately and {why}: "
+                        "||theta|| over the clipping patterns is not bounded uniformly")
+    dbar = float(pattern_theta_norms(L, g, dpd_grid).max())
+    return max(dbar, dbar_q0), f"sup over V and the 2^{model.m} per-channel clipping patterns of ||sqrt(M)(dp/dxi delta - g diag(s) q)|| (grid)"
+
+
+def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray, dbar: float, eta_eps: float,
+                     grid: np.ndarray, l_grid: np.ndarray, p_grid: np.ndarray, dpd_grid: np.ndarray) -> tuple[float, float, list[str]]:
+    """The sublevel set {W <= c} on which the bound is certified, and the largest ||v|| that keeps it invariant.
+
+    Parameters
+    ----------
+    eta_eps : float
+        (lambda - eps) eps.
+    l_grid, p_grid, dpd_grid : ndarray
+        l(xi) (m, 1, N), p(xi) (n, 1, N) and dp/dxi delta (n, m_hat, N) on ``grid``.
+
+    Returns
+    -------
+    c : float
+        ``w0_max_certified`` (inf when the bound is global).
+    v_c : float
+        ``v_max_certified`` = sqrt(c eps (lambda - eps)) / dbar (inf when global).
+    reasons : list of str
+        What limits the region.
+    """
+    M = L @ L.T
+    Minv = np.linalg.inv(M)
+    c, reasons = np.inf, []
+    stab = upstream["stabilise"]
+    K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
+    if model.spec.interface.saturate is not False and np.any(K != 0):
+        # No channel clips while |K_i e| + |q_i v| <= room_i(xi): |K_i e| <= sqrt(c K_i M^-1 K_i^T) on {W <= c}
+        # and |q_i v| <= ||q_i|| v_c with v_c = sqrt(c eta_eps) / dbar, so sqrt(c) <= room / (k_i + ||q_i|| sqrt(eta_eps) / dbar).
+        k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
+        g = constant_g(model)
+        if model.spec.interface.q == "least_squares" and g is not None:
+            qn = np.linalg.norm(least_squares_q(L, g, dpd_grid), axis=2).T            # (m, N)
+        else:
+            qn = np.zeros((model.m, grid.shape[1]))
+        l = l_grid[:, 0, :]
+        room = np.minimum(l - model.U[:, 0:1], model.U[:, 1:2] - l)                   # (m, N)
+        denom = k[:, None] + qn * np.sqrt(eta_eps) / dbar
+        with np.errstate(divide="ignore", invalid="ignore"):
+            root = np.where(denom > 0, np.maximum(room, 0.0) / denom, np.inf)
+        c_sat = float(np.min(root) ** 2)
+        c = min(c, c_sat)
+        reasons.append(f"feedback K (x - p) does not clip (c <= {c_sat:.6g})")
+    box_used = "state_box" in stab.meta or model.C is None
+    if box_used and model.state_box is not None:
+        # p(xi) + e stays in the box for every e^T M e <= c: |e_j| <= sqrt(c (M^-1)_jj).
+        p = p_grid[:, 0, :]
+        dist = np.minimum(p - model.state_box[:, 0:1], model.state_box[:, 1:2] - p)    # (n, N)
+        c_box = float(np.min(np.maximum(dist, 0.0) ** 2 / np.diag(Minv)[:, None]))
+        c = min(c, c_box)
+        reasons.append(f"x stays in concrete.state_box (c <= {c_box:.6g})")
+    v_c = float(np.sqrt(c * eta_eps) / dbar) if np.isfinite(c) and dbar > 0 else np.inf
+    return c, v_c, reasons
+
+
+def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, float] | None:
+    """alpha_h and L_h proved (eq. SimuFuncCondi1, Assumption 1), or None where no proof is found.
+
+    Linear h = C x: alpha' = alpha_h (1 - 1e-9) with M - alpha' C^T C >= 0 proved by an arb Cholesky (C
+    formed in ball arithmetic).  Nonlinear h with one output: L_h = a proved upper bound of sup ||dh/dx||_2
+    over ``concrete.state_box`` and alpha' = (proved lower bound of lambda_min(M)) / L_h^2.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return None
+    jac = model.h.jacobian(model.x)
+    try:
+        return _prove_alpha_h(model, M, alpha_h, jac)
+    except proofs.interval.UnsupportedExpression:
+        return None
+
+
+def _prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) -> tuple[float, float] | None:
+    if model.C is not None:
+        f = proofs.BoxFunction(model, {"C": jac}, list(model.x))
+        a = alpha_h * (1.0 - 1e-9)
+        Cb = f([proofs.arb(0)] * model.n)["C"]
+        CtC = proofs.quadratic_form_terms(np.eye(len(Cb)), Cb)
+        Mb = proofs.matrix_balls(M)
+        S = [[Mb[i][j] - proofs.arb(a) * CtC[i][j] for j in range(model.n)] for i in range(model.n)]
+        return (a, float(np.linalg.norm(model.C, 2))) if proofs.psd_lower_bound_balls(S) >= 0 else None
+    if len(model.h) != 1 or model.state_box is None:
+        return None
+    grad_norm = proofs.compile_claims(model, [sp.sqrt(sum(e**2 for e in jac))], list(model.x))
+    lip, ok, _ = proofs.sup_on_box(grad_norm, model.state_box)
+    m_low = proofs.lambda_min_lower(M)
+    if not ok or not m_low > 0:
+        return None
+    return float(m_low / lip**2), float(lip)
+
+
+def prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
+    """A proved upper bound of sup over V of ||sqrt(M) dp/dxi delta|| (dbar with q = 0, eq. iota), inf if none.
+
+    Branch and bound over V in ball arithmetic, seeded with the grid maximum; ||sqrt(M) w||_2 is the square
+    root of the largest eigenvalue of the Gram matrix w^T M w, in closed form for one or two abstract inputs,
+    bounded through Gershgorin's discs for more.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return np.inf
+    try:
+        if dp_delta.shape[1] <= 2:
+            fun = proofs.compile_claims(model, [proofs.norm_expr(M, dp_delta)], list(model.xi))
+        else:
+            f = proofs.BoxFunction(model, {"w": dp_delta}, list(model.xi))
+            fun = lambda b: [proofs.norm_sqrt_M(M, f(b)["w"])]   # noqa: E731 (Gershgorin on the Gram matrix)
+        upper_bound, ok, _ = proofs.sup_on_box(fun, V, seeds=seed.reshape(1, -1))
+    except proofs.interval.UnsupportedExpression:
+        return np.inf
+    return upper_bound if ok else np.inf
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. egErrorBound.
 
@@ -129,6 +318,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if not np.all(np.isfinite(norm_q0)):
         raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)", "p continuously differentiable and delta continuous on V (Proposition condB)", check="condition_B")
 
+    alpha_h_sampled, lipschitz_h_sampled = alpha_h, lipschitz_h
+    alpha_proof = prove_alpha_h(model, M, alpha_h)
+    if alpha_proof is not None:
+        alpha_h, lipschitz_h = alpha_proof
+
     if model.n_hat == 1:
         xs = grid[0]
         dbar_q0, at_q0 = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, norm_q0)
@@ -139,7 +333,21 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         dbar_q0, dbar_id, dbar_ls = float(norm_q0.max()), float(norm_q0_identity.max()), float(norm_ls.max())
         at = [grid[:, np.argmax(v)].tolist() for v in (norm_q0, norm_q0_identity, norm_ls)]
 
-    gain = error_bound_gain(alpha_h, lam, eps, dbar_q0)
+    dbar_q0_sampled = dbar_q0
+    dbar_q0_proved = prove_dbar(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
+    if np.isfinite(dbar_q0_proved):
+        dbar_q0 = max(dbar_q0, dbar_q0_proved)
+    # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
+    dbar, dbar_how = interface_dbar(model, L, dpd_num(*grid), dbar_q0)
+    dbar_evidence = PROVED if np.isfinite(dbar_q0_proved) and dbar == dbar_q0 else SAMPLED
+    if not np.isfinite(dbar):
+        raise DesignError("interface.saturate", f"no uniform bound is certified: {dbar_how} (condition (B) fails for this interface)",
+                          "interface.saturate: scale (one factor for the whole correction), q: zero, or a constant g", check="condition_B")
+    gain = error_bound_gain(alpha_h, lam, eps, dbar)
+    l_num = model.numeric(model.l, xi_args)
+    w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_num(*grid), dpd_num(*grid))
+    # A global region rests on the structural argument of interface_dbar and on dbar itself.
+    region_evidence = dbar_evidence if not np.isfinite(w0_max) else SAMPLED
     art = Artefact(stage=NAME, meta={
         "grid_points": int(grid.shape[1]), "sup_method": "grid maximum refined by bounded scalar search",
         "sqrt_M": "Cholesky factor L of M, ||L^T w|| = ||sqrt(M) w|| (ERRATA item 8)",
@@ -152,15 +360,30 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C if C is not None else np.zeros((0, model.n)),
         "dbar_q0": dbar_q0, "dbar_q0_squared": dbar_q0**2, "dbar_q0_identity": dbar_id, "dbar_ls": dbar_ls,
         "dbar_argmax": np.array(at, dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
+        "dbar": dbar, "dbar_how": dbar_how, "dbar_q0_sampled": dbar_q0_sampled, "dbar_q0_proved": dbar_q0_proved,
+        "alpha_h_sampled": alpha_h_sampled, "lipschitz_h_sampled": lipschitz_h_sampled, "w0_max_certified": w0_max, "v_max_certified": v_max,
+        "region_limits": "; ".join(limits) if limits else "none: the bound holds on V x R^n for every v",
         "xi_grid": grid, "theta_norm_q0": norm_q0, "theta_norm_q0_identity": norm_q0_identity, "theta_norm_ls_manifold": norm_ls,
     })
-    art.checks["condition_B"] = Check(dbar_q0, bool(np.isfinite(dbar_q0) and 0 < eps < lam),
-                                      "Proposition condB: V compact, p C^1, delta continuous, V quadratic: dbar_q0 finite and 0 < epsilon < lambda")
-    art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, "largest c with M >= c C^T C (> 0, eq. SimuFuncCondi1)")
+    how = "proved upper bound by ball arithmetic over V" if dbar_evidence == PROVED else "grid of V"
+    art.checks["condition_B"] = Check(dbar, bool(np.isfinite(dbar) and 0 < eps < lam),
+                                      "Proposition condB: sup of ||theta|| over V, the states and the interface's saturation finite and 0 < epsilon < lambda "
+                                      f"(dbar = {dbar_how}; {how})", dbar_evidence)
+    region = "global (every W0, every v)" if not np.isfinite(w0_max) else f"W(xi0, x0) <= {w0_max:.6g} and ||v||_inf <= {v_max:.6g} ({'; '.join(limits)})"
+    art.checks["certified_region"] = Check(w0_max, bool(w0_max > 0),
+                                           f"where |psi - y| <= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf is certified: {region} (non-empty)",
+                                           region_evidence)
+    alpha_evidence = PROVED if alpha_proof is not None else SAMPLED
+    alpha_how = ("M - alpha_h C^T C >= 0 proved by an arb Cholesky" if C is not None else "lambda_min(M) and L_h bounded by ball arithmetic") if alpha_proof is not None else "numpy"
+    art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, f"alpha_h with W >= alpha_h |kappa(xi) - h(x)|^2 (> 0, eq. SimuFuncCondi1; {alpha_how})", alpha_evidence)
     art.values.update({"lipschitz_h": lipschitz_h, "lipschitz_h_at": lipschitz_at})
     where = "||C||_2 of the linear output map" if C is not None else f"sup of ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (grid + L-BFGS-B)"
     art.meta["alpha_h_form"] = "1 / lambda_max(C M^-1 C^T)" if C is not None else "lambda_min(M) / L_h^2 (Assumption 1)"
-    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)")
+    if C is None and alpha_proof is not None:
+        where = f"proved upper bound of sup ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (ball arithmetic)"
+    # A linear h is Lipschitz with the constant ||C||_2 by definition: nothing is sampled.
+    h_evidence = PROVED if C is not None or alpha_proof is not None else SAMPLED
+    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)", h_evidence)
     return art
 
 
@@ -171,6 +394,9 @@ def summarise(art: Artefact) -> dict:
         "alpha_h": float(v["alpha_h"]), "epsilon": float(v["epsilon"]), "dbar_q0": float(v["dbar_q0"]),
         "dbar_q0_identity": float(v["dbar_q0_identity"]), "dbar_ls": float(v["dbar_ls"]), "gain": float(v["gain"]),
         "gain_comparison": float(v["gain_comparison"]), "gain_form": art.meta.get("gain_form"),
+        "dbar": float(v.get("dbar", v["dbar_q0"])), "dbar_how": v.get("dbar_how", ""),
+        "w0_max_certified": float(v.get("w0_max_certified", np.inf)), "v_max_certified": float(v.get("v_max_certified", np.inf)),
+        "region_limits": v.get("region_limits", ""),
         "dbar_argmax": {"q0": np.asarray(v["dbar_argmax"])[0].tolist(), "q0_identity": np.asarray(v["dbar_argmax"])[1].tolist(),
                         "ls": np.asarray(v["dbar_argmax"])[2].tolist()},
     }
@@ -179,4 +405,12 @@ def summarise(art: Artefact) -> dict:
 def headline(art: Artefact) -> str:
     """One progress line."""
     v = art.values
-    return f"alpha_h = {v['alpha_h']:.5g}, dbar_q0 = {v['dbar_q0']:.5g}, gain G = {v['gain']:.5g} (|psi - y| <= G ||v||_inf)"
+    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {v['gain']:.5g} (|psi - y| <= G ||v||_inf {region_text(v)})"
+
+
+def region_text(v: dict) -> str:
+    """Where the uniform bound holds, in words: 'for every W0 and v' or 'when W0 <= c and ||v||_inf <= v_c'."""
+    w0, vm = float(v.get("w0_max_certified", np.inf)), float(v.get("v_max_certified", np.inf))
+    if not np.isfinite(w0) and not np.isfinite(vm):
+        return "when W(xi0, x0) = 0; region: global"
+    return f"when W(xi0, x0) = 0; region: W0 <= {w0:.4g}, ||v||_inf <= {vm:.4g}"

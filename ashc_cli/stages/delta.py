@@ -19,6 +19,7 @@ import numpy as np
 import scipy.optimize as sopt
 import sympy as sp
 
+from .. import proofs
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..grids import sample_states_with_output
@@ -163,9 +164,52 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.exprs.update({"delta": delta, "b": b, "c": c})
     art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": at,
                        "link_residual": link_residual, "c_is_zero": bool(all(e == 0 for e in c))})
-    art.checks["rank_delta"] = Check(smin, True, f"smallest singular value of delta on V (> {RANK_RTOL:g} max(1, largest): full row rank)")
-    art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y, relative")
+    threshold = RANK_RTOL * max(1.0, smax)
+    proved_smin = prove_rank(model, delta, np.asarray(man.value("V"), dtype=float))
+    if proved_smin > threshold:
+        art.values["min_singular_value_proved"] = proved_smin
+        art.checks["rank_delta"] = Check(proved_smin, True, f"proved lower bound of the smallest singular value of delta on V (> {RANK_RTOL:g} max(1, largest): full row rank)",
+                                         proofs.PROVED)
+    else:
+        art.checks["rank_delta"] = Check(smin, True, f"smallest singular value of delta on a grid of V (> {RANK_RTOL:g} max(1, largest): full row rank)")
+    link = list(dm * model.f_bar - model.phi_bar.xreplace(xi_to_m) - delta_at_m * b) + list(dm * model.g - delta_at_m * c)
+    if proofs.symbolic_zero(link):
+        art.checks["m_relation_link"] = Check(0.0, True, "dm/dx f_bar - phi_bar(m) - delta(m) b and dm/dx g - delta(m) c simplify to 0 (sympy): "
+                                                         "b, c solve eqs. mRelatSuffiDiff and mRelatSuffiIn wherever delta(m(x)) has full row rank", proofs.PROVED)
+    else:
+        art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y, relative")
     return art
+
+
+def prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
+    """A proved lower bound of the smallest singular value of delta on V (0 when no proof is found).
+
+    A constant delta: the arb Cholesky bound of lambda_min(delta delta^T), square-rooted.  A scalar delta:
+    the ball-arithmetic bound of min |delta| over V (branch and bound on delta and on -delta).
+    Other shapes are left to the grid.
+    """
+    try:
+        return _prove_rank(model, delta, V)
+    except proofs.interval.UnsupportedExpression:
+        return 0.0
+
+
+def _prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
+    if not delta.free_symbols & set(model.xi):
+        f = proofs.BoxFunction(model, {"d": delta}, list(model.xi))
+        if delta.shape[0] > proofs.MAX_PROOF_STATES:
+            return 0.0
+        D = f([proofs.arb(0)] * model.n_hat)["d"]
+        Dt = [[D[i][j] for i in range(len(D))] for j in range(len(D[0]))]
+        lam = proofs.psd_lower_bound_balls(proofs.quadratic_form_terms(np.eye(len(Dt)), Dt))
+        return float(np.sqrt(lam)) if lam > 0 else 0.0
+    if delta.shape != (1, 1):
+        return 0.0
+    d = proofs.compile_claims(model, [delta[0, 0]], list(model.xi))
+    lo, hi, ok = proofs.range_on_box(d, V)
+    if ok and lo > 0:
+        return float(lo)
+    return float(-hi) if ok and hi < 0 else 0.0
 
 
 def summarise(art: Artefact) -> dict:

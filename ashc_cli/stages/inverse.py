@@ -11,6 +11,19 @@ on V is kept (eq. egm for the Cuk converter).  The stage checks, each with a sto
 * where m is real: the output interval on which every radicand of m is non-negative (eq. mEquation:
   |x4| <= E / (2 sqrt(R_i G_L)) = 126.91 V for the converter), which must contain Y.
 
+Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m_domain_set`` names the set and
+``meta/m_domain`` says why).  m is only used (``ashc eval``, the m-relation run) for states x with h(x) in it:
+
+* scalar output, m = kappa^-1(h(x)): kappa(V), intersected with the interval where m is real.  Outside kappa(V)
+  the value m(x) lies outside V, where nothing is certified; a Chebyshev interpolant of kappa^-1 is a
+  polynomial fitted on kappa(V) only and extrapolates beyond it (its ``m_real_interval`` is kappa(V) too:
+  that is where kappa^-1 is known to exist);
+* affine p with one abstract state and one output: kappa(V) (m(x) lies in V exactly when h(x) is in kappa(V));
+  other affine shapes and the closed form for several outputs: Y, the set the checks cover (X_y = h^-1(Y)).
+
+``m_real_interval`` has an infinite end only where that is proved: symbolically (no radicand, or a radicand
+that stays non-negative), or because m is linear.
+
 When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = P^+ (x - p0) for any
 numbers of abstract states and outputs: p is injective iff P has full column rank, m is real everywhere, and
 kappa(V) covers Y iff every vertex of the box Y is reached from V (a linear program per vertex, since kappa(V)
@@ -20,13 +33,15 @@ is a convex polytope).
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import scipy.optimize as sopt
 import sympy as sp
 
+from .. import proofs
 from ..artefacts import Artefact, Check
-from ..errors import DesignError
+from ..errors import ArtefactError, DesignError
 from .. import chebyshev
 from ..grids import domain_grid, sample_states_with_output
 from ..model import Model, tidy
@@ -39,6 +54,9 @@ LEFT_INVERSE_TOL = 1e-9
 #: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
 CONDITION_II_RTOL = 1e-9
 SAMPLES = 2000
+#: An output this far outside ``m_domain`` (times the width of the interval, at least 1) still counts as inside:
+#: the ends are floating-point values of kappa at the ends of V.
+DOMAIN_RTOL = 1e-9
 
 
 def output_symbol() -> sp.Symbol:
@@ -68,6 +86,71 @@ def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, f
                 raise DesignError("abstract", f"m is real on a union of intervals {region}", "a left inverse real on one interval of outputs")
             lo, hi = max(lo, float(region.inf)), min(hi, float(region.sup))
     return lo, hi, texts
+
+
+def format_interval(lo: float, hi: float) -> str:
+    """``[lo, hi]``, ``y >= lo``, ``y <= hi`` or ``every y`` (infinite ends only as words)."""
+    lo, hi = float(lo) + 0.0, float(hi) + 0.0   # + 0.0: no "-0"
+    if np.isfinite(lo) and np.isfinite(hi):
+        return f"y in [{lo:.6g}, {hi:.6g}]"
+    if np.isfinite(lo):
+        return f"y >= {lo:.6g}"
+    if np.isfinite(hi):
+        return f"y <= {hi:.6g}"
+    return "every y"
+
+
+def format_box(box: np.ndarray) -> str:
+    """A box of outputs as ``[a, b]`` (one output) or ``[a, b] x [c, d]``."""
+    return " x ".join(f"[{float(lo) + 0.0:.6g}, {float(hi) + 0.0:.6g}]" for lo, hi in np.asarray(box, dtype=float).reshape(-1, 2))
+
+
+def certified_set(art: Artefact) -> tuple[np.ndarray, str, str]:
+    """Where m (and b, c, built from it) may be evaluated: the outputs h(x) it is certified for.
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact.
+
+    Returns
+    -------
+    box : ndarray, shape (p, 2)
+        ``values/m_domain``: one [lo, hi] row per output.
+    name : str
+        The set's short name (``kappa(V)``, ``Y``, ...).
+    meaning : str
+        Why m is certified there.
+
+    Raises
+    ------
+    ArtefactError
+        If the artefact does not record the set (written by an older ashc).
+    """
+    if "m_domain" not in art.values:
+        raise ArtefactError("inverse.h5", "records no m_domain (the outputs where m is certified): it was written by an older ashc",
+                            "a rerun of the inverse stage (`ashc design SPEC --force`)")
+    box = np.asarray(art.values["m_domain"], dtype=float).reshape(-1, 2)
+    return box, str(art.meta.get("m_domain_set", "m_domain")), str(art.meta.get("m_domain", ""))
+
+
+def outside_certified_set(box: np.ndarray, y: np.ndarray) -> bool:
+    """Whether the output(s) y (shape (p,)) lie outside the box m_domain, beyond ``DOMAIN_RTOL``; NaN is outside."""
+    box = np.asarray(box, dtype=float).reshape(-1, 2)
+    y = np.asarray(y, dtype=float).reshape(-1)
+    tol = DOMAIN_RTOL * np.maximum(1.0, box[:, 1] - box[:, 0])
+    inside = (y >= box[:, 0] - tol) & (y <= box[:, 1] + tol)
+    return not bool(np.all(inside))
+
+
+def _certify(art: Artefact, model: Model, box: np.ndarray, name: str, meaning: str) -> None:
+    """Store where m is certified (values/m_domain, meta/m_domain_set, meta/m_domain) and h, to evaluate y = h(x)."""
+    box = np.asarray(box, dtype=float).reshape(model.p, 2) + 0.0
+    if not np.all(np.isfinite(box)) or np.any(box[:, 0] > box[:, 1]):
+        raise DesignError("abstract.domain", f"the outputs where m is certified, {box.tolist()}, are not a bounded box", "a bounded V and Y")
+    art.values["m_domain"] = box
+    art.meta.update({"m_domain_set": name, "m_domain": meaning, "m_domain_rtol": DOMAIN_RTOL})
+    art.exprs["h"] = model.h
 
 
 def sample_box(model: Model, p_grid: np.ndarray) -> np.ndarray:
@@ -139,6 +222,13 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["V_covers_Y"] = Check(float(len(missing)), covers, "eq. SimuLocalRequire: vertices of Y not reached from V (0)")
     art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
+    if model.n_hat == 1 and model.p == 1 and art.values["condition_ii_symbolic"]:
+        # kappa(m(x)) = h(x) for every x and kappa is a bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
+        _certify(art, model, k_range, "kappa(V)", "kappa(V): m = P^+ (x - p0) is linear and real everywhere, and m(x) lies in V "
+                 "(where the abstraction is certified) exactly when h(x) lies in kappa(V)")
+    else:
+        _certify(art, model, Y, "Y", "Y: m = P^+ (x - p0) is linear and real everywhere; conditions (i), (ii) are certified on "
+                 "X_y = h^-1(Y), and kappa(V) is not an interval of one output here")
     _checks_common(art, model, p, m, p_grid)
     return art
 
@@ -248,13 +338,18 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": m.jacobian(model.x)})
     dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
     smin = float(np.linalg.svd(dkappa, compute_uv=False).min())
+    # Without radicands m is real for every y (proved); with them, only checked on a grid of Y: no interval to
+    # state (NaN ends), the radicands are listed.
+    radicands = sorted({str(pw.base) for e in m_of_y for pw in e.atoms(sp.Pow) if pw.exp.is_Rational and pw.exp.q % 2 == 0})
+    real = np.array([-np.inf, np.inf]) if not radicands else np.array([np.nan, np.nan])
     art.values.update({
-        "V": V, "Y": Y, "kappa_range": np.c_[y_grid.min(axis=1), y_grid.max(axis=1)], "m_real_interval": np.array([-np.inf, np.inf]),
-        "radicands": ["checked on a grid of Y"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
+        "V": V, "Y": Y, "kappa_range": np.c_[y_grid.min(axis=1), y_grid.max(axis=1)], "m_real_interval": real,
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
     })
     art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["V_covers_Y"] = Check(excursion, covers, "eq. SimuLocalRequire: largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
+    _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
     _checks_common(art, model, p, m, p_grid)
     return art
 
@@ -265,7 +360,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Returns
     -------
     Artefact
-        Expression m (n_hat x 1, in x); values V, Y, m_real_interval, kappa_range and the residuals.
+        Expressions m (n_hat x 1, in x) and h; values V, Y, m_real_interval, m_domain (where m is certified),
+        kappa_range and the residuals.
 
     Raises
     ------
@@ -334,6 +430,18 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": m.jacobian(model.x)})
+    if method.startswith("Chebyshev"):
+        # The interpolant is a polynomial, real for every y, but it stands for kappa^-1 only on kappa(V), the
+        # interval it was fitted on; beyond it, it extrapolates (and kappa^-1 need not exist).
+        real_lo, real_hi = k_lo, k_hi
+        certified = ([[k_lo, k_hi]], "kappa(V)", "kappa(V): the interval the Chebyshev interpolant of kappa^-1 was fitted on; outside it "
+                     "the polynomial extrapolates and kappa^-1 need not exist")
+    else:
+        dom = [max(k_lo, real_lo), min(k_hi, real_hi)]
+        whole = dom == [k_lo, k_hi]
+        real_text = "m has no radicands, so it is real for every y" if not radicands else f"m is real for {format_interval(real_lo, real_hi)}"
+        name = "kappa(V)" if whole else "kappa(V) where m is real"
+        certified = ([dom], name, f"{name}: {real_text}; outside kappa(V) the value m(x) lies outside V, where nothing is certified")
     art.values.update({
         "V": model.V, "Y": Y, "kappa_range": np.array([[k_lo, k_hi]]), "m_real_interval": np.array([real_lo, real_hi]),
         "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
@@ -344,23 +452,119 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.checks["kappa_monotone"] = Check(float(np.abs(dkappa).min()), monotone, "min |dkappa/dxi| on V (kappa strictly monotone, so p is injective)")
     art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
+    _certify(art, model, *certified)
     _checks_common(art, model, p, m, p_grid)
+    proof = prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii)
+    art.meta["proof"] = proof["how"]
+    _mark_proved(art, proof)
     return art
+
+
+def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: sp.Expr, y: sp.Symbol, symbolic_ii: bool) -> dict:
+    """Prove the inverse stage's claims for one abstract state and one output, in ball arithmetic over V and Y.
+
+    * kappa strictly monotone on V: dkappa/dxi enclosed away from 0 on V (so p is injective on V);
+    * eq. SimuLocalRequire: kappa(V) = [kappa(a), kappa(b)] (monotone) with the end values enclosed, Y inside;
+    * m real and finite on Y: the enclosure of m over Y is finite (a square root of a ball reaching below 0,
+      or a division by a ball containing 0, is not);
+    * conditions (i) and (ii): kappa(m(y)) = y simplifies to 0 (sympy) wherever m is defined, so
+      h(p(m(x))) = kappa(m(h(x))) = h(x) on X_y; and m maps kappa(V) into an interval V' around V on which
+      kappa is strictly monotone, so m(kappa(xi)) is the only preimage of kappa(xi) in V', xi itself:
+      m(p(xi)) = xi on V.
+
+    Returns
+    -------
+    dict
+        Booleans monotone, covers, real_on_Y, left_inverse, condition_ii; min_abs_dkappa (proved lower
+        bound); covers_margin (proved); how (text).
+    """
+    V, Y = model.V, model.Y
+    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
+    try:
+        dk = proofs.compile_claims(model, [dkappa], [model.xi[0]])
+        k = proofs.compile_claims(model, [kappa], [model.xi[0]])
+        mf = proofs.compile_claims(model, [m_of_y], [y])
+    except proofs.interval.UnsupportedExpression as exc:
+        out["how"] = f"not proved: {exc}"
+        return out
+    lo, hi, ok = proofs.range_on_box(dk, V)
+    sign = 1 if ok and lo > 0 else (-1 if ok and hi < 0 else 0)
+    if sign == 0:
+        out["how"] = "not proved: the enclosure of dkappa/dxi on V contains 0"
+        return out
+    out.update(monotone=True, min_abs_dkappa=float(lo if sign > 0 else -hi))
+    ka, kb = k([proofs.arb(float(V[0, 0]))])[0], k([proofs.arb(float(V[0, 1]))])[0]
+    first, last = (ka, kb) if sign > 0 else (kb, ka)
+    kV = np.array([[proofs.lower(first), proofs.upper(last)]])        # contains kappa(V)
+    margin = max(proofs.upper(first) - Y[0, 0], Y[0, 1] - proofs.lower(last))
+    out.update(covers=bool(margin <= 0), covers_margin=float(margin))
+    m_lo, m_hi, m_ok = proofs.range_on_box(mf, Y)
+    out["real_on_Y"] = bool(m_ok)
+    out["condition_ii"] = bool(symbolic_ii and m_ok)
+    if symbolic_ii:
+        r_lo, r_hi, r_ok = proofs.range_on_box(mf, kV, rtol=1e-12)
+        if r_ok:
+            wider = np.array([[min(V[0, 0], r_lo), max(V[0, 1], r_hi)]])
+            w_lo, w_hi, w_ok = proofs.range_on_box(dk, wider)
+            out["left_inverse"] = bool(w_ok and (w_lo > 0 if sign > 0 else w_hi < 0))
+    out["how"] = ("ball arithmetic: dkappa/dxi " + ("> 0" if sign > 0 else "< 0") + " on V, kappa at the ends of V, m enclosed over Y"
+                  + ("; kappa(m(y)) = y symbolically and m(kappa(V)) inside an interval where kappa is monotone" if out["left_inverse"] else ""))
+    return out
+
+
+def _mark_proved(art: Artefact, proof: dict) -> None:
+    """Re-label the checks the proof covers as "proved" (their descriptions say how)."""
+    how = proof["how"]
+    relabel = {"kappa_monotone": proof["monotone"], "V_covers_Y": proof["covers"], "m_real_on_Y": proof["real_on_Y"],
+               "left_inverse": proof["left_inverse"], "condition_i": proof["left_inverse"], "condition_ii": proof["condition_ii"]}
+    for name, proved in relabel.items():
+        chk = art.checks.get(name)
+        if proved and chk is not None and chk.passed:
+            value = chk.value
+            if name == "kappa_monotone":
+                value = proof["min_abs_dkappa"]
+            elif name == "V_covers_Y":
+                value = proof["covers_margin"]
+            art.checks[name] = replace(chk, value=value, description=f"{chk.description}; proved ({how})", evidence=proofs.PROVED)
 
 
 def summarise(art: Artefact) -> dict:
     """Headline numbers for ``ashc summary``."""
     v = art.values
-    return {
+    out = {
         "V": np.asarray(v["V"]).tolist(), "m": [str(e) for e in art.exprs["m"]],
         "left_inverse_residual": float(v["left_inverse_residual"]), "condition_i": float(v["condition_i"]),
         "condition_ii": float(v["condition_ii"]), "condition_ii_symbolic": bool(v["condition_ii_symbolic"]),
         "m_real_interval": [float(b) if np.isfinite(b) else None for b in np.asarray(v["m_real_interval"])],
         "kappa_range": np.asarray(v["kappa_range"]).tolist(), "method": art.meta.get("method", "closed form (sympy.solve of kappa(m) = y)"),
     }
+    if "m_domain" in v:
+        out.update({"m_domain": (np.asarray(v["m_domain"], dtype=float) + 0.0).tolist(), "m_domain_set": art.meta.get("m_domain_set"),
+                    "m_domain_meaning": art.meta.get("m_domain")})
+    return out
+
+
+def _real_text(art: Artefact) -> str:
+    """Where m is real, in words; infinite ends only where they are proved (see the module docstring)."""
+    lo, hi = np.asarray(art.values["m_real_interval"], dtype=float)
+    method = str(art.meta.get("method", ""))
+    if np.isnan(lo) or np.isnan(hi):
+        return "m real and finite on a grid of Y"
+    if np.isinf(lo) and np.isinf(hi):
+        radicands = [str(r) for r in np.atleast_1d(art.values.get("radicands", ["none"]))]
+        why = "linear" if method.startswith("linear") else "no radicands" if radicands in (["none"], []) else "every radicand is non-negative"
+        m_of_y = art.exprs.get("m_of_y")
+        poles = m_of_y is not None and not all(e.is_polynomial(*e.free_symbols) for e in m_of_y)
+        return f"m real for every y{' where it is finite' if poles else ''} ({why})"
+    return f"m real for {format_interval(lo, hi)}"
 
 
 def headline(art: Artefact) -> str:
     """One progress line."""
-    lo, hi = np.asarray(art.values["m_real_interval"])
-    return f"m(p(xi)) - xi = {art.values['left_inverse_residual']:.2g}, m real for y in [{lo:.5g}, {hi:.5g}]"
+    residual = f"m(p(xi)) - xi = {art.values['left_inverse_residual']:.2g}"
+    if "m_domain" not in art.values:   # an artefact of an older ashc
+        return f"{residual}; where m is certified is not recorded (an artefact of an older ashc: rerun with --force)"
+    box, name, _ = certified_set(art)
+    if str(art.meta.get("method", "")).startswith("Chebyshev"):
+        return f"{residual}, m (Chebyshev interpolant of kappa^-1) certified for y in {name} = {format_box(box)}"
+    return f"{residual}, {_real_text(art)}; certified for y in {name} = {format_box(box)}"

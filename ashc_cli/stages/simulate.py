@@ -16,6 +16,8 @@ Both use scipy's DOP853 with the tolerances recorded in the artefact.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cvxpy as cp
 import numpy as np
 import scipy.integrate as sint
@@ -26,7 +28,8 @@ from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..expr import parse_expression
 from ..grids import domain_grid
-from ..model import TIME, Model, compile_flat, compile_terms
+from .inverse import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
+from ..model import TIME, Model, apply_saturation, compile_flat, compile_terms
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
@@ -40,7 +43,8 @@ POSTERIOR_FLOOR_RTOL = 1e-7
 SETTLE_RTOL = 1e-4
 #: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
 M_RELATION_TOL_ABS = 1e-6
-#: The m-relation run stops when y comes this close (fraction of the interval) to where m stops being real.
+#: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
+#: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
 EDGE_MARGIN = 1e-3
 
 
@@ -127,7 +131,7 @@ def _reference_state_nonlinear(model: Model, plant: _Plant, level: np.ndarray, w
 
 
 def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
-                 q_kind: str, saturate: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 q_kind: str, saturate: bool | str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The closed loop at one point: abstract input, interface output, both state derivatives and theta v.
 
     Returns
@@ -146,13 +150,13 @@ def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarra
     phi, delta, l, dpd, _, p = plant.at_xi(xi)
     f_bar, g, *_ = plant.at_x(x)
     v = np.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
-    u_nominal = l[:, 0] + plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) of eq. Interface (K = 0 for identity feedback)
-    u = u_nominal
+    feedback = plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) - l(xi) of eq. Interface (0 for identity feedback)
+    u_nominal = l[:, 0] + feedback
+    correction = feedback
     if q_kind == "least_squares":
         q = _pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. egqLS
-        u = u + q @ v
-    if saturate:
-        u = np.clip(u, plant.U[:, 0], plant.U[:, 1])
+        correction = correction + q @ v
+    u = apply_saturation(l[:, 0], correction, plant.U, saturate)
     return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
 
 
@@ -241,7 +245,14 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     U = model.U
     u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))
     xi_ok = bool(np.all(xi >= model.V[:, 0:1] - 1e-9) and np.all(xi <= model.V[:, 1:2] + 1e-9))
+    w0_max = float(up["bound"].values.get("w0_max_certified", np.inf))
+    v_cert = float(up["bound"].values.get("v_max_certified", np.inf))
+    inside = bool(W0 <= w0_max and v_inf <= v_cert)
+    region_note = ("the run is inside the certified region" if inside else
+                   f"the run is outside the certified region (W0 = {W0:.4g} vs {w0_max:.4g}, ||v||_inf = {v_inf:.4g} vs {v_cert:.4g}): "
+                   "the uniform bound is not certified for it, only compared")
     values = {
+        "tracking/inside_certified_region": inside,
         "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
         "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
         "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
@@ -254,7 +265,7 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     checks = {
         "tracking_error_within_posterior_bound": Check(float((err - posterior).max()), posterior_ok,
                                                        f"max over the run of |psi - y| - sqrt(w(t) / alpha_h) (<= {POSTERIOR_FLOOR_RTOL:g} x output span, the integrator's accuracy)"),
-        "tracking_error_within_bound": Check(float(err.max() - bound), bool(err.max() <= bound), "max |psi - y| - G ||v||_inf (<= 0: eq. egErrorBound holds)"),
+        "tracking_error_within_bound": Check(float(err.max() - bound), bool(err.max() <= bound), "max |psi - y| - G ||v||_inf (<= 0: eq. egErrorBound holds); " + region_note),
         "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
         "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
         "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem ErrorBound applies)"),
@@ -274,6 +285,13 @@ def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tupl
     u_expr = sp.Matrix([parse_expression(s, names, f"simulate.m_relation.u[{i}]", signal=True) for i, s in enumerate(texts)])
     u_of_t = compile_flat(list(u_expr), [TIME], model.values)
     x0 = np.array(mr.x0, dtype=float)
+    # m (and b, c, built from it) is used only where it is certified: h(x) in inverse.m_domain.
+    box, set_name, _ = certified_set(up["inverse"])
+    y0 = plant.at_x(x0)[2][:, 0]
+    if outside_certified_set(box, y0):
+        shown = f"{y0[0]:.6g}" if y0.size == 1 else np.round(y0, 6).tolist()
+        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {shown} is outside the set where m is certified, y in {set_name} = {format_box(box)} (x0 = {x0.tolist()})",
+                          f"x0 with h(x0) in {format_box(box)} (inverse.m_domain)")
     xi0 = plant.at_x(x0)[5][:, 0]
     if not np.all(np.isfinite(xi0)):
         raise DesignError("simulate.m_relation.x0", f"m(x0) is not real at x0 = {x0.tolist()}", "x0 where m is real (see inverse.m_real_interval)")
@@ -292,26 +310,39 @@ def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tupl
         _, _, dxi, dx = link(t, z)
         return np.r_[dxi, dx]
 
-    real_lo, real_hi = np.asarray(up["inverse"].value("m_real_interval"))
+    # One output: the run stops where y = h(x) leaves the certified interval. At an end where m stops being real,
+    # kappa turns and dm/dx (so b, c and xi') blows up like 1/sqrt(distance): there it stops a little inside,
+    # where the integrator still works. (Several outputs: m_domain is Y, checked at x0 only; the outputs must
+    # match along the run, m_relation_outputs_match.)
+    inv = up["inverse"]
+    d_lo, d_hi = box[0]
+    real_lo, real_hi = np.asarray(inv.value("m_real_interval"), dtype=float)
+    radical = [str(r) for r in np.atleast_1d(inv.values.get("radicands", ["none"]))] not in (["none"], [])
+    tol = DOMAIN_RTOL * max(1.0, d_hi - d_lo)
+    lo_edge, hi_edge = bool(radical and d_lo == real_lo), bool(radical and d_hi == real_hi)
+    lo_margin = EDGE_MARGIN * (d_hi - d_lo) if lo_edge else -tol
+    hi_margin = EDGE_MARGIN * (d_hi - d_lo) if hi_edge else -tol
 
-    # At the edge of that interval kappa turns and dm/dx (so b, c and xi') blows up like 1/sqrt(distance):
-    # the run stops a little inside it, where the integrator still works, and says so.
-    margin = EDGE_MARGIN * (real_hi - real_lo)
-
-    def leaves_real_region(t, z):
-        """Positive while y = h(x) is inside the interval where m (and so b, c) is real, less a margin."""
+    def leaves_certified_set(t, z):
+        """Positive while y = h(x) is inside the interval where m (and so b, c) is certified (less a margin where m stops being real)."""
         y = plant.at_x(z[nh:])[2][0, 0]
-        return min(y - real_lo, real_hi - y) - margin
+        return min(y - d_lo - lo_margin, d_hi - hi_margin - y)
 
-    leaves_real_region.terminal = True
-    leaves_real_region.direction = -1
-    bounded = model.p == 1 and np.isfinite(real_lo) and np.isfinite(real_hi)
+    leaves_certified_set.terminal = True
+    leaves_certified_set.direction = -1
+    bounded = model.p == 1
+    if bounded and leaves_certified_set(0.0, np.r_[xi0, x0]) <= 0:
+        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {y0[0]:.6g} is within {EDGE_MARGIN:.1%} of the end of {set_name} = {format_box(box)} where m stops being real",
+                          f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
     t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
-    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation", events=[leaves_real_region] if bounded else None)
+    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation", events=[leaves_certified_set] if bounded else None)
     if sol.status == 1:
         t_out, z_out = sol.t_events[0][0], sol.y_events[0][0]
-        raise DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {plant.at_x(z_out[nh:])[2][0, 0]:.6g} reaches the edge of [{real_lo:.6g}, {real_hi:.6g}], "
-                          f"where m is real (within {EDGE_MARGIN:.1%}; x = {np.round(z_out[nh:], 4).tolist()})", "a scenario whose output stays where m is real and differentiable")
+        y_out = plant.at_x(z_out[nh:])[2][0, 0]
+        at_lo = abs(y_out - d_lo) <= abs(y_out - d_hi)
+        edge = f" (stopped {EDGE_MARGIN:.1%} short of its end {d_lo if at_lo else d_hi:.6g}, where m stops being real)" if (lo_edge if at_lo else hi_edge) else ""
+        raise DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
+                          f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
     xi, x = sol.y[:nh], sol.y[nh:]
     at_x = [plant.at_x(x[:, k]) for k in range(sol.t.size)]
     y = np.stack([a[2][:, 0] for a in at_x], axis=1)
@@ -359,7 +390,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         if getattr(sim, scenario) is not None:
             values, checks = runner(model, plant, upstream)
             art.values.update(values)
-            art.checks.update(checks)
+            # Observed along one simulated run: evidence "simulated", never a proof.
+            art.checks.update({k: replace(c, evidence="simulated") for k, c in checks.items()})
     return art
 
 

@@ -28,7 +28,9 @@ import cvxpy as cp
 import numpy as np
 import scipy.linalg as sla
 import sympy as sp
+from flint import arb
 
+from .. import proofs
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError, SpecError
 from ..grids import domain_grid, maximise_on_box
@@ -312,6 +314,70 @@ def largest_decay_rate_for(A_list: list[np.ndarray], M: np.ndarray) -> float:
     return float(min(sla.eigh(-(A.T @ M + M @ A), M, eigvals_only=True).min() for A in A_list))
 
 
+def _ball_lmi(A: list[list], M: np.ndarray, lam: float) -> list[list]:
+    """-(A^T M + M A + lambda M) with A a ball matrix (eq. egLMI as a matrix that must be >= 0)."""
+    n = len(A)
+    Mb = proofs.matrix_balls(M)
+    MA = [[sum((Mb[i][k] * A[k][j] for k in range(n)), arb(0)) for j in range(n)] for i in range(n)]
+    return [[-(MA[j][i] + MA[i][j] + arb(lam) * Mb[i][j]) for j in range(n)] for i in range(n)]
+
+
+def prove_lmi(model: Model, A_sym: sp.Matrix, verts: np.ndarray, affine: bool, K: np.ndarray, M: np.ndarray, lam: float) -> tuple[float, str]:
+    """A proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M over U (or state_box x U).
+
+    The vertex argument: the LMI is affine in A_cl, so it holds on the convex hull of the vertex matrices
+    once it holds at each of them.  For f affine in x with A(u) affine in u the vertices are A(u_k) at the
+    vertices of U; for the Jacobian polytope they are the corners of the box of entry ranges, which must
+    contain the ranges enclosed by ball arithmetic over state_box x U.  Each vertex matrix is formed in
+    ball arithmetic from the formulas (parameters exact as doubles) and its LMI proved by an arb Cholesky.
+
+    Returns
+    -------
+    margin : float
+        The proved bound (inf when no proof was found).
+    how : str
+        What was proved, or why not.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return np.inf, f"not attempted above {proofs.MAX_PROOF_STATES} states"
+    args = list(model.u) if affine else list(model.x) + list(model.u)
+    if affine and not proofs.affine_in(A_sym, model.u):
+        return np.inf, "A(u) is not affine in u, so its vertices do not bound it"
+    try:
+        fA = proofs.BoxFunction(model, {"A": A_sym}, args)
+        BK = None
+        if np.any(K != 0):
+            fB = proofs.BoxFunction(model, {"g": model.g}, list(model.x))
+            B = fB([arb(0)] * model.n)["g"]
+            Kb = proofs.matrix_balls(K)
+            BK = [[sum((B[i][k] * Kb[k][j] for k in range(model.m)), arb(0)) for j in range(model.n)] for i in range(model.n)]
+        if affine:
+            corners = [fA([arb(float(c)) for c in vtx])["A"] for vtx in verts]
+        else:
+            box = np.r_[model.state_box, model.U]
+            A_any = fA(proofs.ball_box(box))["A"]            # constant entries are thin balls
+            varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(A_sym, dtype=object)) if e.free_symbols & set(args)]
+            for (i, j), (lo, hi) in zip(varying, verts):
+                entry = proofs.compile_claims(model, [A_sym[i, j]], args)
+                bottom, top, ok = proofs.range_on_box(entry, box, rtol=1e-12)
+                if not (ok and lo <= bottom and top <= hi):
+                    return np.inf, f"the enclosure of df{i + 1}/d{model.x[j]} over state_box x U, [{bottom:.6g}, {top:.6g}], is not inside the LMI's range [{lo:.6g}, {hi:.6g}]"
+            corners = []
+            for corner in itertools.product(*[tuple(r) for r in verts]):
+                A = [row[:] for row in A_any]
+                for (i, j), value in zip(varying, corner):
+                    A[i][j] = arb(float(value))
+                corners.append(A)
+        worst = -np.inf
+        for A in corners:
+            Acl = A if BK is None else [[A[i][j] + BK[i][j] for j in range(model.n)] for i in range(model.n)]
+            worst = max(worst, -proofs.psd_lower_bound_balls(_ball_lmi(Acl, M, lam)))
+    except proofs.interval.UnsupportedExpression as exc:
+        return np.inf, f"ball arithmetic cannot enclose A ({exc})"
+    where = "the vertices of U (A(u) affine in u)" if affine else "the corners of the enclosed Jacobian ranges over state_box x U"
+    return float(worst), f"arb Cholesky of -(A^T M + M A + lambda M) at {where}"
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Certify stabilisability: M and lambda of eq. egLMI, with margins re-checked in numpy.
 
@@ -388,15 +454,29 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
                           f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies", check="lmi_margin")
 
+    proved_margin, proof = prove_lmi(model, A_sym, verts, affine, K, M, lam)
+    margin_evidence = proofs.PROVED if proved_margin <= 0 else proofs.SAMPLED
+    M_lower = proofs.lambda_min_lower(M) if model.n <= proofs.MAX_PROOF_STATES else -np.inf
+    meta.update(lmi_proof=proof if proved_margin <= 0 else f"not proved: {proof} (bound {proved_margin:.3g})")
+
     art = Artefact(stage=NAME, meta=meta)
     art.values.update({
+        "lmi_margin_proved": proved_margin, "M_min_eigenvalue_proved": M_lower,
         "M": M, "K": K, "lambda": lam, "vertices": verts, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
         "sweep_margins": sweep_margins, "lmi_margin": margin, "M_eigenvalues": eig_M,
         "A_vertices": np.stack(A_vertices), "relative_margin": margin / eig_M.max(),
     })
     art.exprs.update({"A": A_sym, "b": b_sym})
-    art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl(u)^T M + M A_cl(u) + lambda M over the vertices and a sweep of U, A_cl = A + B K (K = 0 for identity feedback; <= 0: eq. egLMI holds)")
-    art.checks["M_positive"] = Check(float(eig_M.min()), bool(eig_M.min() > 0), "smallest eigenvalue of M (> 0)")
+    if margin_evidence == proofs.PROVED:
+        art.checks["lmi_margin"] = Check(proved_margin, True, "proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M, A_cl = A + B K "
+                                         f"(K = 0 for identity feedback; <= 0: eq. egLMI holds): {proof}", proofs.PROVED)
+    else:
+        art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl(u)^T M + M A_cl(u) + lambda M over the vertices and a sweep of U, A_cl = A + B K "
+                                         f"(K = 0 for identity feedback; <= 0: eq. egLMI holds); proof: {meta['lmi_proof']}")
+    if M_lower > 0:
+        art.checks["M_positive"] = Check(M_lower, True, "proved lower bound of the smallest eigenvalue of M (> 0; arb Cholesky)", proofs.PROVED)
+    else:
+        art.checks["M_positive"] = Check(float(eig_M.min()), bool(eig_M.min() > 0), "smallest eigenvalue of M (> 0; numpy)")
     return art
 
 

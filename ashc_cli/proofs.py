@@ -1,0 +1,214 @@
+"""Proofs of the stages' claims: exact symbolic identities, ball arithmetic over sets, and matrix inequalities.
+
+Every check a stage stores says how it was established (``Check.evidence``):
+
+* ``proved``: the claim holds on the whole set it is about.  Three kinds of proof are used here:
+  a sympy identity (a residual that simplifies to 0), a rigorous enclosure by arb ball arithmetic over the
+  set (:mod:`ashc_cli.interval`, branch and bound for sups and infs), and positive semidefiniteness of a
+  matrix whose entries are enclosed in balls (an arb Cholesky factorisation);
+* ``sampled``: the claim was checked on a finite set of points and could fail between them;
+* ``simulated``: the claim was observed along simulated runs.
+
+A stage tries the proof first and keeps its sampled number when the proof is out of reach (an expression
+ball arithmetic cannot enclose, a budget exhausted, too many states); the proved number of a sup is an
+upper bound, a little above the sampled maximum, and the stage uses it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import sympy as sp
+from flint import arb
+
+from . import interval
+from .model import SIMPLIFY_MAX_OPS, Model
+
+__all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
+           "inf_on_box", "range_on_box", "norm_expr", "ball", "ball_box", "upper", "lower", "psd_lower_bound_balls",
+           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M"]
+
+PROVED, SAMPLED, SIMULATED = "proved", "sampled", "simulated"
+
+#: Above this many states the proofs that build n x n ball matrices or n-vector enclosures are skipped
+#: ("sampled"): an arb Cholesky in Python grows like n^3.
+MAX_PROOF_STATES = 64
+
+#: Seconds one sup or inf may spend in branch and bound before it gives up (the result is then "sampled").
+TIME_BUDGET = 20.0
+
+
+def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, time_limit: float = 10.0) -> bool:
+    """True when sympy proves every expression identically zero (skipped for expressions above ``max_ops``).
+
+    sympy's ``simplify`` never claims 0 for a non-zero expression; it may fail to find a true 0, which only
+    means the claim is left "sampled".
+    """
+    start = time.perf_counter()
+    for e in exprs:
+        e = sp.sympify(e)
+        if e == 0:
+            continue
+        if sp.count_ops(e) > max_ops or time.perf_counter() - start > time_limit:
+            return False
+        if sp.simplify(sp.together(e)) != 0:
+            return False
+    return True
+
+
+def affine_in(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> bool:
+    """True when every entry is affine in ``symbols`` (its derivatives by them are free of them)."""
+    syms = set(symbols)
+    for e in exprs:
+        for s in symbols:
+            if s in e.free_symbols and sp.diff(e, s).free_symbols & syms:
+                return False
+    return True
+
+
+def ball(lo: float, hi: float) -> arb:
+    """An arb ball containing the float interval [lo, hi]."""
+    return arb(lo).union(arb(hi))
+
+
+def ball_box(box: np.ndarray) -> list[arb]:
+    """One ball per row [lo, hi] of a box."""
+    return [ball(float(lo), float(hi)) for lo, hi in np.asarray(box, dtype=float)]
+
+
+def upper(x: arb) -> float:
+    """A float >= every point of the ball (inf if it is not finite)."""
+    if not x.is_finite():
+        return np.inf
+    v = float(x.upper())
+    return v if arb(v) >= x.upper() else float(np.nextafter(v, np.inf))
+
+
+def lower(x: arb) -> float:
+    """A float <= every point of the ball (-inf if it is not finite)."""
+    if not x.is_finite():
+        return -np.inf
+    v = float(x.lower())
+    return v if arb(v) <= x.lower() else float(np.nextafter(v, -np.inf))
+
+
+class BoxFunction:
+    """Sympy matrices compiled for ball arithmetic, evaluated together on a box of their arguments.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values.
+    terms : dict of str to sympy Matrix
+        The matrices to enclose.
+    args : sequence of Symbol
+        Their arguments, in the order of the box's rows.
+    """
+
+    def __init__(self, model: Model, terms: dict[str, sp.MatrixBase], args: Sequence[sp.Symbol]):
+        self.names = list(terms)
+        self.shapes = [sp.Matrix(t).shape for t in terms.values()]
+        flat = [e for t in terms.values() for e in sp.Matrix(t)]
+        self._fun = interval.compile_interval(flat, list(args), model.values)
+
+    def __call__(self, balls: Sequence[arb]) -> dict[str, list[list[arb]]]:
+        """Each term as a nested list of balls (rows of columns) enclosing its values on the box."""
+        flat = self._fun(list(balls))
+        out, k = {}, 0
+        for name, (r, c) in zip(self.names, self.shapes):
+            out[name] = [[flat[k + i * c + j] for j in range(c)] for i in range(r)]
+            k += r * c
+        return out
+
+
+def compile_claims(model: Model, exprs: Sequence[sp.Expr], args: Sequence[sp.Symbol]):
+    """Scalar expressions compiled for the branch-and-bound searches (with derivatives: tight enclosures).
+
+    Raises ``interval.UnsupportedExpression`` for an expression ball arithmetic cannot enclose.
+    """
+    return interval.compile_interval([sp.sympify(e) for e in exprs], list(args), model.values)
+
+
+def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
+               time_budget: float = TIME_BUDGET) -> tuple[float, bool, np.ndarray]:
+    """A proved upper bound of sup over the box of output ``index`` of fun, whether it is finite, and where the
+    largest value found lies (:func:`interval.sup_on_box`)."""
+    res = interval.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    return float(res.upper), bool(np.isfinite(res.upper)), np.asarray(res.argmax, dtype=float)
+
+
+def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
+               time_budget: float = TIME_BUDGET) -> tuple[float, bool]:
+    """A proved lower bound of inf over the box of output ``index`` of fun and whether it is finite."""
+    res = interval.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    return float(res.lower), bool(np.isfinite(res.lower))
+
+
+def range_on_box(fun, box: np.ndarray, index: int = 0, rtol: float = 1e-6) -> tuple[float, float, bool]:
+    """Proved bounds lo <= f <= hi of output ``index`` over the box, and whether both are finite."""
+    lo, ok_lo = inf_on_box(fun, box, index, rtol=rtol)
+    hi, ok_hi, _ = sup_on_box(fun, box, index, rtol=rtol)
+    return lo, hi, ok_lo and ok_hi
+
+
+def norm_expr(M: np.ndarray, w: sp.MatrixBase) -> sp.Expr:
+    """||sqrt(M) w||_2 as a sympy expression, M's entries exact doubles: sqrt(w^T M w) for a column w, and
+    sqrt(lambda_max(G)) with the closed form of the largest eigenvalue of the 2 x 2 Gram matrix G = w^T M w
+    for two columns."""
+    Ms = sp.Matrix(np.asarray(M, dtype=float).tolist()).applyfunc(lambda a: sp.Float(float(a)))
+    G = w.T * Ms * w
+    if G.shape == (1, 1):
+        return sp.sqrt(G[0, 0])
+    if G.shape != (2, 2):
+        raise ValueError("norm_expr takes one or two columns")
+    half_sum, half_diff = (G[0, 0] + G[1, 1]) / 2, (G[0, 0] - G[1, 1]) / 2
+    return sp.sqrt(half_sum + sp.sqrt(half_diff**2 + G[0, 1] ** 2))
+
+
+def psd_lower_bound_balls(S: Sequence[Sequence[arb]]) -> float:
+    """A proved lower bound of lambda_min of every symmetric matrix inside the ball matrix S.
+
+    lambda_min(S) >= lambda_min(mid S) - ||S - mid S||_2 (Weyl), and ||E||_2 <= ||E||_F <= n max |E_ij|;
+    lambda_min(mid S) is bounded below by an arb Cholesky factorisation (:func:`interval.psd_lower_bound`).
+    """
+    n = len(S)
+    if any(not S[i][j].is_finite() for i in range(n) for j in range(n)):
+        return -np.inf
+    mid = np.array([[float(S[i][j].mid()) for j in range(n)] for i in range(n)])
+    mid = 0.5 * (mid + mid.T)
+    # Distance of every ball entry from the (symmetrised) midpoint, rounded up.
+    rad = max(upper(abs(S[i][j] - arb(mid[i, j]))) for i in range(n) for j in range(n))
+    return float(interval.psd_lower_bound(mid)) - np.nextafter(n * rad, np.inf)
+
+
+def lambda_min_lower(S: np.ndarray) -> float:
+    """A proved lower bound of lambda_min of a symmetric float matrix (entries exact doubles)."""
+    return float(interval.psd_lower_bound(np.asarray(S, dtype=float)))
+
+
+def matrix_balls(A: np.ndarray) -> list[list[arb]]:
+    """A float matrix as exact balls."""
+    return [[arb(float(a)) for a in row] for row in np.asarray(A, dtype=float)]
+
+
+def quadratic_form_terms(M: np.ndarray, A: Sequence[Sequence[arb]]) -> list[list[arb]]:
+    """A^T M A in ball arithmetic (A a ball matrix n x k, M a float matrix): the Gram matrix of sqrt(M) A."""
+    n, k = len(A), len(A[0])
+    Mb = matrix_balls(M)
+    MA = [[sum((Mb[i][l] * A[l][j] for l in range(n)), arb(0)) for j in range(k)] for i in range(n)]
+    return [[sum((A[l][i] * MA[l][j] for l in range(n)), arb(0)) for j in range(k)] for i in range(k)]
+
+
+def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
+    """||sqrt(M) A||_2 enclosed from above (exact for one column; Gershgorin on A^T M A for several)."""
+    G = quadratic_form_terms(M, A)
+    if len(G) == 1:
+        g = G[0][0]
+        # g >= 0 mathematically; a ball reaching below 0 is clipped to [0, upper] before the root.
+        if not g.is_finite():
+            return g
+        return g.sqrt() if g.lower() >= 0 else ball(0.0, upper(g)).nonnegative_part().sqrt()
+    top = float(interval.lambda_max_upper(G))
+    return arb(top).sqrt() if np.isfinite(top) else arb("nan")
