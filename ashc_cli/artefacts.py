@@ -3,6 +3,7 @@
 Layout of ``<out>/<stage>.h5``::
 
     /                 attrs: schema_version, stage, spec_sha256, spec_name, parameters (JSON), upstream (JSON {stage: sha256}),
+                             names (JSON: the spec's declared states, inputs, abstract_states, abstract_inputs),
                              packages (JSON), created (UTC ISO 8601), ashc_version, meta (JSON: solver,
                              tolerances, integrator, ...)
     /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
@@ -129,7 +130,7 @@ def file_sha256(path: str | Path) -> str:
 
 
 def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, parameters: dict[str, float],
-                   upstream: dict[str, str]) -> str:
+                   upstream: dict[str, str], names: dict[str, list[str]] | None = None) -> str:
     """Write an artefact atomically and return the new file's SHA-256.
 
     Parameters
@@ -144,6 +145,9 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
         The spec's parameter values (so stored formulas can be evaluated without the spec).
     upstream : dict of str to str
         SHA-256 of each upstream artefact file it was made from.
+    names : dict of str to list of str, optional
+        The spec's declared names (states, inputs, abstract_states, abstract_inputs), so a query can tell a
+        declared name that a formula happens not to use from a misspelt one.
 
     Returns
     -------
@@ -154,7 +158,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     path.parent.mkdir(parents=True, exist_ok=True)
     # The provenance read_artefact gives back (plus the file's sha256), so a written artefact needs no reading back.
     provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters,
-                  "upstream": upstream, "packages": package_versions(), "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  "upstream": upstream, "names": names or {}, "packages": package_versions(), "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   "ashc_version": __version__}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
@@ -251,6 +255,7 @@ def read_artefact(path: str | Path) -> Artefact:
         "spec_name": str(attrs.get("spec_name", "")),
         "parameters": json.loads(attrs.get("parameters", "{}")),
         "upstream": json.loads(attrs.get("upstream", "{}")),
+        "names": json.loads(attrs.get("names", "{}")),
         "packages": json.loads(attrs.get("packages", "{}")),
         "created": str(attrs.get("created", "")),
         "ashc_version": str(attrs.get("ashc_version", "")),

@@ -108,7 +108,9 @@ _STAGE_HELP = {
     "inverse": "Find the left inverse m of p and check injectivity, V covering Y (eq. SimuLocalRequire), conditions (i)-(ii) of Theorem mCondi and where m is real.",
     "delta": "Check delta's rank on V and build the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).",
     "bound": "Compute alpha_h, epsilon, dbar (q = 0 and least squares, eq. iota) and the gain G of the error bound (eq. egErrorBound).",
-    "simulate": "Run the tracking and m-relation scenarios of the spec (Figs. Example_*), designing first if needed.",
+    "simulate": "Run the tracking and m-relation scenarios of the spec (Figs. Example_*), designing first if needed. A scenario check "
+                "that fails (psi not settled, u outside U, ...) is printed as 'FAILED (simulated)' and listed by `ashc check`; the exit "
+                "status stays 0, since it observes one run and is not a design condition of Problem 1.",
 }
 
 
@@ -165,8 +167,11 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     spec_obj, folder = _load(spec, out)
     arts, stopped = run_for_verdict(spec_obj, folder, force=force, on_stage=_progress(True))
     solved, rows = verdict(arts, stopped)
+    sim = None if force else _current(spec_obj, Folder(folder), "simulate")
+    simulated = [] if sim is None else [{"check": name, "status": "pass" if c.passed else "fail", "value": c.value if np.isfinite(c.value) else None,
+                                         "detail": c.description, "evidence": c.evidence} for name, c in sim.checks.items()]
     if as_json:
-        _emit_json({"spec": spec_obj.name, "solved": solved, "rows": [r.as_dict() for r in rows]})
+        _emit_json({"spec": spec_obj.name, "solved": solved, "rows": [r.as_dict() for r in rows], "simulated": simulated})
     else:
         typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
         for r in rows:
@@ -174,6 +179,13 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
             typer.echo(f"  {r.status:<11} {r.evidence:<9} {r.condition:<42} {value:>11}   {r.reference}")
             if r.status == "fail":
                 typer.echo(f"              {r.detail}")
+        if simulated:
+            typer.echo("Simulated scenarios (`ashc simulate`; evidence: simulated; not part of the verdict):")
+            for r in simulated:
+                value = "" if r["value"] is None else f"{r['value']:.4g}"
+                typer.echo(f"  {r['status']:<11} {r['evidence']:<9} {r['check']:<42} {value:>11}")
+                if r["status"] == "fail":
+                    typer.echo(f"              {r['detail']}")
         typer.echo(f"Problem 1 solved: {'yes' if solved else 'no'}")
     if not solved:
         raise typer.Exit(3)
@@ -184,12 +196,17 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed
 TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
 
 
+def _current(spec, folder: Folder, stage: str):
+    """The folder's artefact of ``stage`` if it was made from this spec, else None."""
+    if not artefact_path(folder.path, stage).exists():
+        return None
+    art = folder.read(stage)
+    return art if art.provenance.get("spec_sha256") == spec.sha256 else None
+
+
 def _current_falsify(spec, folder: Folder):
     """The folder's falsify artefact if it was made from this spec, else None."""
-    if not artefact_path(folder.path, "falsify").exists():
-        return None
-    art = folder.read("falsify")
-    return art if art.provenance.get("spec_sha256") == spec.sha256 else None
+    return _current(spec, folder, "falsify")
 
 
 @app.command()
@@ -245,7 +262,7 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     if as_json:
         _emit_json(entry)
     else:
-        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {entry['max_ratio']:.6g} "
+        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {entry['max_ratio']:.9g} "
                    f"(run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, t = {entry['worst_time']:.4g} s); "
                    f"started on the manifold (W0 = 0): {entry.get('max_ratio_w0_zero', float('nan')):.6g} "
                    f"({entry.get('strategy_of_worst_w0_zero', '-')}); {entry['runs_leaving_V']} left V")

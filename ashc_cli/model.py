@@ -209,6 +209,8 @@ class Model:
     #: Force the numeric fast paths (True), the symbolic ones (False), or choose by size (None).
     numeric_paths: bool | None = None
     names: dict[str, sp.Symbol] = field(default_factory=dict)
+    #: The left inverse m(x) the spec gives (``abstract.m``, n_hat x 1 in the concrete states), or None.
+    m_given: sp.Matrix | None = None
 
     @property
     def n(self) -> int:
@@ -369,10 +371,14 @@ def build_model(spec: Spec) -> Model:
         delta = (_matrix(a.delta, names, "abstract.delta", (nh, mh)) if isinstance(a.delta, list)
                  else sp.Matrix([[parse_expression(a.delta, names, "abstract.delta")]]))
         _check_free(delta, pset | set(xi), "abstract.delta", "the abstract states")
+    m_given = None
+    if a.m is not None:
+        m_given = _matrix(a.m, names, "abstract.m", (nh, 1))
+        _check_free(m_given, pset | set(x), "abstract.m", "the concrete states")
     V = None if a.domain == "auto" else np.array(a.domain, dtype=float)
     return Model(
         spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
         phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
         Y=np.array(c.output_set, dtype=float), V=V, names=names,
-        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float),
+        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float), m_given=m_given,
     )

@@ -161,6 +161,12 @@ def remove_leftovers(out: str | Path) -> list[Path]:
     return removed
 
 
+def declared_names(spec: Spec) -> dict[str, list[str]]:
+    """The names a spec declares (stored with every artefact, for ``ashc eval``)."""
+    return {"states": list(spec.concrete.states), "inputs": list(spec.concrete.inputs),
+            "abstract_states": list(spec.abstract.states), "abstract_inputs": list(spec.abstract.inputs)}
+
+
 def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
     """Refuse to run a stage on an upstream artefact made from another spec or schema.
 
@@ -233,7 +239,8 @@ def run(
             check_upstream(spec, name, arts)
             art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
-                           parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM})
+                           parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM},
+                           names=declared_names(spec))
             folder.wrote(name, art)
             status = "ran"
         arts[name] = art
@@ -282,7 +289,8 @@ def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, 
     art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress)
     ups = ("stabilise", "manifold", "kappa", "delta", "bound")
     write_artefact(artefact_path(folder.path, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
-                   parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups})
+                   parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups},
+                   names=declared_names(spec))
     if on_stage is not None:
         on_stage(StageReport(falsify_mod.NAME, "ran", time.perf_counter() - start, falsify_mod.headline(art)))
     return arts, art

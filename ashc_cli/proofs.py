@@ -157,8 +157,19 @@ def norm_expr(M: np.ndarray, w: sp.MatrixBase) -> sp.Expr:
     """||sqrt(M) w||_2 as a sympy expression, M's entries exact doubles: sqrt(w^T M w) for a column w, and
     sqrt(lambda_max(G)) with the closed form of the largest eigenvalue of the 2 x 2 Gram matrix G = w^T M w
     for two columns."""
-    Ms = sp.Matrix(np.asarray(M, dtype=float).tolist()).applyfunc(lambda a: sp.Float(float(a)))
-    G = w.T * Ms * w
+    M = np.asarray(M, dtype=float)
+    nz = [(i, j) for i, j in zip(*np.nonzero(M))]
+
+    def gram(a: int, b: int) -> sp.Expr:
+        # sum_i w_ia (M w_b)_i over the non-zero entries, built unevaluated: sympy would otherwise distribute
+        # every Float over the polynomials (seconds at n = 32); the interval compiler shares the w_i.
+        rows = {}
+        for i, j in nz:
+            rows.setdefault(i, []).append(sp.Mul(sp.Float(float(M[i, j])), w[j, b], evaluate=False))
+        return sp.Add(*[sp.Mul(w[i, a], sp.Add(*terms, evaluate=False), evaluate=False) for i, terms in rows.items()], evaluate=False)
+
+    k = w.shape[1]
+    G = sp.Matrix(k, k, lambda a, b: gram(a, b))
     if G.shape == (1, 1):
         return sp.sqrt(G[0, 0])
     if G.shape != (2, 2):

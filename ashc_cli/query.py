@@ -107,8 +107,11 @@ def _values(expr_matrix: sp.Matrix, point: dict[str, float], params: dict[str, f
 
 
 def _known_names(arts: dict[str, Artefact]) -> set[str]:
+    """Every name the spec declared (stored with the artefacts) and every name a stored formula uses."""
     names: set[str] = set()
     for art in arts.values():
+        for declared in art.provenance.get("names", {}).values():
+            names |= set(declared)
         for matrix in art.exprs.values():
             for e in matrix:
                 names |= {s.name for s in e.free_symbols}
@@ -154,7 +157,7 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     params = art.provenance.get("parameters", {})
     unknown = set(point) - _known_names(arts) - set(params)
     if unknown:
-        raise SpecError("--at", f"unknown variable(s) {', '.join(sorted(unknown))}", "the spec's own state names")
+        raise SpecError("--at", f"unknown variable(s) {', '.join(sorted(unknown))}", "names the spec declares (states, inputs, abstract states and inputs)")
     if name in BUILT_FROM_M:
         _require_certified(arts, name, point)
     if key is not None:

@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
 
 from .errors import SpecError
 from .expr import RESERVED_NAMES
@@ -60,6 +61,30 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+#: pydantic error type of a map of bounds whose keys do not match the declared names (its ``expected`` is in ctx).
+BOUNDS_MAP_ERROR = "bounds_map"
+
+
+def bounds_by_name(value: Any, names: Any, what: str) -> Any:
+    """A map of [lo, hi] pairs keyed by ``names`` as the list of pairs in the order of ``names``.
+
+    ``input_bounds: {u: [0.0, 0.8]}`` is ``input_bounds: [[0.0, 0.8]]``: every name exactly once, no other key
+    (duplicate keys are refused by the YAML loader).  A list, or a map met when ``names`` itself is invalid,
+    is returned as it is (the list validation then reports it).
+    """
+    if not isinstance(value, dict) or not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return value
+    listed = ", ".join(names)
+    expected = f"a map with one [lo, hi] pair for each of {listed} (every {what} exactly once), or a list of pairs in that order"
+    unknown = [k for k in value if k not in names]
+    if unknown:
+        raise PydanticCustomError(BOUNDS_MAP_ERROR, "unknown {what} {key}", {"what": what, "key": _short(unknown[0], 40), "expected": expected})
+    missing = [k for k in names if k not in value]
+    if missing:
+        raise PydanticCustomError(BOUNDS_MAP_ERROR, "no pair for {what} {key}", {"what": what, "key": _short(missing[0], 40), "expected": expected})
+    return [value[k] for k in names]
+
+
 class Concrete(_Strict):
     """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. ConcreteSystem, concreteAffine)."""
 
@@ -68,11 +93,24 @@ class Concrete(_Strict):
     f_bar: list[Expr]
     g: list[list[Expr]]
     h: list[Expr] = Field(min_length=1)
+    #: One [lo, hi] pair per input, as a list in input order or a map keyed by the input names.
     input_bounds: list[Bounds]
+    #: One [lo, hi] pair per output of h, as a list or a map keyed by y1, y2, ..., yp.
     output_set: list[Bounds]
     #: The box of states the design is certified on, where the plant is not globally simple: needed when f
     #: is not affine in x (the Jacobian LMI is imposed over it) or h is not linear (L_h is computed over it).
     state_box: list[Bounds] | None = None
+
+    @field_validator("input_bounds", mode="before")
+    @classmethod
+    def _input_bounds_map(cls, value: Any, info: ValidationInfo) -> Any:
+        return bounds_by_name(value, info.data.get("inputs"), "input")
+
+    @field_validator("output_set", mode="before")
+    @classmethod
+    def _output_set_map(cls, value: Any, info: ValidationInfo) -> Any:
+        h = info.data.get("h")
+        return bounds_by_name(value, [f"y{k + 1}" for k in range(len(h))] if isinstance(h, list) else None, "output")
 
 
 class Stabilisability(_Strict):
@@ -102,10 +140,14 @@ class Abstract(_Strict):
     delta: DeltaSpec = "identity"
     #: Relative residual the polynomial solver of the invariance PDE must reach on an independent grid.
     pde_tolerance: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 1e-8
-    #: Highest polynomial degree the PDE solver tries.
-    pde_max_degree: Annotated[int, Field(ge=1, le=30)] = 12
+    #: Safety cap on the polynomial degree of the PDE solvers, which raise the degree until
+    #: ``pde_tolerance`` is met or the fit stops improving (the degree used is reported).
+    pde_max_degree: Annotated[int, Field(ge=1, le=128)] = 64
     #: A point near the equilibrium p at the centre of V, where Newton continuation starts (phi_bar = 0, no closed form).
     manifold_guess: list[FiniteFloat] | None = None
+    #: An explicit left inverse m(x) of p (n_hat expressions in the concrete states and parameters).  The
+    #: inverse stage checks it (m(p(xi)) = xi on V, condition (ii) on X_y) instead of constructing one.
+    m: list[Expr] | None = None
 
 
 class Interface(_Strict):
@@ -176,8 +218,15 @@ class Spec(_Strict):
 
 
 def spec_sha256(spec: Spec) -> str:
-    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values)."""
-    text = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values).
+
+    Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` is
+    left out when absent, so specs without it hash as they did before the key existed.
+    """
+    data = spec.model_dump(mode="json")
+    if data["abstract"].get("m") is None:
+        data["abstract"].pop("m", None)
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -193,6 +242,10 @@ class _SafeStrictLoader(yaml.SafeLoader):
             raise yaml.MarkedYAMLError("while composing", None, "aliases (*name) are not allowed in a spec", event.start_mark)
         return super().compose_node(parent, index)
 
+    def construct_document(self, node):
+        _refuse_duplicate_keys(node, "")
+        return super().construct_document(node)
+
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
@@ -205,13 +258,33 @@ class _SafeStrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def _refuse_duplicate_keys(node: yaml.Node, path: str) -> None:
+    """Refuse a key written twice in one mapping, naming the field it is in (``concrete.input_bounds``)."""
+    if isinstance(node, yaml.MappingNode):
+        seen = set()
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+            if key in seen:
+                shown = key if len(key) <= 40 else key[:37] + "..."
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark,
+                                           f"duplicate key '{shown}'" + (f" in {path}" if path else ""), key_node.start_mark)
+            if key is not None:
+                seen.add(key)
+            _refuse_duplicate_keys(value_node, f"{path}.{key}" if path else str(key))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _refuse_duplicate_keys(item, f"{path}[{i}]")
+
+
 def _yaml_load(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_SafeStrictLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark
         where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
-        raise SpecError(where, f"malformed YAML ({exc.problem})", "a YAML mapping written to spec-format.md") from None
+        duplicate = str(exc.problem).startswith("duplicate key")
+        raise SpecError(where, f"malformed YAML ({exc.problem})",
+                        "every key once in a mapping" if duplicate else "a YAML mapping written to spec-format.md") from None
     except (yaml.YAMLError, RecursionError) as exc:
         raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to spec-format.md") from None
 
@@ -291,6 +364,8 @@ def _expected_for(kind: str, err: dict) -> str:
     ctx = err.get("ctx") or {}
     if kind == "literal_error":
         return ctx.get("expected", "one of the listed values")
+    if kind == BOUNDS_MAP_ERROR:
+        return ctx["expected"]
     if kind in ("too_short", "too_long"):
         return "a pair [lo, hi]" if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 else "the right number of items"
     if kind.startswith("finite") or "nan" in kind:
@@ -340,6 +415,8 @@ def check_shapes(spec: Spec) -> None:
             _check_pair(f"concrete.state_box[{i}]", pair)
     if a.manifold_guess is not None:
         _check_len("abstract.manifold_guess", a.manifold_guess, n, "one number per concrete state")
+    if a.m is not None:
+        _check_len("abstract.m", a.m, nh, "one expression in the concrete states per abstract state")
     _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
     _check_len("abstract.l", a.l, m, "one per concrete input")
     if a.domain != "auto":

@@ -20,6 +20,7 @@ from ashc_cli.spec import parse_spec_text
 ROOT = Path(__file__).resolve().parents[1]
 CUK = ROOT / "specs" / "cuk_converter.yaml"
 CUK_PAPER_M = ROOT / "specs" / "cuk_converter_paper_M.yaml"
+LEFT_INVERSE = ROOT / "specs" / "linear_left_inverse.yaml"
 
 
 
@@ -75,6 +76,18 @@ CASES: tuple[Case, ...] = (
     Case("given-no-M", "method given without M", edits=(("method: polytopic_lmi", "method: given"),), fragment="stabilisability.M: missing"),
     Case("given-M-asymmetric", "a given M that is not symmetric", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[ 0.4804, 0.0202,"),), fragment="stabilisability.M: is not symmetric"),
     Case("given-M-indefinite", "a given M that is not positive definite", base=CUK_PAPER_M, edits=(("[ 0.4804, 0.0102,", "[-0.4804, 0.0102,"),), code=3, fragment="is not positive definite"),
+    Case("bounds-map-unknown", "input_bounds as a map with a name that is not an input", edits=(("input_bounds: [[0, 1]]", "input_bounds: {w: [0, 1]}"),),
+         fragment="concrete.input_bounds: unknown input 'w' (got {'w': [0, 1]}); expected a map with one [lo, hi] pair for each of u"),
+    Case("bounds-map-missing", "input_bounds as a map missing an input", base=LEFT_INVERSE, edits=(("input_bounds: {u1: [-3, 3], u2: [-3, 3]}", "input_bounds: {u1: [-3, 3]}"),),
+         fragment="concrete.input_bounds: no pair for input 'u2'"),
+    Case("bounds-map-duplicate", "input_bounds as a map naming an input twice", edits=(("input_bounds: [[0, 1]]", "input_bounds: {u: [0, 1], u: [0, 0.5]}"),),
+         fragment="duplicate key 'u' in concrete.input_bounds"),
+    Case("output-set-map-unknown", "output_set as a map not keyed by y1..yp", edits=(("output_set: [[-120, 0]]", "output_set: {x4: [-120, 0]}"),),
+         fragment="concrete.output_set: unknown output 'x4'"),
+    Case("m-length", "an explicit m of the wrong length", edits=(("  domain: [[0, 0.95]]\n", '  domain: [[0, 0.95]]\n  m: ["x4", "x3"]\n'),),
+         fragment="abstract.m: has 2 entries; expected 1"),
+    Case("m-abstract-name", "an explicit m using an abstract state", edits=(("  domain: [[0, 0.95]]\n", '  domain: [[0, 0.95]]\n  m: ["xi*x4"]\n'),),
+         fragment="abstract.m[0]: uses xi; expected an expression in the concrete states and parameters only"),
     Case("sim-xi0-length", "xi0 of the wrong length", edits=(("xi0: [0.6156]", "xi0: [0.6, 0.1]"),), fragment="simulate.tracking.xi0: has 2 entries"),
     # --- names ----------------------------------------------------------------------------------------
     Case("name-clash-param", "a state named like a parameter", edits=(("states: [x1, x2, x3, x4]", "states: [x1, x2, x3, E]"),), fragment="name 'E' is already used in parameters"),
@@ -101,7 +114,8 @@ CASES: tuple[Case, ...] = (
     Case("plant-not-affine", "f not affine in x for polytopic_lmi", edits=(('"x1/C_2"', '"x1**2/C_2"'),), code=3, fragment="not affine in x"),
     Case("lmi-infeasible", "an infeasible decay rate", edits=(("decay_rate: 2.0", "decay_rate: 3.0"),), code=3, fragment="(the largest feasible)"),
     Case("l-outside-U", "l(V) outside U", edits=(('l: ["xi"]', 'l: ["2*xi"]'),), code=3, fragment="is not inside U"),
-    Case("pde-not-fitted", "an invariance PDE no polynomial of degree <= 12 fits (Cuk with phi_bar = -xi)", edits=(('phi_bar: ["0"]', 'phi_bar: ["-xi"]'),), code=3,
+    Case("pde-not-fitted", "an invariance PDE no polynomial of degree <= 12 fits (Cuk with phi_bar = -xi, pde_max_degree: 12)",
+         edits=(('phi_bar: ["0"]', 'phi_bar: ["-xi"]\n  pde_max_degree: 12'),), code=3,
          fragment="no polynomial of degree <= 12 solves eq. SimuDesignCond1 on V to 1e-08: the best relative residual is"),
     Case("sylvester-resonant", "a linear plant whose eigenvalues S shares", base=ROOT / "specs" / "linear_double.yaml",
          edits=(('phi_bar: ["xi2", "-2*xi1 - xi2"]', 'phi_bar: ["xi2", "-xi1 - xi2"]'), ("c: 0.5", "c: 0.0")), code=3, fragment="share an eigenvalue"),
@@ -109,6 +123,14 @@ CASES: tuple[Case, ...] = (
     Case("V-not-covering-Y", "V not covering Y", edits=(("domain: [[0, 0.95]]", "domain: [[0, 0.9]]"),), code=3, fragment="does not cover Y"),
     Case("Y-beyond-m-real", "Y beyond where m is real", edits=(("output_set: [[-120, 0]]", "output_set: [[-130, 0]]"),), code=3, fragment="where m is real"),
     Case("delta-rank", "delta losing rank on V", edits=(('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', 'delta: "xi - 0.5"'),), code=3, fragment="delta loses row rank on V"),
+    Case("m-not-left-inverse", "an explicit m that is not a left inverse of p on V", edits=(("  domain: [[0, 0.95]]\n", '  domain: [[0, 0.95]]\n  m: ["-x4/E"]\n'),),
+         code=3, fragment="abstract.m: the given m is not a left inverse of p on V"),
+    Case("m-fails-condition-ii", "an explicit m = P^+ (x - p0), a left inverse failing condition (ii)", base=LEFT_INVERSE,
+         edits=(("  delta: identity\n", '  delta: identity\n  m: ["(5*x1 - x2 + 2*x3 - 5*x4 - 2.4)/11", "(-x1 + 9*x2 + 4*x3 + x4 - 0.4)/11"]\n'),),
+         code=3, fragment="abstract.m: the given m fails condition (ii) of Theorem mCondi"),
+    Case("no-left-inverse-ii", "an affine p where no left inverse K of P has C (I - P K) = 0 (three outputs, two abstract states)", base=LEFT_INVERSE,
+         edits=(('h: ["x3"]', 'h: ["x3", "x1", "x2"]'), ("output_set: {y1: [-0.5, 0.5]}", "output_set: {y1: [0.2, 0.2], y2: [0.4, 0.4], y3: [0, 0]}")),
+         drop_tracking=True, code=3, fragment="no left inverse K of P satisfies C (I - P K) = 0"),
     # --- simulation ------------------------------------------------------------------------------------------
     Case("sim-xi0-outside-V", "xi0 outside V", edits=(("xi0: [0.6156]", "xi0: [0.99]"),), targets=("simulate",), code=3, fragment="is outside V"),
     Case("sim-level-unreachable", "a reference level kappa never reaches on V", edits=(("reference_levels: [-19.11,", "reference_levels: [-130,"),), targets=("simulate",), code=3, fragment="is not reached by kappa"),

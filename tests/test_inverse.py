@@ -167,3 +167,165 @@ def test_m_relation_run_stays_where_m_is_certified(tmp_path, pairs, message):
     from ashc_cli.pipeline import run
     with pytest.raises(DesignError, match=message):
         run(parse_spec_text(_m_relation_only(*pairs)), tmp_path, ["simulate"])
+
+
+# --- the family of left inverses of an affine p (specs/linear_left_inverse.yaml) -------------------------------
+
+def _left_spec():
+    from .conftest import SPECS
+    return SPECS / "linear_left_inverse.yaml"
+
+
+@pytest.fixture(scope="module")
+def left_design(tmp_path_factory):
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+    spec = load_spec(_left_spec())
+    return build_model(spec), run(spec, tmp_path_factory.mktemp("left_inverse"), ["inverse"])
+
+
+def _hand_derived():
+    """P, p0 and C of the spec's header, in exact arithmetic."""
+    half = sp.Rational(1, 2)
+    P = sp.Matrix([[1, 0], [0, 1], [half, half], [-1, 0]])
+    p0 = sp.Matrix([sp.Rational(2, 5), 0, sp.Rational(1, 5), 0])
+    C = sp.Matrix([[0, 0, 1, 0]])
+    return P, p0, C
+
+
+def test_left_inverse_spec_manifold_is_the_hand_derived_one(left_design):
+    model, arts = left_design
+    P, p0, _ = _hand_derived()
+    p = arts["manifold"].exprs["p"]
+    assert np.abs(np.array(model.substitute(p.jacobian(model.xi)), dtype=float) - np.array(P, dtype=float)).max() < 1e-12
+    assert np.abs(np.array(model.substitute(p.xreplace({s: 0 for s in model.xi})), dtype=float) - np.array(p0, dtype=float)).max() < 1e-12
+
+
+def test_least_norm_left_inverse_against_an_independent_solve(left_design):
+    # Every solution of K P = I, C P K = C, in exact arithmetic (sympy.linsolve in the 8 entries of K), then
+    # the one of least Frobenius norm (the gradient of ||K||^2 in the free entries vanishes).
+    P, p0, C = _hand_derived()
+    ks = sp.symbols("k0:8", real=True)
+    K = sp.Matrix(2, 4, ks)
+    (solution,) = sp.linsolve(list(K * P - sp.eye(2)) + list(C * P * K - C), ks)
+    family = K.xreplace(dict(zip(ks, solution)))
+    free = sorted(family.free_symbols, key=str)
+    assert len(free) == 2                                           # a 2-parameter family of such left inverses
+    norm2 = sum(e**2 for e in family)
+    (best,) = sp.solve([sp.diff(norm2, f) for f in free], free, dict=True)
+    K_exact = family.xreplace(best)
+    assert K_exact == sp.Matrix([[3, -5, 10, -3], [-3, 5, 12, 3]]) / 11
+    assert sum(e**2 for e in K_exact) == sp.Rational(30, 11)
+    # The closed form of the spec's header: K = P^+ + (C P)^+ C (I - P P^+).
+    P_plus = (P.T * P).inv() * P.T
+    assert K_exact == P_plus + (C * P).pinv() * C * (sp.eye(4) - P * P_plus)
+
+    model, arts = left_design
+    art = arts["inverse"]
+    assert art.meta["construction"] == inverse.LEAST_NORM == "least-norm left inverse with C(I - P K) = 0"
+    Kf, p0f = np.array(K_exact, dtype=float), np.array(p0, dtype=float)[:, 0]
+    assert np.abs(np.array(model.substitute(art.exprs["dm_dx"]), dtype=float) - Kf).max() < 1e-9
+    assert np.abs(np.asarray(art.values["left_inverse_matrix"]) - Kf).max() < 1e-9
+    x = np.random.default_rng(1).uniform(-3, 3, size=(4, 50))
+    m = model.numeric(art.exprs["m"], list(model.x))(*x)[:, 0, :]
+    assert np.abs(m - Kf @ (x - p0f[:, None])).max() < 1e-9
+    assert art.values["condition_ii"] < 1e-12 and art.values["condition_ii_symbolic"]
+    assert all(c.passed for c in art.checks.values())
+    assert art.meta["m_domain_set"] == "Y" and np.array_equal(art.values["m_domain"], [[-0.5, 0.5]])
+
+
+def test_the_pseudo_inverse_fails_condition_ii_on_that_spec(left_design):
+    P, p0, C = _hand_derived()
+    P_plus = (P.T * P).inv() * P.T
+    assert P_plus == sp.Matrix([[5, -1, 2, -5], [-1, 9, 4, 1]]) / 11
+    R = C * (sp.eye(4) - P * P_plus)
+    assert R == sp.Matrix([[-2, -4, 8, 2]]) / 11                     # C^T is not in the range of P
+    # x = (0, 0, 1/2, 0) has h(x) = 1/2 in Y, and h(x - p(P^+ (x - p0))) = R (x - p0) = 16/55, not 0.
+    x = sp.Matrix([0, 0, sp.Rational(1, 2), 0])
+    assert (R * (x - p0))[0] == sp.Rational(16, 55)
+    # The artefact's measure of (ii) with P^+ (on its 2000 samples of X_y) is ours on the same samples.
+    model, arts = left_design
+    art = arts["inverse"]
+    samples = inverse.x_y_samples(model, np.asarray(arts["manifold"].value("p_grid")))
+    ours = np.abs(np.array(R, dtype=float) @ (samples - np.array(p0, dtype=float))).max()
+    assert art.values["condition_ii_pseudo_inverse"] == pytest.approx(ours, rel=1e-9)
+    assert round(ours, 2) == 2.92 and inverse.summarise(art)["condition_ii_pseudo_inverse"] == pytest.approx(ours, rel=1e-9)
+    assert art.values["condition_ii_matrix_pinv"] == pytest.approx(8 / 11, rel=1e-12) and art.values["condition_ii_matrix"] < 1e-14
+
+
+def test_choose_left_inverse_keeps_the_pseudo_inverse_when_it_works_and_says_when_none_does():
+    P = np.array([[1, 0], [0, 1], [0.5, 0.5], [-1, 0]])
+    kept = inverse.choose_left_inverse(P, np.array([[1.0, 0, 0.5, -1]]))       # C^T = the first column of P
+    assert kept["construction"] == inverse.PSEUDO_INVERSE and np.allclose(kept["K"], np.linalg.pinv(P)) and kept["solvable"]
+    none = inverse.choose_left_inverse(P, np.array([[0, 0, 1.0, 0], [1, 0, 0, 0], [0, 1, 0, 0]]))
+    assert none["construction"] == inverse.PSEUDO_INVERSE and none["solvable"] is False and none["system_residual"] > 0.1
+    assert inverse.choose_left_inverse(P, None)["construction"] == inverse.PSEUDO_INVERSE   # nonlinear h: no family search
+
+
+def test_constructions_are_recorded(paper_design):
+    assert paper_design["inverse"].meta["construction"] == inverse.KAPPA_INVERSE == "kappa^-1(h(x))"
+    assert inverse.summarise(paper_design["inverse"])["construction"] == "kappa^-1(h(x))"
+
+
+# --- an explicit m (abstract.m): checked, not trusted -------------------------------------------------------
+
+LEAST_NORM_M = '["(3*x1 - 5*x2 + 10*x3 - 3*x4 - 3.2)/11", "(-3*x1 + 5*x2 + 12*x3 + 3*x4 - 1.2)/11"]'
+PSEUDO_INVERSE_M = '["(5*x1 - x2 + 2*x3 - 5*x4 - 2.4)/11", "(-x1 + 9*x2 + 4*x3 + x4 - 0.4)/11"]'
+
+
+def _with_m(m: str) -> str:
+    text = _left_spec().read_text()
+    assert "  delta: identity\n" in text
+    return text.replace("  delta: identity\n", f"  delta: identity\n  m: {m}\n")
+
+
+def test_explicit_m_that_is_right_is_checked_and_used(tmp_path, left_design):
+    model, arts = left_design
+    art = _design_inverse(_with_m(LEAST_NORM_M), tmp_path)
+    assert art.meta["construction"] == inverse.EXPLICIT == "explicit (spec)"
+    assert all(c.passed for c in art.checks.values())
+    assert art.values["left_inverse_residual"] < 1e-12 and art.values["condition_ii"] < 1e-12
+    # The same m as the constructed one, and the same keys for delta, query and eval.
+    x = np.random.default_rng(2).uniform(-3, 3, size=(4, 20))
+    ours = model.numeric(art.exprs["m"], list(model.x))(*x)
+    theirs = model.numeric(arts["inverse"].exprs["m"], list(model.x))(*x)
+    assert np.abs(ours - theirs).max() < 1e-12
+    for key in ("m_domain", "kappa_range", "m_real_interval", "left_inverse_residual", "condition_i", "condition_ii", "condition_ii_symbolic", "min_abs_dkappa", "radicands"):
+        assert key in art.values, key
+    assert set(arts["inverse"].exprs) <= set(art.exprs)
+    assert list(art.values["m_real_interval"]) == [-np.inf, np.inf] and art.checks["m_real_on_Y"].evidence == "proved"
+    assert art.meta["m_domain_set"] == "Y"
+
+
+def test_explicit_m_that_fails_condition_ii_is_refused(tmp_path):
+    # P^+ (x - p0) written out: a left inverse of p, but C (I - P P^+) != 0.
+    from .conftest import ashc
+    spec = tmp_path / "explicit_pinv.yaml"
+    spec.write_text(_with_m(PSEUDO_INVERSE_M))
+    design = ashc("design", str(spec), "--out", str(tmp_path / "out"))
+    assert design.returncode == 3
+    assert "error: abstract.m: the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches 2.92 on X_y" in design.stderr
+    check = ashc("check", str(spec), "--out", str(tmp_path / "out"))
+    assert check.returncode == 3
+    row = next(line for line in check.stdout.splitlines() if "condition (ii)" in line)
+    assert row.split()[0] == "fail" and "Problem 1 solved: no" in check.stdout
+
+
+def test_explicit_m_that_is_no_left_inverse_is_refused(tmp_path):
+    with pytest.raises(DesignError, match=r"abstract\.m: the given m is not a left inverse of p on V: max \|m\(p\(xi\)\) - xi\| = 0\.4 ") as err:
+        _design_inverse(_with_m('["x1", "x2"]'), tmp_path)
+    assert err.value.check == "left_inverse" and err.value.exit_code == 3
+
+
+def test_explicit_nonlinear_m_the_papers_eq_egm(tmp_path):
+    # The paper's eq. egm given explicitly on the Cuk converter (a radicand): checked on V and on X_y.
+    egm = '["(-E + 2*x4 + sqrt(E**2 - 4*G_L*R_i*x4**2)) / (2*(G_L*R_i + 1)*x4 - 2*E)"]'
+    text = CUK_PAPER_M.read_text().replace("  domain: [[0, 0.95]]\n", f"  domain: [[0, 0.95]]\n  m: {egm}\n")
+    art = _design_inverse(text, tmp_path)
+    assert art.meta["construction"] == inverse.EXPLICIT and all(c.passed for c in art.checks.values())
+    assert art.values["radicands"] == ["E**2 - 4*G_L*R_i*x4**2"] and np.isnan(art.values["m_real_interval"]).all()
+    assert np.array_equal(art.values["m_domain"], [[-120.0, 0.0]])
+    assert art.values["condition_ii_symbolic"]
+    with pytest.raises(DesignError, match="not a left inverse of p on V"):
+        # the other branch of the quadratic (eq. mEquation)
+        _design_inverse(text.replace("+ sqrt(E**2", "- sqrt(E**2"), tmp_path / "other")

@@ -45,3 +45,49 @@ def test_l_leaving_U_is_refused():
     model = build_model(parse_spec_text(CUK.read_text().replace('l: ["xi"]', 'l: ["2*xi"]')))
     with pytest.raises(DesignError, match=r"l\(V\)"):
         manifold.run(model, {})
+
+
+def test_degree_is_raised_past_the_old_cap_of_12_until_the_tolerance_is_met():
+    # Issue: a manifold needing degree 17 was refused with the old default pde_max_degree 12. Without the key
+    # the fit now goes on (the cap is a safety limit) and reports the degree it used.
+    from .conftest import SPECS
+    text = (SPECS / "saturating_spring.yaml").read_text().replace("  pde_max_degree: 30\n", "")
+    assert "pde_max_degree" not in text
+    model = build_model(parse_spec_text(text))
+    art = manifold.run(model, {})
+    degree = int(art.meta["method"].split("degree ")[1].split(" ")[0])
+    assert 12 < degree <= 30
+    assert art.values["residual"] < 1e-9 * art.values["residual_scale"]
+
+
+def test_a_fit_that_stops_improving_stops_early_and_says_so():
+    # p(xi) = |xi| has a kink at 0: Chebyshev fits converge only like 1/degree there, and the search stops
+    # long before the cap of 64 (x' = -x + |u| style plant with l(xi) = xi).
+    import dataclasses
+    model = dataclasses.replace(build_model(parse_spec_text(_kinked_spec())), numeric_paths=True)   # as `--numeric`
+    with pytest.raises(DesignError, match=r"stopped improving at degree (\d+)") as info:
+        manifold.run(model, {})
+    assert int(info.value.what.split("degree ")[1].split(" ")[0]) < 40
+
+
+def _kinked_spec() -> str:
+    return """
+name: kinked
+concrete:
+  states: [x1]
+  inputs: [u]
+  f_bar: ["-x1"]
+  g: [["1"]]
+  h: ["x1"]
+  input_bounds: [[-2, 2]]
+  output_set: [[0.1, 0.9]]
+stabilisability: {method: polytopic_lmi, decay_rate: 0.5, feedback: identity}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["abs(xi) + 0.1*xi"]
+  domain: [[-1, 1]]
+  delta: identity
+  pde_tolerance: 1.0e-12
+"""

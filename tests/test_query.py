@@ -122,3 +122,14 @@ def test_ladder_headline_and_summary_have_no_inf(ladder_numeric):
     assert "inf" not in line and "m (Chebyshev interpolant of kappa^-1) certified for y in kappa(V) = [9.61316, 22.2206]" in line
     entry = summary(load_all(ladder_numeric["out"]))["inverse"]
     assert "inf" not in json.dumps(entry) and None not in entry["m_real_interval"]
+
+
+def test_eval_accepts_every_declared_name_and_refuses_undeclared_ones(cli_run):
+    # Issue: `ashc eval DIR m --at` with all state names was refused because m uses only x4.
+    out = cli_run["out"]
+    proc = ashc("eval", str(out), "m", "--at", "x1=10.3256,x2=2.0561,x3=-4.9785,x4=-6.9732")
+    assert proc.returncode == 0, proc.stderr
+    proc = ashc("eval", str(out), "m", "--at", "x1=1,x2=1,x3=1,x4=-6.9732,u=0.5,xi=0.3,v=1")   # inputs and abstract names too
+    assert proc.returncode == 0, proc.stderr
+    proc = ashc("eval", str(out), "m", "--at", "x4=-6.9732,x9=1")
+    assert proc.returncode == 2 and "unknown variable(s) x9" in proc.stderr

@@ -2,9 +2,13 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from ashc_cli.artefacts import read_artefact
 from ashc_cli.stages import simulate
+from ashc_cli.stages.simulate import SAMPLE_DT, sample_times
+
+from .conftest import SPECS, edited
 
 
 @pytest.fixture(scope="module")
@@ -80,3 +84,41 @@ def test_posterior_bound_holds_and_is_tighter_than_the_uniform_one(sim):
     assert v["tracking/posterior_tightening"] > 10
     assert v["tracking/posterior_bound_max"] < v["tracking/uniform_bound"]
 
+
+
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0.0, 50.0), st.floats(1e-6, 20.0), st.sampled_from([SAMPLE_DT, 1e-3, 0.1, 0.3]))
+def test_sample_times_never_leave_the_segment(t0, length, dt):
+    # solve_ivp refuses t_eval outside t_span; np.arange overshot it for dwell 0.3, t_final 1.2.
+    t1 = t0 + length
+    t = sample_times(t0, t1, dt)
+    assert t[0] == t0 or length < 1e-12 * max(1.0, t1)
+    assert t[-1] == t1
+    assert np.all(t >= t0) and np.all(t <= t1) and np.all(np.diff(t) > 0)
+
+
+def test_dwell_that_does_not_divide_t_final_runs(tmp_path):
+    # Issue: dwell 0.3 with t_final 1.2 crashed simulate ("Values in t_eval are not within t_span").
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+    spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("t_final: 9.0", "t_final: 1.2"), ("dwell: 3.0", "dwell: 0.3"),
+                  ("reference_levels: [0.5, -0.8, 0.2]", "reference_levels: [0.5, -0.8, 0.2, 0.4, -0.3]"))
+    arts = run(load_spec(spec), tmp_path / "out", ("simulate",))
+    t = np.asarray(arts["simulate"].values["tracking/t"])
+    assert t[-1] == pytest.approx(1.2) and np.all(np.diff(t) > 0)
+
+
+def test_a_failed_scenario_check_is_shown_by_simulate_and_by_check(tmp_path):
+    # Issue: tracking_settled failed silently. A set-point gain far too small for the dwell cannot settle.
+    from .conftest import ashc
+    spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("gain: 5.0", "gain: 0.05"))
+    out = tmp_path / "out"
+    proc = ashc("simulate", str(spec), "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert "FAILED (simulated): tracking_settled" in proc.stdout + proc.stderr
+    proc = ashc("check", str(spec), "--out", str(out))
+    assert proc.returncode == 0                                     # the design verdict is unchanged
+    assert "Simulated scenarios" in proc.stdout
+    assert any(line.split()[:3] == ["fail", "simulated", "tracking_settled"] for line in proc.stdout.splitlines())

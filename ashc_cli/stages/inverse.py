@@ -24,10 +24,20 @@ Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m
 ``m_real_interval`` has an infinite end only where that is proved: symbolically (no radicand, or a radicand
 that stays non-negative), or because m is linear.
 
-When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = P^+ (x - p0) for any
+When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = K (x - p0) for any
 numbers of abstract states and outputs: p is injective iff P has full column rank, m is real everywhere, and
 kappa(V) covers Y iff every vertex of the box Y is reached from V (a linear program per vertex, since kappa(V)
-is a convex polytope).
+is a convex polytope).  K is chosen in the family of left inverses of P, K = P^+ + Z (I - P P^+), with
+condition (ii) in view: for a linear h = C x, h(x - p(m(x))) = C (I - P K)(x - p0) vanishes for every x iff
+C (I - P K) = 0.  K = P^+ when it satisfies that; otherwise the least-norm K with K P = I and C P K = C (one
+linear system in vec(K), solved by least squares); when no K does, P^+ is kept and condition (ii) fails with
+that reason.  ``meta/construction`` names the construction used: ``pseudo-inverse``, ``least-norm left
+inverse with C(I - P K) = 0``, ``kappa^-1(h(x))`` (the nonlinear paths, m = kappa^-1(h(x)), which satisfies
+(ii) by construction) or ``explicit (spec)``.
+
+A spec may give m itself (``abstract.m``, n_hat expressions in the concrete states): it is checked, not
+trusted: m(p(xi)) = xi on a grid of V (and symbolically when sympy reduces it to 0), condition (ii) on samples
+of X_y (and symbolically), m real and finite there, and kappa(V) covering Y; any failure is refused (exit 3).
 """
 
 from __future__ import annotations
@@ -54,6 +64,13 @@ LEFT_INVERSE_TOL = 1e-9
 #: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
 CONDITION_II_RTOL = 1e-9
 SAMPLES = 2000
+#: A left inverse K of an affine p satisfies condition (ii) exactly when max |C (I - P K)| is below this (relative to max |C|).
+CONDITION_II_MATRIX_RTOL = 1e-10
+#: The names of the constructions of m (``meta/construction``).
+PSEUDO_INVERSE = "pseudo-inverse"
+LEAST_NORM = "least-norm left inverse with C(I - P K) = 0"
+KAPPA_INVERSE = "kappa^-1(h(x))"
+EXPLICIT = "explicit (spec)"
 #: An output this far outside ``m_domain`` (times the width of the interval, at least 1) still counts as inside:
 #: the ends are floating-point values of kappa at the ends of V.
 DOMAIN_RTOL = 1e-9
@@ -160,76 +177,169 @@ def sample_box(model: Model, p_grid: np.ndarray) -> np.ndarray:
     return np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
 
 
-def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_grid: np.ndarray) -> None:
-    """Conditions (i) and (ii) of Theorem mCondi, measured the same way on either path."""
+def x_y_samples(model: Model, p_grid: np.ndarray) -> np.ndarray:
+    """The ``SAMPLES`` random states of X_y = {x : h(x) in Y} (seed 0) on which condition (ii) is measured."""
+    h_num = model.numeric(model.h, list(model.x))
+    return sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
+
+
+def condition_ii_measure(model: Model, p: sp.Matrix, m: sp.Matrix, samples: np.ndarray) -> float:
+    """max |h(x) - h(p(m(x)))| / |Y| over the samples of X_y (inf without samples, NaN where m is not real)."""
+    if not samples.size:
+        return np.inf
+    h_num = model.numeric(model.h, list(model.x))
+    m_val = np.broadcast_to(model.numeric(m, list(model.x))(*samples)[:, 0, :], (model.n_hat, samples.shape[1]))
+    x_proj = np.broadcast_to(model.numeric(p, list(model.xi))(*m_val)[:, 0, :], samples.shape)
+    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
+    return float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
+
+
+def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_grid: np.ndarray,
+                   failure: tuple[str, str] | None = None) -> None:
+    """Conditions (i) and (ii) of Theorem mCondi, measured the same way on every path.
+
+    ``failure`` (what, expected) replaces the generic explanation when condition (ii) fails (the affine path
+    knows why: no left inverse of P satisfies C (I - P K) = 0).
+    """
     m_num = model.numeric(m, list(model.x))
     p_num = model.numeric(p, list(model.xi))
-    p_back = p_num(*m_num(*p_grid)[:, 0, :])[:, 0, :]
+    m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
+    p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
     cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
-    h_num = model.numeric(model.h, list(model.x))
-    samples = sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
-    x_proj = p_num(*m_num(*samples)[:, 0, :])[:, 0, :]
-    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
-    cond_ii = float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max())) if samples.size else np.inf
-    if cond_ii > CONDITION_II_RTOL:
-        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)", check="condition_ii")
+    cond_ii = condition_ii_measure(model, p, m, x_y_samples(model, p_grid))
+    if not cond_ii <= CONDITION_II_RTOL:   # NaN (m not real at a sample) fails too
+        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
+        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
     art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
     art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
 
 
+def affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[np.ndarray, np.ndarray]:
+    """(J, c) with expr(xi) = J xi + c numerically, for an expression affine in xi and its stored Jacobian."""
+    J = np.array(model.substitute(jacobian), dtype=float).reshape(expr.shape[0], model.n_hat)
+    c = np.array(model.substitute(expr.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+    return J, c
+
+
+def choose_left_inverse(P: np.ndarray, C: np.ndarray | None) -> dict:
+    """The left inverse K of P (K P = I) used for m(x) = K (x - p0), chosen with condition (ii) in view.
+
+    Every left inverse of a P of full column rank is K = P^+ + Z (I - P P^+).  With a linear h = C x,
+    condition (ii) holds for every x iff C (I - P K) = 0, i.e. C P K = C.  P^+ is kept when it satisfies
+    that (it is then the least-norm solution anyway); otherwise the least-norm K of the linear system
+    K P = I, C P K = C (in vec(K), Frobenius norm) is taken from ``numpy.linalg.lstsq``, and used when its
+    residual shows the system is solvable.  When it is not (or h is not linear), K = P^+.
+
+    Returns
+    -------
+    dict
+        K (n_hat x n); construction (``PSEUDO_INVERSE`` or ``LEAST_NORM``); residual_pinv and residual:
+        max |C (I - P K)| / max(1, max |C|) for P^+ and for K (NaN for a nonlinear h); solvable (whether some
+        left inverse satisfies C (I - P K) = 0; None for a nonlinear h); system_residual (of the least-squares
+        solve, NaN if not needed).
+    """
+    n, n_hat = P.shape
+    P_plus = np.linalg.pinv(P)
+    out = {"K": P_plus, "construction": PSEUDO_INVERSE, "residual_pinv": np.nan, "residual": np.nan, "solvable": None, "system_residual": np.nan}
+    if C is None:
+        return out
+    scale = max(1.0, float(np.abs(C).max()))
+    r_plus = float(np.abs(C @ (np.eye(n) - P @ P_plus)).max()) / scale
+    out.update(residual_pinv=r_plus, residual=r_plus)
+    if r_plus <= CONDITION_II_MATRIX_RTOL:
+        out["solvable"] = True
+        return out
+    # vec (column-major): vec(K P) = (P^T kron I_nhat) vec K and vec(C P K) = (I_n kron C P) vec K.
+    system = np.vstack([np.kron(P.T, np.eye(n_hat)), np.kron(np.eye(n), C @ P)])
+    rhs = np.concatenate([np.eye(n_hat).ravel(order="F"), C.ravel(order="F")])
+    vec, *_ = np.linalg.lstsq(system, rhs, rcond=None)
+    K = vec.reshape(n_hat, n, order="F")
+    out["system_residual"] = float(np.abs(system @ vec - rhs).max())
+    r_K = float(np.abs(C @ (np.eye(n) - P @ K)).max()) / scale
+    left_K = float(np.abs(K @ P - np.eye(n_hat)).max())
+    out["solvable"] = bool(r_K <= CONDITION_II_MATRIX_RTOL and left_K <= CONDITION_II_MATRIX_RTOL)
+    if out["solvable"]:
+        out.update(K=K, construction=LEAST_NORM, residual=r_K)
+    return out
+
+
+def _cover_affine(model: Model, kap: Artefact) -> tuple[list, np.ndarray]:
+    """eq. SimuLocalRequire for an affine kappa: the vertices of Y no xi in V reaches (a linear program per vertex,
+    kappa(V) being a convex polytope), and the box of kappa over the corners of V."""
+    K, k0 = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+    missing = []
+    for vertex in itertools.product(*[(lo, hi) for lo, hi in model.Y]):
+        lp = sopt.linprog(np.zeros(model.n_hat), A_eq=K, b_eq=np.array(vertex) - k0, bounds=[tuple(b) for b in model.V], method="highs")
+        if lp.status != 0:
+            missing.append(list(vertex))
+    corners = np.array(list(itertools.product(*[(lo, hi) for lo, hi in model.V]))).T
+    k_corners = K @ corners + k0[:, None]
+    return missing, np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
+
+
 def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
-    """The left inverse m(x) = P^+ (x - p0) of an affine p(xi) = P xi + p0, and its checks."""
+    """The left inverse m(x) = K (x - p0) of an affine p(xi) = P xi + p0 (K from :func:`choose_left_inverse`), and its checks."""
     p = man.expr("p")
-    P = np.array(model.substitute(man.expr("dp_dxi")), dtype=float)
-    p0 = np.array(model.substitute(p.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+    P, p0 = affine_parts(model, p, man.expr("dp_dxi"))
     sv = np.linalg.svd(P, compute_uv=False)
     if sv.min() <= 1e-12 * max(1.0, sv.max()):
         raise DesignError("abstract", f"p(xi) = P xi + p0 is not injective: P has rank {int(np.sum(sv > 1e-12 * sv.max()))} < n_hat = {model.n_hat}",
                           "P of full column rank (Thm. mCondi)", check="left_inverse")
-    P_plus = np.linalg.pinv(P)
-    m = sp.Matrix(P_plus.tolist()) * (model.x - sp.Matrix(p0.tolist()))
+    C = model.C
+    choice = choose_left_inverse(P, C)
+    K_m = choice["K"]
+    m = sp.Matrix(K_m.tolist()) * (model.x - sp.Matrix(p0.tolist()))
     grid = np.asarray(man.value("xi_grid"))
     p_grid = np.asarray(man.value("p_grid"))
-    left_residual = float(np.abs(P_plus @ (p_grid - p0[:, None]) - grid).max())
+    left_residual = float(np.abs(K_m @ (p_grid - p0[:, None]) - grid).max())
 
     # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope).
-    kappa = kap.expr("kappa")
-    K = np.array(model.substitute(kap.expr("dkappa_dxi")), dtype=float)
-    k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
-    Y, V = model.Y, model.V
-    missing = []
-    for vertex in itertools.product(*[(lo, hi) for lo, hi in Y]):
-        lp = sopt.linprog(np.zeros(model.n_hat), A_eq=K, b_eq=np.array(vertex) - k0, bounds=[tuple(b) for b in V], method="highs")
-        if lp.status != 0:
-            missing.append(list(vertex))
-    corners = np.array(list(itertools.product(*[(lo, hi) for lo, hi in V]))).T
-    k_corners = K @ corners + k0[:, None]
-    k_range = np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
+    missing, k_range = _cover_affine(model, kap)
+    K_kappa, _ = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
     covers = not missing
     if not covers:
         raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): no xi in V reaches the output(s) {missing}",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
 
-    art = Artefact(stage=NAME, meta={"method": "linear: m(x) = P^+ (x - p0)", "samples": SAMPLES, "sample_seed": 0,
-                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    least_norm = choice["construction"] == LEAST_NORM
+    method = ("linear: m(x) = K (x - p0), K the least-norm left inverse of P with C (I - P K) = 0 (P^+ fails condition (ii))" if least_norm
+              else "linear: m(x) = P^+ (x - p0)")
+    art = Artefact(stage=NAME, meta={"method": method, "construction": choice["construction"], "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL,
+                                      "condition_ii_matrix_rtol": CONDITION_II_MATRIX_RTOL})
     art.exprs.update({"m": m, "dm_dx": m.jacobian(model.x)})
+    symbolic_ii = bool(C is not None and np.abs(C @ (np.eye(model.n) - P @ K_m)).max() < 1e-12)
     art.values.update({
-        "V": V, "Y": Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
-        "left_inverse_residual": left_residual, "condition_ii_symbolic": bool(np.abs(K @ P_plus @ np.eye(model.n) - np.array(model.C)).max() < 1e-12),
-        "min_abs_dkappa": float(np.linalg.svd(K, compute_uv=False).min()),
+        "V": model.V, "Y": model.Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
+        "left_inverse_residual": left_residual, "condition_ii_symbolic": symbolic_ii,
+        "min_abs_dkappa": float(np.linalg.svd(K_kappa, compute_uv=False).min()),
+        "left_inverse_matrix": K_m,
+        # max |C (I - P K)| / max(1, max |C|) for P^+ and for the K used (NaN for a nonlinear h)
+        "condition_ii_matrix_pinv": choice["residual_pinv"], "condition_ii_matrix": choice["residual"],
     })
+    if least_norm:
+        samples = x_y_samples(model, p_grid)
+        pinv_m = sp.Matrix(np.linalg.pinv(P).tolist()) * (model.x - sp.Matrix(p0.tolist()))
+        art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p, pinv_m, samples)
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["V_covers_Y"] = Check(float(len(missing)), covers, "eq. SimuLocalRequire: vertices of Y not reached from V (0)")
     art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
-    if model.n_hat == 1 and model.p == 1 and art.values["condition_ii_symbolic"]:
+    which = "m = K (x - p0)" if least_norm else "m = P^+ (x - p0)"
+    if model.n_hat == 1 and model.p == 1 and symbolic_ii:
         # kappa(m(x)) = h(x) for every x and kappa is a bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
-        _certify(art, model, k_range, "kappa(V)", "kappa(V): m = P^+ (x - p0) is linear and real everywhere, and m(x) lies in V "
+        _certify(art, model, k_range, "kappa(V)", f"kappa(V): {which} is linear and real everywhere, and m(x) lies in V "
                  "(where the abstraction is certified) exactly when h(x) lies in kappa(V)")
     else:
-        _certify(art, model, Y, "Y", "Y: m = P^+ (x - p0) is linear and real everywhere; conditions (i), (ii) are certified on "
+        _certify(art, model, model.Y, "Y", f"Y: {which} is linear and real everywhere; conditions (i), (ii) are certified on "
                  "X_y = h^-1(Y), and kappa(V) is not an interval of one output here")
-    _checks_common(art, model, p, m, p_grid)
+    failure = None
+    if choice["solvable"] is False:
+        failure = (f"; no left inverse K of P satisfies C (I - P K) = 0 (with K = P^+, max |C (I - P P^+)| = {choice['residual_pinv']:.3g}; "
+                   f"least-squares residual of K P = I, C P K = C: {choice['system_residual']:.3g})",
+                   "an abstraction whose kappa = C P has full row rank (at least as many abstract states as independent outputs), "
+                   "or C^T in the range of P: change abstract.states, phi_bar or l, or the outputs h")
+    _checks_common(art, model, p, m, p_grid, failure)
     return art
 
 
@@ -333,7 +443,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y", "Y inside the outputs where kappa^-1 is defined", check="m_real_on_Y")
     if not covers:
         raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): kappa^-1(Y) leaves V by {excursion:.4g}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
-    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "samples": SAMPLES, "sample_seed": 0,
+    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": m.jacobian(model.x)})
     dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
@@ -354,6 +464,136 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     return art
 
 
+#: Points of the grid of Y on which kappa(V) covering Y is checked for an explicit m with a nonlinear kappa of
+#: several abstract states (a bounded least-squares solve of kappa(xi) = y per point).
+COVER_POINTS = 400
+
+
+def _cover_by_search(model: Model, kap: Artefact) -> float:
+    """eq. SimuLocalRequire on a grid of Y: the largest |kappa(xi) - y| left by a bounded least-squares search
+    for xi in V (from the nearest point of kappa's grid), relative to the size of Y (0 when covered)."""
+    kappa_num = model.numeric(kap.expr("kappa"), list(model.xi))
+    jac_num = model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
+    xs, ks = np.asarray(kap.value("xi_grid")), np.asarray(kap.value("kappa_grid"))
+    ys = domain_grid(model.Y, COVER_POINTS)
+    lo, hi = model.V[:, 0], model.V[:, 1]
+    worst = 0.0
+    for y in ys.T:
+        start = xs[:, int(np.argmin(np.abs(ks - y[:, None]).sum(axis=0)))]
+        fit = sopt.least_squares(lambda z: kappa_num(*z)[:, 0] - y, start, jac=lambda z: np.asarray(jac_num(*z), dtype=float).reshape(model.p, model.n_hat),
+                                 bounds=(lo, hi), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        worst = max(worst, float(np.abs(fit.fun).max()))
+    return worst / max(1.0, float(np.ptp(model.Y, axis=1).max()))
+
+
+def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """Check the left inverse the spec gives (``abstract.m``) and store it like the constructed ones.
+
+    Checked, not trusted: m(p(xi)) = xi on the grid of V (symbolically when sympy reduces m(p(xi)) - xi to
+    0), m real and finite on samples of X_y, condition (ii) on them (symbolically: h(p(m(x))) - h(x) = 0),
+    condition (i), and kappa(V) covering Y (linear programs for an affine kappa, kappa's range on V for one
+    abstract state and one output, else a bounded search per point of a grid of Y).
+
+    Raises
+    ------
+    DesignError
+        If m is not a left inverse of p on V (check ``left_inverse``), is not real and finite on X_y
+        (``m_real_on_Y``), fails condition (ii) (``condition_ii``), or kappa(V) does not cover Y (``V_covers_Y``).
+    """
+    p, kappa = man.expr("p"), kap.expr("kappa")
+    m = model.m_given
+    grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
+    m_num = model.numeric(m, list(model.x))
+
+    # m(p(xi)) = xi on V (Thm. mCondi, step 1: p is injective on V with m as its left inverse).
+    back = np.broadcast_to(m_num(*p_grid)[:, 0, :], grid.shape)
+    errors = np.abs(back - grid).max(axis=0)
+    left_residual = float(errors.max()) if np.all(np.isfinite(back)) else np.inf
+    if not left_residual <= LEFT_INVERSE_TOL:
+        worst = int(np.argmax(np.where(np.isfinite(errors), errors, np.inf)))
+        raise DesignError("abstract.m", f"the given m is not a left inverse of p on V: max |m(p(xi)) - xi| = {left_residual:.3g} (at xi = {np.round(grid[:, worst], 6).tolist()})",
+                          f"m(p(xi)) = xi for every xi in V (Thm. mCondi), to {LEFT_INVERSE_TOL:g}; or leave abstract.m out to have m constructed", check="left_inverse")
+    polynomial = all(e.is_polynomial(*model.x) for e in m)
+    symbolic_left = proofs.symbolic_zero(list(m.xreplace(dict(zip(model.x, p))) - model.xi))
+
+    # m real and finite where it is used: on the samples of X_y (everywhere when m is a polynomial).
+    samples = x_y_samples(model, p_grid)
+    m_on_samples = np.asarray(m_num(*samples)) if samples.size else np.zeros((model.n_hat, 1, 0))
+    finite = bool(samples.size and np.all(np.isfinite(m_on_samples)))
+    if not finite:
+        raise DesignError("abstract.m", "the given m is not real and finite on the samples of X_y = {x : h(x) in Y}", "an m real and finite wherever h(x) is in Y", check="m_real_on_Y")
+    radicands = sorted({str(pw.base) for e in m for pw in e.atoms(sp.Pow) if pw.exp.is_Rational and pw.exp.q % 2 == 0})
+
+    # Condition (ii): h(p(m(x))) = h(x), symbolically when sympy can; sampled in _checks_common.
+    composed = model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h
+    symbolic_ii = proofs.symbolic_zero(list(composed))
+    cond_ii = condition_ii_measure(model, p, m, samples)
+    if not cond_ii <= CONDITION_II_RTOL:
+        raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
+                          "x - p(m(x)) in Ker(h) for x in X_y (Corollary mRelateGeo): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
+
+    # eq. SimuLocalRequire: kappa(V) covers Y.
+    Y, V = model.Y, model.V
+    kappa_affine = proofs.affine_in(kappa, list(model.xi))
+    if kappa_affine:
+        missing, k_range = _cover_affine(model, kap)
+        cover_value, covers = float(len(missing)), not missing
+        cover_text = "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
+        failure = f"no xi in V reaches the output(s) {missing}"
+    else:
+        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+        if model.n_hat == 1 and model.p == 1:
+            # kappa is continuous and V an interval: kappa(V) is the interval between its extremes on V.
+            cover_value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
+            cover_text = "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)"
+            failure = f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}"
+            covers = cover_value <= 0
+        else:
+            cover_value = _cover_by_search(model, kap)
+            cover_text = f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)"
+            failure = f"some outputs of Y are not kappa(xi) for any xi in V (residual {cover_value:.3g})"
+            covers = cover_value <= 1e-9
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
+
+    grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
+    art = Artefact(stage=NAME, meta={"method": "explicit m from the spec (abstract.m), checked", "construction": EXPLICIT, "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "dm_dx": m.jacobian(model.x)})
+    art.values.update({
+        "V": V, "Y": Y, "kappa_range": k_range,
+        # A polynomial m is real everywhere; otherwise it is only checked real and finite on samples (NaN ends).
+        "m_real_interval": np.array([-np.inf, np.inf]) if polynomial else np.array([np.nan, np.nan]),
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
+        "condition_ii_symbolic": bool(symbolic_ii), "min_abs_dkappa": float(np.linalg.svd(grid_dk, compute_uv=False).min()),
+    })
+    # Proved only for a polynomial m (defined everywhere); sympy's identities may hold only where m is real.
+    proved_left, proved_ii = bool(polynomial and symbolic_left), bool(polynomial and symbolic_ii)
+    left_text = f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V, with the spec's m as left inverse"
+    art.checks["left_inverse"] = Check(left_residual, True, left_text + ("; proved (m(p(xi)) - xi simplifies to 0, sympy)" if proved_left else ""),
+                                       proofs.PROVED if proved_left else proofs.SAMPLED)
+    art.checks["V_covers_Y"] = Check(cover_value, True, cover_text)
+    if polynomial:
+        art.checks["m_real_on_Y"] = Check(0.0, True, "m is a polynomial in x, hence real everywhere", proofs.PROVED)
+    else:
+        art.checks["m_real_on_Y"] = Check(0.0, True, f"m real and finite on {samples.shape[1]} samples of X_y")
+    if model.n_hat == 1 and model.p == 1 and kappa_affine and symbolic_ii:
+        # kappa(m(x)) = h(x) for every x and kappa is an affine bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
+        _certify(art, model, k_range, "kappa(V)", "kappa(V): the spec's m satisfies kappa(m(x)) = h(x) for every x (sympy) and kappa is affine, "
+                 "so m(x) lies in V (where the abstraction is certified) exactly when h(x) lies in kappa(V)")
+    else:
+        _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
+    _checks_common(art, model, p, m, p_grid)
+    if proved_left:
+        chk = art.checks["condition_i"]
+        if chk.passed:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
+            art.checks["condition_i"] = replace(chk, description=f"{chk.description}; proved (m(p(xi)) = xi symbolically)", evidence=proofs.PROVED)
+    if proved_ii:
+        chk = art.checks["condition_ii"]
+        art.checks["condition_ii"] = replace(chk, description=f"{chk.description}; proved (h(p(m(x))) - h(x) simplifies to 0, sympy)", evidence=proofs.PROVED)
+    return art
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
 
@@ -367,10 +607,13 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     ------
     DesignError
         If the shapes are not supported, no branch of m is a left inverse on V (p not injective),
-        kappa(V) does not cover Y, or m is not real on all of Y.
+        kappa(V) does not cover Y, or m is not real on all of Y; for an explicit ``abstract.m``, if it is not
+        a left inverse of p on V or fails condition (ii).
     """
     man, kap = upstream["manifold"], upstream["kappa"]
     p, kappa = man.expr("p"), kap.expr("kappa")
+    if model.m_given is not None:
+        return run_explicit(model, man, kap)
     if not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi")):
         return run_linear(model, man, kap)
     if model.n_hat != model.p:
@@ -427,7 +670,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     symbolic_ii = bool(method.startswith("closed") and sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0)
 
-    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method,
+    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method, "construction": KAPPA_INVERSE,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": m.jacobian(model.x)})
     if method.startswith("Chebyshev"):
@@ -538,6 +781,10 @@ def summarise(art: Artefact) -> dict:
         "m_real_interval": [float(b) if np.isfinite(b) else None for b in np.asarray(v["m_real_interval"])],
         "kappa_range": np.asarray(v["kappa_range"]).tolist(), "method": art.meta.get("method", "closed form (sympy.solve of kappa(m) = y)"),
     }
+    if "construction" in art.meta:
+        out["construction"] = art.meta["construction"]
+    if "condition_ii_pseudo_inverse" in v:
+        out["condition_ii_pseudo_inverse"] = float(v["condition_ii_pseudo_inverse"])
     if "m_domain" in v:
         out.update({"m_domain": (np.asarray(v["m_domain"], dtype=float) + 0.0).tolist(), "m_domain_set": art.meta.get("m_domain_set"),
                     "m_domain_meaning": art.meta.get("m_domain")})

@@ -145,6 +145,24 @@ def _check_grid(box: np.ndarray) -> np.ndarray:
     return domain_grid(box, 1001 if len(box) == 1 else 41 ** len(box) if len(box) == 2 else 4096)
 
 
+#: The numeric equilibria are first found at this many + 1 Chebyshev nodes (enough for degree 30).
+FIRST_NODES_DEGREE = 30
+#: A fit has stopped improving when its best residual fell by less than STALL_FACTOR over STALL_DEGREES degrees.
+STALL_DEGREES = 6
+STALL_FACTOR = 0.5
+
+
+def stalled(history: list[float]) -> bool:
+    """True when the best residual has not halved over the last ``STALL_DEGREES`` raises of the degree.
+
+    A smooth (analytic) manifold gains a constant factor per degree, so a fit that stalls is fitting a
+    manifold with a kink or a near-singularity on V, where a higher degree only costs time.
+    """
+    if len(history) <= STALL_DEGREES:
+        return False
+    return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
+
+
 def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
     """Tensor Chebyshev collocation for eq. SimuDesignCond1 (phi_bar != 0), any number of abstract states.
 
@@ -175,8 +193,11 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
     check = _check_grid(box)
     phi_check = phi_num(*check)[:, 0, :]
     coeffs = np.zeros((n,) + (1,) * nh)
-    best = np.inf
+    best, history = np.inf, []
     for degree in range(1, max_degree + 1):
+        if stalled(history):
+            raise DesignError("abstract.phi_bar", f"the polynomial fit of eq. SimuDesignCond1 stopped improving at degree {degree - 1} (relative residual "
+                              f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial", "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
         grown = np.zeros((n,) + (degree + 1,) * nh)
         grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
         z = chebyshev.nodes(box, 2 * (degree + 1))
@@ -198,6 +219,7 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
         fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
         coeffs = fit.x.reshape(grown.shape)
         best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
+        history.append(best)
         if best <= tol:
             return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
     raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. SimuDesignCond1 on V to {tol:g}: the best relative residual is {best:.3g}",
@@ -289,8 +311,10 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
 def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
     """p for phi_bar = 0 without a closed form: Newton continuation on Chebyshev nodes, then a Chebyshev fit.
 
-    The equilibria are found at ``pde_max_degree + 1`` Chebyshev nodes per axis; the fitted degree is raised
-    until the relative residual of f(p(xi), l(xi)) = 0 on an independent grid is below ``pde_tolerance``.
+    The equilibria are found at Chebyshev nodes (31 first, twice as many whenever the degree outgrows
+    them); the fitted degree is raised until the relative residual of f(p(xi), l(xi)) = 0 on an independent
+    grid is below ``pde_tolerance``, or the fit stops improving (:func:`stalled`), or the safety cap
+    ``pde_max_degree`` is reached.
 
     Returns
     -------
@@ -298,17 +322,30 @@ def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
     """
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box = model.V
-    z = chebyshev.nodes(box, max_degree + 1)
-    X = continuation(model, z)
     F = _residual_function(model)
     check = _check_grid(box)
     phi_check = np.zeros((model.n_hat, check.shape[1]))   # phi_bar = 0 here
-    best = np.inf
-    for degree in range(1, max_degree + 1):
+    best, history = np.inf, []
+    nodes_degree = min(max_degree, FIRST_NODES_DEGREE)
+    z = chebyshev.nodes(box, nodes_degree + 1)
+    X = continuation(model, z)
+    degree = 0
+    while degree < max_degree:
+        degree += 1
+        if degree > nodes_degree:
+            # More nodes for a higher degree: the equilibria are found again at twice as many.
+            nodes_degree = min(max_degree, 2 * nodes_degree)
+            z = chebyshev.nodes(box, nodes_degree + 1)
+            X = continuation(model, z)
         coeffs = chebyshev.fit(X, box, z, degree)
         best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
+        history.append(best)
         if best <= tol:
             return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
+        if stalled(history):
+            raise DesignError("abstract.domain", f"the Chebyshev fit of the numeric equilibrium manifold stopped improving at degree {degree} "
+                              f"(relative residual {best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial",
+                              "a smaller domain V, or a larger abstract.pde_tolerance")
     raise DesignError("abstract.domain", f"the numeric equilibrium manifold is not fitted to {tol:g} by Chebyshev polynomials of degree <= {max_degree}: the best relative residual is {best:.3g}",
                       "a smaller domain V, or a larger abstract.pde_max_degree or pde_tolerance")
 

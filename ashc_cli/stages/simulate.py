@@ -160,6 +160,17 @@ def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarra
     return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
 
 
+def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
+    """Sample times t0, t0 + dt, ... strictly below t1, then t1: increasing, never outside [t0, t1].
+
+    (np.arange can overshoot t1 by rounding, which solve_ivp refuses as "not within t_span".)
+    """
+    n = int(np.floor((t1 - t0) / dt)) + 1
+    inner = t0 + dt * np.arange(max(n, 1))
+    inner = inner[inner < t1 - 1e-12 * max(1.0, abs(t1))]
+    return np.r_[inner, t1]
+
+
 def _integrate(rhs, t_span, z0, t_eval, tol, what, events=None):
     """solve_ivp with the given tolerances; a failure or a non-finite state is a NumericalError.
 
@@ -207,9 +218,9 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     k = 0
     while t0 < tr.t_final - 1e-12:
         i = min(k, len(levels) - 1)
-        t1 = tr.t_final if k >= len(levels) - 1 else min(tr.t_final, t0 + tr.dwell)
-        t_eval = np.arange(t0, t1, SAMPLE_DT)
-        t_eval = np.r_[t_eval, t1] if t_eval[-1] < t1 - 1e-12 else t_eval
+        # Segment ends as multiples of the dwell (not sums, which drift by rounding).
+        t1 = tr.t_final if k >= len(levels) - 1 else min(tr.t_final, (k + 1) * tr.dwell)
+        t_eval = sample_times(t0, t1, SAMPLE_DT)
         sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
         keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
         ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
@@ -421,4 +432,12 @@ def headline(art: Artefact) -> str:
         parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}{post}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
+    failed = failed_checks(art)
+    if failed:
+        parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" for name, chk in failed.items()))
     return ", ".join(parts)
+
+
+def failed_checks(art: Artefact) -> dict:
+    """The scenario checks that did not pass (shown by ``simulate``, ``ashc check`` and the report)."""
+    return {name: chk for name, chk in art.checks.items() if not chk.passed}

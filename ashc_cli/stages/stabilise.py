@@ -7,8 +7,12 @@ With f(x, u) = A(u) x + b(u) and A affine in u (eq. ConvertSystemLinear), V(x, z
 
 for all u in U; since the left side is affine in u it suffices to impose it at the vertices of the box U.
 The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
-the normalisation trace(M) = n, and re-checked in numpy at the vertices and on a sweep of U.  M is searched
-in full, or diagonal (``stabilisability.structure``; ``auto`` tries a diagonal M first above
+the normalisation trace(M) = n, M >= 1e-3 I, and re-checked in numpy at the vertices and on a sweep of U.
+That normalisation bounds trace(M) / lambda_min(M) by 4000, so a rate whose every M is more ill-conditioned
+is refused by it; such a rate is then tried scale-free (:func:`solve_lmi_scale_free`: minimise the condition
+number, I <= M <= kappa I), and accepted only if the numpy re-check of its margin, relative to ||M||, is
+negative (:func:`certify_rate`, used by the fixed rate and by every step of the ``maximise`` bisection).
+M is searched in full, or diagonal (``stabilisability.structure``; ``auto`` tries a diagonal M first above
 :data:`FULL_MAX_STATES` states, where the dense SDP grows like n^6: 13 s at n = 64, 300 s and 7.7 GiB at 128).
 
 When f is not affine in x, the same LMI is imposed on a polytope that contains the Jacobian df/dx over
@@ -54,6 +58,9 @@ CERTIFIED_BACKOFF = 1e-6
 FULL_MAX_STATES = 32
 #: With a synthesised feedback the decay rate is searched up to this cap (1/s) by ``maximise``.
 FEEDBACK_MAX_RATE = 100.0
+#: The scale-free problem asks A^T M + M A + lambda M <= -SCALE_FREE_MARGIN kappa I with I <= M <= kappa I, so
+#: its margin relative to ||M|| is at least this (ten times MARGIN_TOL, room for the solver's tolerance).
+SCALE_FREE_MARGIN = 1e-6
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
@@ -231,8 +238,20 @@ def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> 
     status : str
         cvxpy's status string.
     """
+    M, t, status, _ = _max_margin(A_list, lam, structure)
+    return M, t, status
+
+
+def _max_margin(A_list: list[np.ndarray], lam: float, structure: str) -> tuple[np.ndarray | None, float, str, float]:
+    """:func:`solve_lmi`, and the optimal margin without the cone M >= eps I (inf when that problem had none).
+
+    The second number decides whether the scale-free problem can help: any M > 0 with a negative margin,
+    scaled to trace n, has a negative margin in the problem without the cone, so a non-negative optimum there
+    means that lambda is infeasible for every M.
+    """
     n = A_list[0].shape[0]
     eye = np.eye(n)
+    free_t = np.inf
     # First without the cone M >= eps I (a third of the work at n = 64): when some A + lambda/2 I is Hurwitz,
     # the LMI with t < 0 already forces M > 0 (Lyapunov), and M is checked; otherwise solve with the cone.
     for with_cone in (False, True):
@@ -243,12 +262,87 @@ def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> 
         problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g} ({structure} M)")
         if var.value is None or t.value is None:
             if with_cone:
-                return None, np.inf, str(problem.status)
+                return None, np.inf, str(problem.status), free_t
             continue
         Mv = _matrix(var, structure)
+        if not with_cone:
+            free_t = float(t.value)
         if with_cone or (float(t.value) < -MARGIN_TOL and np.linalg.eigvalsh(Mv).min() >= M_MIN_EIG):
-            return Mv, float(t.value), str(problem.status)
-    return None, np.inf, "infeasible"
+            return Mv, float(t.value), str(problem.status), free_t
+    return None, np.inf, "infeasible", free_t
+
+
+def solve_lmi_scale_free(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
+    """Find M for eq. egLMI at a fixed lambda whatever its scaling: the best-conditioned one.
+
+    Minimise kappa subject to I <= M <= kappa I and A^T M + M A + lambda M <= -SCALE_FREE_MARGIN kappa I at
+    every vertex.  Without the lower bound every constraint is homogeneous in (M, kappa), so feasibility does
+    not depend on how M is scaled (unlike trace(M) = n with M >= 1e-3 I, which caps trace(M) / lambda_min(M)
+    at 4000), and the margin relative to ||M|| <= kappa is at least SCALE_FREE_MARGIN.
+
+    Returns
+    -------
+    M : ndarray or None
+        The solution scaled to trace(M) = n (None if the solver found none).
+    kappa : float
+        The condition number bound of the solution (inf without one).
+    status : str
+        cvxpy's status string.
+    """
+    n = A_list[0].shape[0]
+    eye = np.eye(n)
+    kappa = cp.Variable()
+    if structure == "diagonal":
+        var = cp.Variable(n)
+        M = cp.diag(var)
+        constraints = [var >= 1.0, var <= kappa]
+    else:
+        var = M = cp.Variable((n, n), symmetric=True)
+        constraints = [M >> eye, M << kappa * eye]
+    constraints += [A.T @ M + M @ A + lam * M << -SCALE_FREE_MARGIN * kappa * eye for A in A_list]
+    problem = _solve(cp.Problem(cp.Minimize(kappa), constraints), f"the scale-free LMI at lambda = {lam:g} ({structure} M)")
+    if var.value is None or kappa.value is None:
+        return None, np.inf, str(problem.status)
+    Mv = _matrix(var, structure)
+    return n * Mv / np.trace(Mv), float(kappa.value), str(problem.status)
+
+
+def relative_margin(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> float:
+    """Largest eigenvalue of A^T M + M A + lambda M over the vertices, over ||M||_2 (numpy; < 0: certified)."""
+    return float(lmi_margins(A_list, M, lam).max() / np.linalg.eigvalsh(M).max())
+
+
+def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str, dict]:
+    """An M certifying eq. egLMI at lambda, or None: the feasibility test of a fixed rate and of the bisection.
+
+    First the maximum-margin problem (:func:`solve_lmi`; accepted when its margin is below -MARGIN_TOL, as
+    before, and the numpy margin of its M is negative), then, unless that problem shows lambda infeasible for
+    every M, the scale-free one (:func:`solve_lmi_scale_free`), accepted only when the numpy margin of its M
+    relative to ||M|| is below -MARGIN_TOL (the solver's word is not taken near the edge of feasibility).
+
+    Returns
+    -------
+    M : ndarray or None
+    t : float
+        The maximum-margin problem's optimal margin (for messages).
+    status : str
+    info : dict
+        ``formulation`` ("max_margin" or "scale_free"), and for the scale-free one its condition number bound
+        and re-checked relative margin.
+    """
+    M, t, status, free_t = _max_margin(A_list, lam, structure)
+    if M is not None and t < -MARGIN_TOL and lmi_margins(A_list, M, lam).max() < 0:
+        return M, t, status, {"formulation": "max_margin"}
+    # Necessary: every vertex has Re eig(A) < -lambda / 2; and the problem without the cone must have t < 0.
+    if free_t >= 0 or any(np.linalg.eigvals(A).real.max() >= -0.5 * lam for A in A_list):
+        return None, t, status, {}
+    Ms, kappa, status_s = solve_lmi_scale_free(A_list, lam, structure)
+    if Ms is None or not np.all(np.isfinite(Ms)):
+        return None, t, status, {}
+    rel = relative_margin(A_list, Ms, lam)
+    if rel < -MARGIN_TOL and np.linalg.eigvalsh(Ms).min() > 0:
+        return Ms, t, status_s, {"formulation": "scale_free", "condition_bound": kappa, "relative_margin": rel}
+    return None, t, status, {}
 
 
 def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full") -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
@@ -278,12 +372,16 @@ def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, stru
     return 0.5 * (M + M.T), Y.value @ M, float(t.value), str(problem.status)
 
 
-def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, structure: str = "full") -> tuple[float, np.ndarray | None]:
+def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, structure: str = "full",
+                       info: dict | None = None) -> tuple[float, np.ndarray | None]:
     """The largest lambda for which eq. egLMI is feasible, by bisection, and its M.
 
     lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces
     Re eig(A) <= -lambda / 2), which brackets the search.  Each M found certifies its own rate
     (:func:`largest_decay_rate_for`), often well above the trial value, and that raises the lower end.
+    Without feedback each trial rate is decided by :func:`certify_rate` (maximum margin, then scale-free,
+    both re-checked), so the answer does not depend on how M is normalised; ``info``, if given, receives
+    certify_rate's description of the M returned.
     """
     if B is None:
         upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
@@ -295,13 +393,17 @@ def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, st
     while hi - lo > BISECTION_RTOL * upper:
         mid = 0.5 * (lo + hi)
         if B is None:
-            M, t, _ = solve_lmi(A_list, mid, structure)
+            M, _, _, how = certify_rate(A_list, mid, structure)    # None unless certified (either formulation)
             found, closed_loop = M, A_list
+            if M is not None and info is not None:
+                info.clear()
+                info.update(how)
         else:
             M, K, t, _ = solve_lmi_feedback(A_list, B, mid, structure)
+            M = M if M is not None and t < -MARGIN_TOL else None
             found = None if M is None else (M, K)
             closed_loop = None if M is None else [A + B @ K for A in A_list]
-        if M is not None and t < -MARGIN_TOL:
+        if M is not None:
             lo, best = max(mid, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(closed_loop, M))), found
         else:
             hi = mid
@@ -432,9 +534,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
         meta.update(solver="none (M given; verified in numpy)")
     else:
-        meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n, M >= {M_MIN_EIG} I",
+        meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n (and M >= {M_MIN_EIG} I in the maximum-margin problem)",
                     objective="minimise t subject to A(u_k)^T M + M A(u_k) + lambda M <= t I at every vertex u_k",
-                    margin_tol=MARGIN_TOL)
+                    margin_tol=MARGIN_TOL,
+                    fallback=f"when that does not certify lambda: minimise kappa subject to I <= M <= kappa I and A(u_k)^T M + M A(u_k) + lambda M "
+                             f"<= -{SCALE_FREE_MARGIN:g} kappa I, accepted when the numpy margin over ||M|| is below -{MARGIN_TOL:g}; M scaled to trace(M) = n")
         M, lam, meta = _search(A_vertices, st, structures(st.structure, model.n), meta)
 
     B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
@@ -448,6 +552,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         sweep_margins = lmi_margins(jacobian_samples(model, A_sym), M, lam)
     margin = float(max(vertex_margins.max(), sweep_margins.max()))
     eig_M = np.linalg.eigvalsh(M)
+    meta.update(M_condition_number=float(eig_M.max() / eig_M.min()) if eig_M.min() > 0 else None)
     if (st.method == "polytopic_lmi" or st.feedback == "linear_gain") and margin > 0:
         raise NumericalError(NAME, f"Clarabel reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
     if st.method == "given" and margin > 0:
@@ -497,15 +602,16 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> t
     for structure in tries:
         tried.append(structure)
         if st.decay_rate == "maximise":
-            lam, M = largest_decay_rate(A_vertices, structure=structure)
+            how: dict = {}
+            lam, M = largest_decay_rate(A_vertices, structure=structure, info=how)
             if M is not None:
-                meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL)
+                meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL, **_formulation_meta(how))
                 return M, lam, meta
             continue
         lam = float(st.decay_rate)
-        M, t, status = solve_lmi(A_vertices, lam, structure)
-        if M is not None and t < -MARGIN_TOL:
-            meta.update(structure=structure, tried=tried, status=status, optimal_margin=t)
+        M, t, status, info = certify_rate(A_vertices, lam, structure)
+        if M is not None:
+            meta.update(structure=structure, tried=tried, status=status, optimal_margin=t, **_formulation_meta(info))
             return M, lam, meta
     if st.decay_rate == "maximise":
         raise DesignError("stabilisability", "no decay rate lambda > 0 makes eq. egLMI feasible (A(u) is not Hurwitz at some vertex of U)",
@@ -515,6 +621,17 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> t
             else "a plant with A(u) Hurwitz at every vertex of U, or feedback: linear_gain (g constant)")
     raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g}{'' if tried == ['full'] else ', M ' + ' or '.join(tried)})",
                       hint, check="lmi_margin")
+
+
+def _formulation_meta(info: dict) -> dict:
+    """Which problem gave M, for the artefact's meta."""
+    out = {}
+    if info:
+        out["formulation"] = info["formulation"]
+        if info["formulation"] == "scale_free":
+            out.update(scale_free_objective=f"minimise kappa subject to I <= M <= kappa I and A(u_k)^T M + M A(u_k) + lambda M <= -{SCALE_FREE_MARGIN:g} kappa I; M then scaled to trace(M) = n",
+                       scale_free_relative_margin=info["relative_margin"])
+    return out
 
 
 def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict):
