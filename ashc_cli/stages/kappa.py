@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
+from .. import proofs
 from ..artefacts import Artefact, Check
 from ..errors import NumericalError
 from ..model import Model, tidy
@@ -45,8 +46,29 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.exprs.update({"kappa": kappa, "dkappa_dxi": dkappa})
     art.values.update({"xi_grid": grid, "kappa_grid": kappa_grid,
                        "kappa_range": np.c_[kappa_grid.min(axis=1), kappa_grid.max(axis=1)]})
-    art.checks["kappa_finite"] = Check(float(np.abs(kappa_grid).max()), finite, "largest |kappa| on the grid of V (finite)")
+    bound = prove_finite(model, kappa, np.asarray(man.value("V"), dtype=float))
+    if np.isfinite(bound):
+        art.checks["kappa_finite"] = Check(bound, True, "proved bound of |kappa| on V (ball arithmetic: finite)", proofs.PROVED)
+    else:
+        art.checks["kappa_finite"] = Check(float(np.abs(kappa_grid).max()), finite, "largest |kappa| on the grid of V (finite)")
     return art
+
+
+def prove_finite(model: Model, kappa: sp.Matrix, V: np.ndarray) -> float:
+    """A proved upper bound of max_i |kappa_i| over V (inf where ball arithmetic cannot bound it)."""
+    if model.n > proofs.MAX_PROOF_STATES:
+        return np.inf
+    try:
+        f = proofs.compile_claims(model, list(kappa), list(model.xi))
+    except proofs.interval.UnsupportedExpression:
+        return np.inf
+    worst = 0.0
+    for i in range(len(kappa)):
+        lo, hi, ok = proofs.range_on_box(f, V, index=i, rtol=1e-3)
+        if not ok:
+            return np.inf
+        worst = max(worst, abs(lo), abs(hi))
+    return float(worst)
 
 
 def summarise(art: Artefact) -> dict:
