@@ -39,7 +39,7 @@ __all__ = ["SCHEMA_VERSION", "Artefact", "Check", "write_artefact", "read_artefa
 #: Bumped whenever the layout or the meaning of a stored value changes; older artefacts are stale.
 SCHEMA_VERSION = 2
 
-_PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic")
+_PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic", "python-flint", "numba")
 _STR = h5py.string_dtype()
 
 

@@ -252,3 +252,15 @@ def test_second_process_loads_the_cache_without_compiling(designs):
     assert proc.returncode == 0, proc.stderr
     misses, hits = map(int, proc.stdout.split()[-2:])
     assert misses == 0 and hits == 5
+
+
+def test_kernel_key_follows_the_expressions_and_the_parameters(designs):
+    import dataclasses
+
+    d = designs(CUK)
+    key = compiled.kernel_key(d.model, d.arts)
+    assert key == compiled.kernel_key(d.model, d.arts)
+    assert d.loop.kernels.__name__ == f"ashc_kernels_{key}"
+    values = dict(d.model.values)
+    values[next(k for k in values if str(k) == "G_L")] *= 1 + 1e-15   # one bit of one parameter
+    assert compiled.kernel_key(dataclasses.replace(d.model, values=values), d.arts) != key

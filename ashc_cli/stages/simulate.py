@@ -11,7 +11,9 @@ uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x
 the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
 mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
 
-Both use scipy's DOP853 with the tolerances recorded in the artefact.
+Both integrate with DOP853 at the tolerances recorded in the artefact: the tracking scenario with a compiled
+closed loop (ashc_cli/compiled.py: numba, scipy's DOP853 ported step for step; `tracking/compiled` says so), and
+scipy's solve_ivp where numba is missing or ASHC_COMPILED=0, and for the m-relation scenario.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import scipy.integrate as sint
 import scipy.optimize as sopt
 import sympy as sp
 
+from .. import compiled
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError
 from ..expr import parse_expression
@@ -213,32 +216,42 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     e0 = plant.p_map(*xi0)[:, 0] - x0
     W0 = float(e0 @ M @ e0)
     z = np.r_[xi0, x0, W0]
-    ts, zs, ref_idx, settle = [], [], [], []
-    t0 = 0.0
-    k = 0
+    segments = []   # (t0, t1, sample times, reference index), one per dwell
+    t0, k = 0.0, 0
     while t0 < tr.t_final - 1e-12:
         i = min(k, len(levels) - 1)
         # Segment ends as multiples of the dwell (not sums, which drift by rounding).
         t1 = tr.t_final if k >= len(levels) - 1 else min(tr.t_final, (k + 1) * tr.dwell)
-        t_eval = sample_times(t0, t1, SAMPLE_DT)
-        sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
-        keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
-        ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
-        z = sol.y[:, -1]
-        psi_end = plant.at_xi(z[:nh])[4][:, 0]
-        settle.append(float(np.abs(psi_end - levels[i]).max()))
+        segments.append((t0, t1, sample_times(t0, t1, SAMPLE_DT), i))
         t0, k = t1, k + 1
-    t = np.concatenate(ts)
-    Z = np.concatenate(zs, axis=1)
-    idx = np.concatenate(ref_idx)
-    xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
+    try:
+        loop = compiled.tracking_loop(model, up) if TRACKING_TOL["method"] == "DOP853" else None
+    except compiled.Unsupported:
+        loop = None
+    if loop is not None:
+        res = loop.run(z, segments, refs, gain=ctl.gain, v_max=ctl.v_max, q_kind=q_kind, saturate=saturate,
+                       rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"])
+        t, xi, x, w, idx, v, u, y = res.t, res.xi, res.x, res.w, res.reference_index, res.v, res.u, res.y
+        settle = [float(np.abs(res.psi_end[j] - levels[i]).max()) for j, (*_, i) in enumerate(segments)]
+    else:
+        ts, zs, ref_idx, settle = [], [], [], []
+        for t0, t1, t_eval, i in segments:
+            sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
+            keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
+            ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
+            z = sol.y[:, -1]
+            settle.append(float(np.abs(plant.at_xi(z[:nh])[4][:, 0] - levels[i]).max()))
+        t = np.concatenate(ts)
+        Z = np.concatenate(zs, axis=1)
+        idx = np.concatenate(ref_idx)
+        xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
+        v = np.empty((model.m_hat, t.size))
+        u = np.empty((model.m, t.size))
+        for k in range(t.size):
+            v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
+        y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
     xi_ref = np.stack([refs[i] for i in idx], axis=1)
-    v = np.empty((model.m_hat, t.size))
-    u = np.empty((model.m, t.size))
-    for k in range(t.size):
-        v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
     psi = plant.kappa(*xi)[:, 0, :]
-    y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
     e = psi - y
     err = np.linalg.norm(e, axis=0)
     v_inf = float(np.linalg.norm(v, axis=0).max())   # sup over t of |v(t)| (2-norm: theta v is bounded by ||theta|| |v|)
@@ -263,7 +276,7 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
                    f"the run is outside the certified region (W0 = {W0:.4g} vs {w0_max:.4g}, ||v||_inf = {v_inf:.4g} vs {v_cert:.4g}): "
                    "the uniform bound is not certified for it, only compared")
     values = {
-        "tracking/inside_certified_region": inside,
+        "tracking/inside_certified_region": inside, "tracking/compiled": loop is not None,
         "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
         "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
         "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
