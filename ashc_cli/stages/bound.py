@@ -192,7 +192,9 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
     c, reasons = np.inf, []
     stab = upstream["stabilise"]
     K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
-    if model.spec.interface.saturate is not False and np.any(K != 0):
+    # interface_dbar leaves the clipping patterns out for linear_gain, so the region must exclude clipping
+    # whatever K came out as (even a zero K).
+    if model.spec.interface.saturate is not False and model.spec.stabilisability.feedback == "linear_gain":
         # No channel clips while |K_i e| + |q_i v| <= room_i(xi): |K_i e| <= sqrt(c K_i M^-1 K_i^T) on {W <= c}
         # and |q_i v| <= ||q_i|| v_c with v_c = sqrt(c eta_eps) / dbar, so sqrt(c) <= room / (k_i + ||q_i|| sqrt(eta_eps) / dbar).
         k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
