@@ -204,11 +204,6 @@ def _current(spec, folder: Folder, stage: str):
     return art if art.provenance.get("spec_sha256") == spec.sha256 else None
 
 
-def _current_falsify(spec, folder: Folder):
-    """The folder's falsify artefact if it was made from this spec, else None."""
-    return _current(spec, folder, "falsify")
-
-
 @app.command()
 @_guard
 def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False) -> None:
@@ -222,7 +217,7 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     from . import plots  # matplotlib only for the commands that draw (cold start of the others)
 
     spec_obj, folder, arts = _run(spec, out, ["simulate"], force, as_json)
-    current = _current_falsify(spec_obj, Folder(folder))
+    current = _current(spec_obj, Folder(folder), "falsify")
     if current is not None:
         arts["falsify"] = current
     paths = plots.write_all(spec_obj, arts, folder / "plots")
@@ -293,7 +288,7 @@ def report(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 32, seed: SeedOpt 
     violated = False
     if stopped is None:
         arts.update(run(spec_obj, seen, ["simulate"], on_stage=_progress(True)))
-        current = None if force else _current_falsify(spec_obj, seen)
+        current = None if force else _current(spec_obj, seen, "falsify")
         arts["falsify"] = current if current is not None else run_falsify(spec_obj, seen, runs, seed, t_final, on_stage=_progress(True))[1]
         violated = float(arts["falsify"].value("max_ratio")) > 1.0
     figures = plots.write_all(spec_obj, arts, folder / "plots")

@@ -68,7 +68,8 @@ import scipy.linalg as sla
 from .artefacts import Artefact, Check
 from .errors import DesignError
 from .grids import domain_grid
-from .model import Model, compile_flat
+from .model import Model, apply_saturation, compile_flat
+from .proofs import SIMULATED
 
 NAME = "falsify"
 #: Progress steps reported to the caller (the CLI's progress bar has this length).
@@ -164,21 +165,9 @@ def _pinv(a: np.ndarray) -> np.ndarray:
 
 
 def saturate(model: Model, l: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """u = sat(l + c) for rows l (in U) and corrections c, by the spec's ``interface.saturate``.
-
-    ``true``: clip each channel to U; ``"scale"``: u = l + s c with s in [0, 1] the largest factor keeping u in
-    the box U (one factor for the whole correction); ``false``: u = l + c.
-    """
-    sat = model.spec.interface.saturate
-    lo, hi = model.U[:, 0], model.U[:, 1]
-    if isinstance(sat, str) and sat == "scale":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            room = np.where(c > 0, (hi - l) / c, np.where(c < 0, (lo - l) / c, np.inf))
-        s = np.clip(np.min(room, axis=1), 0.0, 1.0)
-        return l + s[:, None] * c
-    if sat is True:
-        return np.clip(l + c, lo, hi)
-    return l + c
+    """u = sat(l + c) for rows l (in U) and corrections c, by the spec's ``interface.saturate``
+    (:func:`ashc_cli.model.apply_saturation`, the law simulate uses too)."""
+    return apply_saturation(l, c, model.U, model.spec.interface.saturate)
 
 
 def _interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) -> dict:
@@ -1233,7 +1222,7 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
                   f"largest |psi - y| / guaranteed bound over {runs} searched runs and all times (<= 1); "
                   f"{max_ratio0:.4g} on the manifold (W0 = 0)")
     if "evidence" in {f.name for f in fields(check)}:
-        check = replace(check, evidence="simulated")   # observed along simulated runs: a search, not a proof
+        check = replace(check, evidence=SIMULATED)   # observed along simulated runs: a search, not a proof
     art.checks["falsify_ratio"] = check
     return art
 

@@ -314,9 +314,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     g_num = model.numeric(model.g, list(model.x))
 
     grid = domain_grid(model.V, GRID_POINTS)
-    norm_q0 = theta_norms(L, dpd_num(*grid), None)
+    dpd_grid, p_grid = dpd_num(*grid), p_num(*grid)          # evaluated once, used by every sup below
+    norm_q0 = theta_norms(L, dpd_grid, None)
     norm_q0_identity = theta_norms(L, dp_num(*grid), None)
-    norm_ls = theta_norms(L, dpd_num(*grid), g_num(*p_num(*grid)[:, 0, :]))
+    norm_ls = theta_norms(L, dpd_grid, g_num(*p_grid[:, 0, :]))
     if not np.all(np.isfinite(norm_q0)):
         raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)", "p continuously differentiable and delta continuous on V (Proposition condB)", check="condition_B")
 
@@ -340,14 +341,14 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if np.isfinite(dbar_q0_proved):
         dbar_q0 = max(dbar_q0, dbar_q0_proved)
     # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
-    dbar, dbar_how = interface_dbar(model, L, dpd_num(*grid), dbar_q0)
+    dbar, dbar_how = interface_dbar(model, L, dpd_grid, dbar_q0)
     dbar_evidence = PROVED if np.isfinite(dbar_q0_proved) and dbar == dbar_q0 else SAMPLED
     if not np.isfinite(dbar):
         raise DesignError("interface.saturate", f"no uniform bound is certified: {dbar_how} (condition (B) fails for this interface)",
                           "interface.saturate: scale (one factor for the whole correction), q: zero, or a constant g", check="condition_B")
     gain = error_bound_gain(alpha_h, lam, eps, dbar)
     l_num = model.numeric(model.l, xi_args)
-    w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_num(*grid), dpd_num(*grid))
+    w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_grid, dpd_grid)
     # A global region rests on the structural argument of interface_dbar and on dbar itself.
     region_evidence = dbar_evidence if not np.isfinite(w0_max) else SAMPLED
     art = Artefact(stage=NAME, meta={

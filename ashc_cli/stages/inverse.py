@@ -584,13 +584,10 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     else:
         _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
     _checks_common(art, model, p, m, p_grid)
-    if proved_left:
-        chk = art.checks["condition_i"]
-        if chk.passed:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
-            art.checks["condition_i"] = replace(chk, description=f"{chk.description}; proved (m(p(xi)) = xi symbolically)", evidence=proofs.PROVED)
+    if proved_left:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
+        _relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
     if proved_ii:
-        chk = art.checks["condition_ii"]
-        art.checks["condition_ii"] = replace(chk, description=f"{chk.description}; proved (h(p(m(x))) - h(x) simplifies to 0, sympy)", evidence=proofs.PROVED)
+        _relabel_proved(art, "condition_ii", "h(p(m(x))) - h(x) simplifies to 0, sympy")
     return art
 
 
@@ -758,17 +755,20 @@ def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: 
 def _mark_proved(art: Artefact, proof: dict) -> None:
     """Re-label the checks the proof covers as "proved" (their descriptions say how)."""
     how = proof["how"]
+    values = {"kappa_monotone": proof.get("min_abs_dkappa"), "V_covers_Y": proof.get("covers_margin")}
     relabel = {"kappa_monotone": proof["monotone"], "V_covers_Y": proof["covers"], "m_real_on_Y": proof["real_on_Y"],
                "left_inverse": proof["left_inverse"], "condition_i": proof["left_inverse"], "condition_ii": proof["condition_ii"]}
     for name, proved in relabel.items():
-        chk = art.checks.get(name)
-        if proved and chk is not None and chk.passed:
-            value = chk.value
-            if name == "kappa_monotone":
-                value = proof["min_abs_dkappa"]
-            elif name == "V_covers_Y":
-                value = proof["covers_margin"]
-            art.checks[name] = replace(chk, value=value, description=f"{chk.description}; proved ({how})", evidence=proofs.PROVED)
+        if proved:
+            _relabel_proved(art, name, how, values.get(name))
+
+
+def _relabel_proved(art: Artefact, name: str, how: str, value: float | None = None) -> None:
+    """Mark a passed check as proved, saying how (and with the proved number, when the proof gives one)."""
+    chk = art.checks.get(name)
+    if chk is not None and chk.passed:
+        art.checks[name] = replace(chk, value=chk.value if value is None else value, description=f"{chk.description}; proved ({how})",
+                                   evidence=proofs.PROVED)
 
 
 def summarise(art: Artefact) -> dict:

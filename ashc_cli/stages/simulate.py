@@ -28,6 +28,7 @@ import sympy as sp
 
 from .. import compiled
 from ..artefacts import Artefact, Check
+from ..proofs import SIMULATED
 from ..errors import DesignError, NumericalError
 from ..expr import parse_expression
 from ..grids import domain_grid
@@ -415,7 +416,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             values, checks = runner(model, plant, upstream)
             art.values.update(values)
             # Observed along one simulated run: evidence "simulated", never a proof.
-            art.checks.update({k: replace(c, evidence="simulated") for k, c in checks.items()})
+            art.checks.update({k: replace(c, evidence=SIMULATED) for k, c in checks.items()})
     return art
 
 
