@@ -191,7 +191,7 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
         raise typer.Exit(3)
 
 
-RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of closed-loop runs, shared among the search strategies (one vectorised batch).")]
+RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of closed-loop runs, shared among the search strategies (compiled, over every core).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same batch.")]
 TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", min=0.0, help="Length of each run in seconds [default: the spec's tracking t_final].", show_default=False)]
 
@@ -232,7 +232,7 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
 @_guard
 def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt = 0, t_final: TFinalOpt = None,
             as_json: JsonOpt = False) -> None:
-    """Search for a run that breaks the certified error bound (one vectorised batch of closed loops).
+    """Search for a run that breaks the certified error bound (compiled closed loops over every core).
 
     Strategies share the runs: random set-point runs; an adversary on the manifold (W0 = 0) choosing the
     sign of v that makes W grow fastest; bang-bang square waves; the linearised worst case at points of V;
@@ -245,14 +245,19 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     """
     spec_obj, folder = _load(spec, out)
     from .falsify import SEGMENTS
-    with typer.progressbar(length=SEGMENTS, label=f"falsify: {runs} runs", file=sys.stderr) as bar:
+    rate = [""]
+    with typer.progressbar(length=SEGMENTS, label=f"falsify: {runs} runs", file=sys.stderr, item_show_func=lambda _: rate[0]) as bar:
         done = [0]
 
         def advance(k: int) -> None:
             bar.update(k - done[0])
             done[0] = k
 
-        _, art = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True), progress=advance)
+        def speed(count: int, per_second: float) -> None:
+            rate[0] = f"{count} runs integrated, {per_second:.0f} runs/s"
+            bar.update(0)
+
+        _, art = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=_progress(True), progress=advance, on_runs=speed)
     entry = summary({"falsify": art})["falsify"]
     if as_json:
         _emit_json(entry)

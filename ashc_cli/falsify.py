@@ -47,9 +47,10 @@ reversed (or pointed at V's centre).  The strategies, each a share of the runs (
     phase, direction and size of x0 - p(xi0).  Each generation is one batch for all seeds together, the
     step halving per generation (a fixed budget of :data:`REFINE_SHARE` of the runs).
 
-Integration: the whole batch is one vectorised ODE (never a Python loop over runs), integrated hold by hold
-with an embedded Dormand-Prince 5(4) pair whose error control takes the worst run of the batch (:data:`TOL`).
-The hold is at most the fastest linearised time constant and 1/16 of the shortest linearised oscillation
+Integration: hold by hold with an embedded Dormand-Prince 5(4) pair (:data:`TOL`).  Each run is compiled code
+with its own step-size control, the runs shared by a pool of threads over every core
+(:mod:`ashc_cli.falsify_loop`); without numba (or with ``ASHC_COMPILED=0``) the whole batch is one vectorised
+numpy ODE whose error control takes the worst run of the batch (:func:`_simulate`, the reference).  The hold is at most the fastest linearised time constant and 1/16 of the shortest linearised oscillation
 period.  The runs that decide the two reported ratios are integrated again with a tolerance 100 times
 tighter (:data:`TOL_VERIFY`), replaying the same v; the reported numbers and the stored worst runs come from
 that verification.  The floor (1e-7 of the output span) is taken off every error, so that a start that is
@@ -66,7 +67,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from .artefacts import Artefact, Check
+from .compiled import Unsupported
 from .errors import DesignError
+from .falsify_loop import falsify_loop
 from .grids import domain_grid
 from .model import Model, apply_saturation, compile_flat
 from .proofs import SIMULATED
@@ -77,9 +80,9 @@ SEGMENTS = 20
 #: Reference segments of the random strategy.
 REF_SEGMENTS = 3
 #: Search integration: embedded Dormand-Prince 5(4), error per run relative to the state's scale.
-TOL = {"method": "Dormand-Prince 5(4), batch error control", "rtol": 1e-5, "atol": 1e-9}
+TOL = {"method": "Dormand-Prince 5(4)", "rtol": 1e-5, "atol": 1e-9}
 #: Verification of the runs that decide the reported numbers.
-TOL_VERIFY = {"method": "Dormand-Prince 5(4), batch error control", "rtol": 1e-7, "atol": 1e-11}
+TOL_VERIFY = {"method": "Dormand-Prince 5(4)", "rtol": 1e-7, "atol": 1e-11}
 #: References and disturbances keep xi this fraction of V's width away from its edges.
 REF_MARGIN = 0.05
 #: Errors below this fraction of the output span count as zero (the integrator's accuracy).
@@ -242,6 +245,8 @@ class Setup:
     v_max_spec: float
     delta_max: float = 1.0
     lin: dict | None = None
+    loop: object | None = None          # the compiled runs (falsify_loop.FalsifyLoop), None: numpy (_simulate)
+    on_runs: Callable[[int, int, float], None] | None = None   # (runs done, of, seconds) after each compiled chunk
 
     @property
     def t(self) -> np.ndarray:
@@ -335,6 +340,32 @@ def _unit_candidates(m_hat: int) -> np.ndarray:
     return np.concatenate(rows, axis=0)
 
 
+def _w0(st: Setup, b: Batch) -> np.ndarray:
+    """W(xi0, x0) = (p(xi0) - x0)^T M (p(xi0) - x0) per run (exactly 0 on the manifold)."""
+    e0 = st.plant.at_xi(b.xi0.T)["p"][:, :, 0] - b.x0
+    W0 = np.maximum(np.einsum("Ni,ij,Nj->N", e0, st.plant.M, e0), 0.0)
+    W0[np.all(e0 == 0, axis=1)] = 0.0
+    return W0
+
+
+def _integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
+    """The runs of ``b``: compiled, each run with its own step size, over every core (:mod:`ashc_cli.falsify_loop`),
+    else (numba missing, ``ASHC_COMPILED=0``, an expression numba cannot run) vectorised by :func:`_simulate`.
+    Returns what :func:`_simulate` returns; the compiled runs without ``vused`` (see :func:`_replay`)."""
+    if st.loop is None:
+        return _simulate(st, b, tol, record, progress)
+    report = None if progress is None else (lambda done, total, seconds: progress(done / max(total, 1)))
+    if st.on_runs is not None:
+        inner = report
+
+        def report(done, total, seconds):
+            st.on_runs(done, total, seconds)
+            if inner is not None:
+                inner(done, total, seconds)
+    return st.loop.run(st, b, tol, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD, record, report,
+                       keep_inputs=False)
+
+
 def _simulate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
     """Integrate a batch hold by hold and measure the error / bound ratio at every hold boundary.
 
@@ -349,10 +380,7 @@ def _simulate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Ca
     N, H, dt = len(b), st.holds, st.hold
     tgrid = st.t
     Z = np.c_[b.xi0, b.x0].astype(float)
-    a0 = plant.at_xi(b.xi0.T)
-    e0 = a0["p"][:, :, 0] - b.x0
-    W0 = np.maximum(np.einsum("Ni,ij,Nj->N", e0, plant.M, e0), 0.0)
-    W0[np.all(e0 == 0, axis=1)] = 0.0
+    W0 = _w0(st, b)
     lo, hi = model.V[:, 0], model.V[:, 1]
     centre = model.V.mean(axis=1)
     cand = _unit_candidates(mh)
@@ -992,7 +1020,7 @@ def _refine(st: Setup, first: Batch, res: dict, budget: int, rng: np.random.Gene
             continue
         b = _runs(st, specs, disc, lin, "refined")
         b.origin = np.array(origin)
-        r = _simulate(st, b, TOL)
+        r = _integrate(st, b, TOL)
         for i, s in enumerate(origin):
             if r["ratio_late"][i] > best[s][0]:
                 best[s] = (float(r["ratio_late"][i]), b.params[i][2].copy())
@@ -1018,11 +1046,17 @@ def _merge(results: list[dict]) -> dict:
     return out
 
 
-def _replay(batch: Batch, res: dict, idx: np.ndarray) -> Batch:
-    """The runs idx with their held inputs as a table (the same v, no guard): for the verification."""
+def _replay(st: Setup, batch: Batch, res: dict, idx: np.ndarray) -> Batch:
+    """The runs idx with their held inputs as a table (the same v, no guard): for the verification.  The compiled
+    runs keep no inputs: each is integrated again alone at :data:`TOL` (the same run, since its step control is
+    its own) to recover them."""
     b = batch.take(idx)
     held = b.mode != SETPOINT
-    b.vtab = np.where(held[:, None, None], res["vused"][idx], b.vtab)
+    if "vused" in res:
+        vused = res["vused"][idx]
+    else:
+        vused = st.loop.run(st, b, TOL, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD)["vused"]
+    b.vtab = np.where(held[:, None, None], vused, b.vtab)
     b.mode = np.where(held, TABLE, b.mode)
     b.guard = np.zeros(len(b), dtype=bool)
     return b
@@ -1070,11 +1104,15 @@ def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Se
     holds = int(np.ceil(holds / REF_SEGMENTS) * REF_SEGMENTS)
     st.holds, st.hold = holds, t_final / holds
     st.lin = lin
+    try:
+        st.loop = falsify_loop(model, arts, plant.M, plant.L, plant.K)
+    except Unsupported:
+        st.loop = None
     return st
 
 
 def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t_final: float | None = None,
-            progress: Callable[[int], None] | None = None) -> Artefact:
+            progress: Callable[[int], None] | None = None, on_runs: Callable[[int, float], None] | None = None) -> Artefact:
     """Search for runs that break the bound and measure the largest error / bound ratio.
 
     Parameters
@@ -1091,6 +1129,8 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
         Length of each run [default: the spec's tracking t_final, else 10 s].
     progress : callable, optional
         Called with the number of progress steps done (of :data:`SEGMENTS`).
+    on_runs : callable, optional
+        Called with (runs integrated so far, runs per second) as the compiled runs go (not on the numpy path).
 
     Returns
     -------
@@ -1113,11 +1153,21 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
 
     with np.errstate(all="ignore"):
         st = _setup(model, arts, t_final)
+        if on_runs is not None:
+            tally = {"before": 0, "seconds": 0.0, "last": 0.0}
+
+            def count(done: int, total: int, seconds: float) -> None:
+                so_far = tally["before"] + done
+                on_runs(so_far, so_far / max(tally["seconds"] + seconds, 1e-9))
+                if done == total:
+                    tally["before"], tally["seconds"] = so_far, tally["seconds"] + seconds
+
+            st.on_runs = count
         lin = st.lin
         disc = _discrete(st, lin)
         counts = _allocate(runs)
         first = _first_batch(st, counts, rng, lin, disc)
-        res = _simulate(st, first, TOL, progress=phase(0, 12))
+        res = _integrate(st, first, TOL, progress=phase(0, 12))
         report(12)
         ref_b, ref_r = _refine(st, first, res, counts["refined"], rng, lin, disc, progress=phase(12, 17))
         if ref_r is not None:
@@ -1150,7 +1200,7 @@ def _verify(st: Setup, batch: Batch, res: dict) -> tuple[np.ndarray, dict]:
         if not want:
             break
         idx = np.array(want)
-        r = _simulate(st, _replay(batch, res, idx), TOL_VERIFY, record=True)
+        r = _integrate(st, _replay(st, batch, res, idx), TOL_VERIFY, record=True)
         for j, i in enumerate(idx):
             for key in ("ratio", "ratio_late", "k_at", "max_error", "left_V", "diverged", "forced"):
                 res[key][i] = r[key][j]
@@ -1187,7 +1237,8 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
     art = Artefact(stage=NAME, meta={
         "runs": runs, "seed": seed, "segments": SEGMENTS, "integrator": str(TOL), "verification": str(TOL_VERIFY),
         "bound": "sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup_{s<=t} ||v(s)||",
-        "vectorised": "one ODE over the whole batch (numpy), hold by hold; the refinement re-simulates small batches",
+        "engine": (f"compiled (numba): one integration per run with its own step-size control, {st.loop.threads} threads"
+                   if st.loop is not None else "numpy: one vectorised ODE over the whole batch, error control by its worst run"),
         "strategies": ", ".join(STRATEGIES), "runs_per_strategy": {k: int(v) for k, v in counts.items()},
     })
     vals = {

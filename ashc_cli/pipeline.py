@@ -278,7 +278,7 @@ def design_model(spec: Spec, arts: dict[str, Artefact]):
 
 
 def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, t_final: float | None = None, *,
-                on_stage: Callable[[StageReport], None] | None = None, progress=None) -> tuple[dict[str, Artefact], Artefact]:
+                on_stage: Callable[[StageReport], None] | None = None, progress=None, on_runs=None) -> tuple[dict[str, Artefact], Artefact]:
     """Bring the design up to date, run :func:`ashc_cli.falsify.falsify` and store ``falsify.h5``.
 
     The artefact is written whatever the verdict (a violation must be kept to be studied).
@@ -286,7 +286,7 @@ def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, 
     folder = as_folder(out)
     arts = run(spec, folder, DESIGN, on_stage=on_stage)
     start = time.perf_counter()
-    art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress)
+    art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress, on_runs)
     ups = ("stabilise", "manifold", "kappa", "delta", "bound")
     write_artefact(artefact_path(folder.path, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups},
