@@ -38,9 +38,11 @@ fuzz: install
 	  | grep -E "passing examples|failing|passed|failed|test_" ; \
 	  status=$${PIPESTATUS[0]}; echo "fuzz: $(FUZZ_EXAMPLES) cases per property, exit $$status"; exit $$status
 
-# Regenerate docs/bad-inputs.md: every bad input of tests/bad_inputs.py and the message it gets.
+# Regenerate docs/bad-inputs.md (every bad input of tests/bad_inputs.py and the message it gets) and
+# docs/cli.md (the command-line reference, from the typer app).
 docs: install
 	$(BIN)/python -m tests.bad_inputs docs/bad-inputs.md
+	$(BIN)/python docs/generate_cli.py docs/cli.md
 
 clean:
 	rm -rf outputs/*/ .pytest_cache
