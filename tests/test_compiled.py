@@ -1,8 +1,10 @@
-"""Tests of ashc_cli.compiled: the tracking closed loop and DOP853 in numba against the scipy path of simulate.
+"""Tests of ashc_cli.compiled: the tracking and m-relation closed loops and DOP853 in numba against the scipy
+path of simulate.
 
-The scipy path (``simulate.tracking_law`` and ``simulate.run_tracking``) is the reference.  The control law is
-compared point by point (it is the same arithmetic, so to round-off); the runs sample by sample, to what the
-integration tolerance and the loop's sensitivity allow (see each test).
+The scipy path (``simulate.tracking_law``, ``simulate.run_tracking`` and ``simulate.run_m_relation``) is the
+reference.  The control laws are compared point by point (the same arithmetic, so to round-off); the runs
+sample by sample, to what the integration tolerance and the loop's sensitivity allow (see each test); the
+m-relation's terminal event by where it stops and what it reports.
 """
 
 from __future__ import annotations
@@ -264,3 +266,193 @@ def test_kernel_key_follows_the_expressions_and_the_parameters(designs):
     values = dict(d.model.values)
     values[next(k for k in values if str(k) == "G_L")] *= 1 + 1e-15   # one bit of one parameter
     assert compiled.kernel_key(dataclasses.replace(d.model, values=values), d.arts) != key
+
+
+# --- the m-relation loop against run_m_relation's solve_ivp -------------------------------------------------
+
+BOOST = SPECS / "boost_converter.yaml"   # c(x) != 0 (nonlinear, one input), m real up to a radical's root
+
+_M_RELATION_SERIES = ("xi", "x", "u", "v", "psi", "y")
+
+
+def _m_relation_both(d, monkeypatch):
+    """run_m_relation's values by the compiled loop, then by solve_ivp (ASHC_COMPILED=0)."""
+    up = {k: d.arts[k] for k in simulate.UPSTREAM}
+    mine, _ = simulate.run_m_relation(d.model, d.plant, up)
+    monkeypatch.setenv("ASHC_COMPILED", "0")
+    theirs, _ = simulate.run_m_relation(d.model, d.plant, up)
+    monkeypatch.delenv("ASHC_COMPILED")
+    assert mine["m_relation/compiled"] and not theirs["m_relation/compiled"]
+    return mine, theirs
+
+
+@pytest.mark.parametrize("path, tol", [
+    # The input triangle(t - 2) has a kink at t = 2 s, where DOP853 rejects steps on an error estimate near 1:
+    # from there the step sequence depends on the last bit of the stage sums (compiled 40 382 right-hand-side
+    # calls, scipy 40 247). Measured: x 4.2e-11, xi 1.4e-10, v 2.3e-10 of the scale; scipy against itself with
+    # x0 moved by one ulp differs as much (x 4.2e-11, xi 1.4e-10), and its own global error against a run at
+    # rtol = atol = 1e-13 is of that size too (xi 1.8e-10).
+    (CUK, 5e-10),
+    # Smooth inputs: the same steps as solve_ivp, the samples equal to round-off (measured <= 6e-14).
+    (BOOST, 1e-12),
+    (BILINEAR, 1e-12),   # two inputs, a 2 x 2 c(x), m_hat = 2
+], ids=lambda p: getattr(p, "stem", None))
+def test_m_relation_matches_scipy(designs, monkeypatch, path, tol):
+    d = designs(path)
+    mine, theirs = _m_relation_both(d, monkeypatch)
+    assert np.array_equal(mine["m_relation/t"], theirs["m_relation/t"])
+    assert np.array_equal(mine["m_relation/xi0"], theirs["m_relation/xi0"])
+    for name in _M_RELATION_SERIES:
+        a, b = mine[f"m_relation/{name}"], theirs[f"m_relation/{name}"]
+        assert a.shape == b.shape, name
+        assert _scaled_diff(a, b) <= tol, name
+    # psi - y and m(x) - xi are the integration's own error: they agree to what the trajectories do
+    scale = max(1.0, float(np.abs(theirs["m_relation/y"]).max()))
+    for name in ("max_abs_error", "invariance_residual"):
+        assert abs(mine[f"m_relation/{name}"] - theirs[f"m_relation/{name}"]) <= tol * scale, name
+    assert mine["m_relation/max_abs_error"] < simulate.M_RELATION_TOL_ABS
+
+
+def test_boost_m_relation_takes_solve_ivps_steps(designs):
+    # The loop on its own against solve_ivp on the same right-hand side, same tolerances: the same calls.
+    import scipy.integrate as sint
+    from ashc_cli.expr import parse_expression
+    from ashc_cli.model import TIME, compile_flat
+
+    d = designs(BOOST)
+    mr, model, plant = d.spec.simulate.m_relation, d.model, d.plant
+    u = sp.Matrix([parse_expression(mr.u, {**model.params, "t": TIME}, "u", signal=True)])
+    loop = compiled.m_relation_loop(model, d.arts, u)
+    u_of_t = compile_flat(list(u), [TIME], model.values)
+    nh = model.n_hat
+    x0 = np.array(mr.x0, dtype=float)
+    z0 = np.r_[plant.h_m(x0)[1][:, 0], x0]
+
+    def rhs(t, z):
+        uu = np.array(u_of_t(t), dtype=float)
+        phi, delta, *_ = plant.at_xi(z[:nh])
+        f_bar, g, _, b, c, _ = plant.at_x(z[nh:])
+        return np.r_[phi[:, 0] + delta @ (b[:, 0] + c @ uu), f_bar[:, 0] + g @ uu]
+
+    t_eval = np.linspace(0.0, 2.0, 2001)
+    tol = simulate.M_RELATION_TOL
+    res = loop.run(z0, (0.0, 2.0), t_eval, edges=None, rtol=tol["rtol"], atol=tol["atol"])
+    sol = sint.solve_ivp(rhs, (0.0, 2.0), z0, t_eval=t_eval, **tol)
+    assert res.left is None and res.nfev == sol.nfev
+    assert _scaled_diff(np.r_[res.xi, res.x], sol.y) <= 1e-13
+    # a run shorter than one sample period (t_final = 0.4 ms: the only sample is t = 0), as solve_ivp runs it
+    short = loop.run(z0, (0.0, 4e-4), np.array([0.0]), edges=None, rtol=tol["rtol"], atol=tol["atol"])
+    ref = sint.solve_ivp(rhs, (0.0, 4e-4), z0, t_eval=np.array([0.0]), **tol)
+    assert short.nfev == ref.nfev > 2 and np.array_equal(short.t, ref.t) and np.array_equal(np.r_[short.xi, short.x], ref.y)
+    # the right-hand side point by point, u(t) at the kink-free signal's samples
+    dz, v, uu = np.empty(z0.size), np.empty(model.m_hat), np.empty(model.m)
+    for k in range(0, t_eval.size, 97):
+        z = np.ascontiguousarray(sol.y[:, k])
+        loop.core.link_loop(loop.kernels.eval_xi, loop.kernels.eval_x, loop.link.eval_link, loop.link.eval_u, loop.dims, t_eval[k], z, v, uu, dz)
+        np.testing.assert_allclose(dz, rhs(t_eval[k], z), rtol=1e-14, atol=1e-14)
+
+
+def _leaving_cuk(tmp_path, domain="[[0, 0.95]]"):
+    """The Cuk spec's m-relation scenario alone, driven (u = 0.95 from x = 0) below kappa(V) at t = 0.78 s."""
+    from ashc_cli.spec import parse_spec_text
+
+    text = CUK.read_text()
+    text = text[:text.index("  tracking:")] + text[text.index("  m_relation:"):]
+    for old, new in (("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"),
+                     ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"'), ("domain: [[0, 0.95]]", f"domain: {domain}")):
+        assert old in text
+        text = text.replace(old, new)
+    spec = parse_spec_text(text)
+    arts = run(spec, tmp_path, DESIGN)
+    model = design_model(spec, arts)
+    return model, simulate._Plant(model, arts), {k: arts[k] for k in simulate.UPSTREAM}
+
+
+@pytest.mark.parametrize("domain", ["[[0, 0.95]]", "auto"])
+def test_leaving_the_certified_set_stops_both_paths_at_the_same_point(tmp_path, monkeypatch, domain):
+    # The terminal event (y = h(x) crosses the end of inverse.m_domain, direction -1): solve_ivp finds the
+    # time with brentq on the dense output, the compiled loop with the same root finder on its own.
+    from ashc_cli.errors import DesignError
+
+    model, plant, up = _leaving_cuk(tmp_path, domain)
+    seen = {}
+    run_loop, integrate = compiled.MRelationLoop.run, simulate._integrate
+
+    def spy_loop(self, *args, **kwargs):
+        res = run_loop(self, *args, **kwargs)
+        seen["compiled"] = res.left
+        return res
+
+    def spy_integrate(*args, **kwargs):
+        sol = integrate(*args, **kwargs)
+        seen["scipy"] = (sol.t_events[0][0], sol.y_events[0][0])
+        return sol
+
+    monkeypatch.setattr(compiled.MRelationLoop, "run", spy_loop)
+    monkeypatch.setattr(simulate, "_integrate", spy_integrate)
+    messages = []
+    for flag in ("1", "0"):
+        monkeypatch.setenv("ASHC_COMPILED", flag)
+        with pytest.raises(DesignError, match=r"simulate\.m_relation: at t = 0\.(78|79)\d* s the output y = -126\.\d+ leaves kappa\(V\)") as info:
+            simulate.run_m_relation(model, plant, up)
+        messages.append(str(info.value))
+    assert messages[0] == messages[1]
+    (t_c, z_c), (t_s, z_s) = seen["compiled"], seen["scipy"]
+    assert abs(t_c - t_s) <= 1e-12          # measured 3e-15 s
+    assert _scaled_diff(z_c, z_s) <= 1e-12  # measured 3e-13 of the scale
+
+
+def test_signal_functions_match_the_spec_functions():
+    # triangle, square and step as the printer writes them for numba, against the numpy functions the scipy
+    # path evaluates (expr.NUMERIC_MODULES), at the kinks, the jumps and far out.
+    from ashc_cli.expr import square, step, triangle
+    from ashc_cli.model import TIME, compile_flat
+
+    t = TIME
+    exprs = [0.3 * triangle(t - 2) + 0.1 * sp.sin(2 * sp.pi * (t - 2)) + 0.45, square(3 * t), step(t - 1), triangle(t) * step(-t)]
+    src = "\n".join(["import math", "import numpy as np", "from numba import njit, types", "F1 = types.float64[::1]", "F2 = types.float64[:, ::1]",
+                     compiled.SIGNAL_HELPERS, compiled._emit_kernel("eval_u", "t", [t], [("u", sp.Matrix(exprs), True)], {})])
+    module = compiled.load_source(src, "ashc_test_signals")
+    numeric = compile_flat(exprs, [t])
+    points = np.r_[np.linspace(-40.0, 40.0, 4001), 2.0, 2.0 + np.pi, 2.0 - np.pi, 1.0, 0.0, -0.0, np.pi / 3, 1e6 + 0.1]
+    out = np.empty(len(exprs))
+    for value in points:
+        module.eval_u(np.array([value]), out)
+        assert np.array_equal(out, np.array(numeric(value), dtype=float)), value
+
+
+def test_m_relation_disabled_by_environment(designs, monkeypatch):
+    d = designs(BOOST)
+    monkeypatch.setenv("ASHC_COMPILED", "0")
+    with pytest.raises(compiled.Unsupported, match="ASHC_COMPILED"):
+        compiled.m_relation_loop(d.model, d.arts, sp.Matrix([[0.5]]))
+
+
+def test_second_process_loads_the_m_relation_loop_without_compiling(designs):
+    d = designs(CUK)   # this process has compiled (or loaded) the core and the Cuk kernels
+    up = {k: d.arts[k] for k in simulate.UPSTREAM}
+    simulate.run_m_relation(d.model, d.plant, up)   # and the Cuk's link module
+    script = textwrap.dedent(f"""
+        import numba
+        from ashc_cli import compiled
+        from ashc_cli.pipeline import DESIGN, design_model, run
+        from ashc_cli.spec import load_spec
+        from ashc_cli.stages import simulate
+        spec = load_spec({str(CUK)!r})
+        arts = run(spec, {str(d.out)!r}, DESIGN)
+        model = design_model(spec, arts)
+        values, _ = simulate.run_m_relation(model, simulate._Plant(model, arts), arts)
+        # the modules the run imported: the core, the Cuk's kernels and its link module
+        modules = list(compiled._MODULES.values())
+        print(sorted(m.__name__.split("_")[1] for m in modules))
+        fns = [f for mod in modules for f in vars(mod).values() if isinstance(f, numba.core.registry.CPUDispatcher)]
+        misses = sum(sum(f.stats.cache_misses.values()) for f in fns)
+        hits = sum(sum(f.stats.cache_hits.values()) for f in fns)
+        print(values["m_relation/compiled"], misses, hits, sum(len(f.signatures) for f in fns))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, env=os.environ.copy(), timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    names, (used, misses, hits, compiled_functions) = proc.stdout.splitlines()[-2], proc.stdout.split()[-4:]
+    assert names == "['core', 'kernels', 'link']"
+    # every compiled function of the three modules came from the cache (16: core 9, kernels 2, link 5)
+    assert used == "True" and int(misses) == 0 and int(hits) == int(compiled_functions) == 16

@@ -25,6 +25,15 @@ def test_m_relation_outputs_match(sim):
     assert v["m_relation/max_abs_error"] < 1e-6
 
 
+def test_integrators_are_recorded(sim):
+    # Both scenarios say which DOP853 ran (the compiled one wherever numba is, as in this run) and at what tolerances.
+    from ashc_cli import compiled
+    used = compiled.available()
+    for scenario, tol in (("tracking", simulate.TRACKING_TOL), ("m_relation", simulate.M_RELATION_TOL)):
+        assert bool(sim.values[f"{scenario}/compiled"]) is used
+        assert sim.meta[f"{scenario}_integrator"] == {**tol, "implementation": "ashc_cli.compiled (numba)" if used else "scipy.integrate.solve_ivp"}
+
+
 def test_tracking_input_stays_in_U(sim):
     u = sim.values["tracking/u"]
     assert u.min() >= 0.0 and u.max() <= 1.0

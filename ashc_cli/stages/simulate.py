@@ -11,9 +11,11 @@ uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x
 the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
 mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
 
-Both integrate with DOP853 at the tolerances recorded in the artefact: the tracking scenario with a compiled
-closed loop (ashc_cli/compiled.py: numba, scipy's DOP853 ported step for step; `tracking/compiled` says so), and
-scipy's solve_ivp where numba is missing or ASHC_COMPILED=0, and for the m-relation scenario.
+Both integrate with DOP853 at the tolerances recorded in the artefact (meta ``tracking_integrator`` and
+``m_relation_integrator``, with the implementation that ran): with a compiled closed loop (ashc_cli/compiled.py:
+numba, scipy's DOP853 and solve_ivp's terminal event ported step for step; ``tracking/compiled`` and
+``m_relation/compiled`` say so), and with scipy's solve_ivp, the reference, where numba is missing, an
+expression has no numba form, or ASHC_COMPILED=0.
 """
 
 from __future__ import annotations
@@ -53,31 +55,49 @@ EDGE_MARGIN = 1e-3
 
 
 class _Plant:
-    """The numeric terms of a design, compiled into two fused functions (one of xi, one of x).
+    """The numeric terms of a design, compiled into fused functions, each on its first use.
 
     ``at_xi(xi)`` gives phi_bar, delta, l, dp/dxi delta and kappa at one abstract state; ``at_x(x)`` gives
     f_bar, g, h, b and c at one concrete state.  One call each per right-hand side keeps the ODE fast.
+    ``h_m(x)`` gives h and m alone, for the m-relation's start and stop.  The compiled loops
+    (ashc_cli.compiled) call neither at_xi nor at_x, so they are compiled only when the scipy path runs (on the
+    Cuk converter the two take 0.05-0.1 s to lambdify, b(x) the largest).
     """
 
     def __init__(self, model: Model, up: dict[str, Artefact]):
         self.n, self.m, self.nh, self.mh, self.p = model.n, model.m, model.n_hat, model.m_hat, model.p
-        xi_terms = [model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"), up["manifold"].expr("p")]
-        x_terms = [model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), up["inverse"].expr("m")]
-        self._xi_f = compile_terms(xi_terms, list(model.xi), model.values)
-        self._x_f = compile_terms(x_terms, list(model.x), model.values)
+        m_of_x = up["inverse"].expr("m")
+        self._terms = {
+            "xi": ([model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"),
+                    up["manifold"].expr("p")], model.xi),
+            "x": ([model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), m_of_x], model.x),
+            "h_m": ([model.h, m_of_x], model.x),
+        }
+        self._values = model.values
+        self._compiled = {}
         self.p_map = model.numeric(up["manifold"].expr("p"), list(model.xi))
         self.kappa = model.numeric(up["kappa"].expr("kappa"), list(model.xi))
         self.L = np.asarray(up["bound"].value("L"))
         self.K = np.asarray(up["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
         self.U = model.U
 
+    def _fused(self, which: str):
+        if which not in self._compiled:
+            terms, args = self._terms[which]
+            self._compiled[which] = compile_terms(terms, list(args), self._values)
+        return self._compiled[which]
+
     def at_xi(self, xi: np.ndarray) -> list[np.ndarray]:
         """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1), p (n,1)] at xi."""
-        return self._xi_f(xi)
+        return self._fused("xi")(xi)
 
     def at_x(self, x: np.ndarray) -> list[np.ndarray]:
         """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x."""
-        return self._x_f(x)
+        return self._fused("x")(x)
+
+    def h_m(self, x: np.ndarray) -> list[np.ndarray]:
+        """[h (p,1), m (n_hat,1)] at x: the m-relation's start and where it stops."""
+        return self._fused("h_m")(x)
 
 
 def _pinv(a: np.ndarray) -> np.ndarray:
@@ -303,37 +323,28 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
 
 
 def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[dict, dict]:
-    """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``."""
+    """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``.
+
+    The closed loop is integrated by the compiled loop (:func:`ashc_cli.compiled.m_relation_loop`, the same
+    right-hand side and event in numba) where it runs, else by solve_ivp; ``m_relation/compiled`` says which.
+    """
     mr = model.spec.simulate.m_relation
     names = {**model.params, "t": TIME}
     texts = mr.u if isinstance(mr.u, list) else [mr.u]
     u_expr = sp.Matrix([parse_expression(s, names, f"simulate.m_relation.u[{i}]", signal=True) for i, s in enumerate(texts)])
-    u_of_t = compile_flat(list(u_expr), [TIME], model.values)
     x0 = np.array(mr.x0, dtype=float)
     # m (and b, c, built from it) is used only where it is certified: h(x) in inverse.m_domain.
     box, set_name, _ = certified_set(up["inverse"])
-    y0 = plant.at_x(x0)[2][:, 0]
+    h_x0, m_x0 = plant.h_m(x0)
+    y0 = h_x0[:, 0]
     if outside_certified_set(box, y0):
         shown = f"{y0[0]:.6g}" if y0.size == 1 else np.round(y0, 6).tolist()
         raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {shown} is outside the set where m is certified, y in {set_name} = {format_box(box)} (x0 = {x0.tolist()})",
                           f"x0 with h(x0) in {format_box(box)} (inverse.m_domain)")
-    xi0 = plant.at_x(x0)[5][:, 0]
+    xi0 = m_x0[:, 0]
     if not np.all(np.isfinite(xi0)):
         raise DesignError("simulate.m_relation.x0", f"m(x0) is not real at x0 = {x0.tolist()}", "x0 where m is real (see inverse.m_real_interval)")
     nh = model.n_hat
-
-    def link(t, z):
-        """u(t), v = b(x) + c(x) u (eq. mRelateLink) and both state derivatives."""
-        xi, x = z[:nh], z[nh:]
-        u = np.array(u_of_t(t), dtype=float)
-        phi, delta, *_ = plant.at_xi(xi)
-        f_bar, g, _, b, c, _ = plant.at_x(x)
-        v = b[:, 0] + c @ u
-        return u, v, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u
-
-    def rhs(t, z):
-        _, _, dxi, dx = link(t, z)
-        return np.r_[dxi, dx]
 
     # One output: the run stops where y = h(x) leaves the certified interval. At an end where m stops being real,
     # kappa turns and dm/dx (so b, c and xi') blows up like 1/sqrt(distance): there it stops a little inside,
@@ -349,39 +360,70 @@ def run_m_relation(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tupl
     hi_margin = EDGE_MARGIN * (d_hi - d_lo) if hi_edge else -tol
 
     def leaves_certified_set(t, z):
-        """Positive while y = h(x) is inside the interval where m (and so b, c) is certified (less a margin where m stops being real)."""
-        y = plant.at_x(z[nh:])[2][0, 0]
+        """Positive while y = h(x) is inside the interval where m (and so b, c) is certified (less a margin where m stops being real).
+
+        The compiled loop evaluates the same expression (the core's _leaves, edges [d_lo, lo_margin, d_hi, hi_margin]).
+        """
+        y = plant.h_m(z[nh:])[0][0, 0]
         return min(y - d_lo - lo_margin, d_hi - hi_margin - y)
 
     leaves_certified_set.terminal = True
     leaves_certified_set.direction = -1
     bounded = model.p == 1
-    if bounded and leaves_certified_set(0.0, np.r_[xi0, x0]) <= 0:
+    z0 = np.r_[xi0, x0]
+    if bounded and leaves_certified_set(0.0, z0) <= 0:
         raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {y0[0]:.6g} is within {EDGE_MARGIN:.1%} of the end of {set_name} = {format_box(box)} where m stops being real",
                           f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
-    t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
-    sol = _integrate(rhs, (0.0, mr.t_final), np.r_[xi0, x0], t_eval, M_RELATION_TOL, "m_relation", events=[leaves_certified_set] if bounded else None)
-    if sol.status == 1:
-        t_out, z_out = sol.t_events[0][0], sol.y_events[0][0]
-        y_out = plant.at_x(z_out[nh:])[2][0, 0]
+
+    def stopped(t_out: float, z_out: np.ndarray):
+        """The DesignError of a run that left the certified set at t_out, in state z_out (the event's root)."""
+        y_out = plant.h_m(z_out[nh:])[0][0, 0]
         at_lo = abs(y_out - d_lo) <= abs(y_out - d_hi)
         edge = f" (stopped {EDGE_MARGIN:.1%} short of its end {d_lo if at_lo else d_hi:.6g}, where m stops being real)" if (lo_edge if at_lo else hi_edge) else ""
-        raise DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
-                          f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
-    xi, x = sol.y[:nh], sol.y[nh:]
-    at_x = [plant.at_x(x[:, k]) for k in range(sol.t.size)]
-    y = np.stack([a[2][:, 0] for a in at_x], axis=1)
-    u = np.stack([np.array(u_of_t(tk), dtype=float) for tk in sol.t], axis=1)
-    v = np.stack([link(tk, sol.y[:, k])[1] for k, tk in enumerate(sol.t)], axis=1)
-    psi = plant.kappa(*xi)[:, 0, :]
+        return DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
+                           f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
+
+    t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
+    try:
+        loop = compiled.m_relation_loop(model, up, u_expr) if M_RELATION_TOL["method"] == "DOP853" else None
+    except compiled.Unsupported:
+        loop = None
+    if loop is not None:
+        res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
+                       rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
+        if res.left is not None:
+            raise stopped(*res.left)
+        t, xi, x, u, v, psi, y, m_x = res.t, res.xi, res.x, res.u, res.v, res.psi, res.y, res.m
+    else:
+        u_of_t = compile_flat(list(u_expr), [TIME], model.values)
+
+        def rhs(t, z):
+            """u(t), v = b(x) + c(x) u (eq. mRelateLink) and both state derivatives."""
+            xi, x = z[:nh], z[nh:]
+            u = np.array(u_of_t(t), dtype=float)
+            phi, delta, *_ = plant.at_xi(xi)
+            f_bar, g, _, b, c, _ = plant.at_x(x)
+            v = b[:, 0] + c @ u
+            return np.r_[phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u]
+
+        sol = _integrate(rhs, (0.0, mr.t_final), z0, t_eval, M_RELATION_TOL, "m_relation", events=[leaves_certified_set] if bounded else None)
+        if sol.status == 1:
+            raise stopped(sol.t_events[0][0], sol.y_events[0][0])
+        t, xi, x = sol.t, sol.y[:nh], sol.y[nh:]
+        # The samples in one batch call of each compiled function (N points at once).
+        _, _, h_x, b, c, m_of_x = plant.at_x(x)
+        u = np.stack([np.broadcast_to(np.asarray(ui, dtype=float), t.shape) for ui in u_of_t(t)])
+        v = b[:, :, 0].T + np.einsum("Nij,jN->iN", c, u)
+        y, m_x = h_x[:, :, 0].T, m_of_x[:, :, 0].T
+        psi = plant.kappa(*xi)[:, 0, :]
     e = psi - y
     err = float(np.linalg.norm(e, axis=0).max())
-    invariance = float(np.abs(np.stack([a[5][:, 0] for a in at_x], axis=1) - xi).max())
+    invariance = float(np.abs(m_x - xi).max())
     values = {
-        "m_relation/t": sol.t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
+        "m_relation/t": t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
         "m_relation/psi": psi, "m_relation/y": y, "m_relation/e_y": e, "m_relation/xi0": xi0,
         "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
-        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()),
+        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": loop is not None,
     }
     checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem mRelatOutMatch)")}
     return values, checks
@@ -415,6 +457,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         if getattr(sim, scenario) is not None:
             values, checks = runner(model, plant, upstream)
             art.values.update(values)
+            # Which DOP853 ran (the same method and tolerances either way).
+            code = "ashc_cli.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
+            art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
             # Observed along one simulated run: evidence "simulated", never a proof.
             art.checks.update({k: replace(c, evidence=SIMULATED) for k, c in checks.items()})
     return art
