@@ -45,7 +45,7 @@ app = typer.Typer(
 
 _DEBUG = False
 
-SpecArg = Annotated[Path, typer.Argument(help="The YAML spec (see spec-format.md).", show_default=False)]
+SpecArg = Annotated[Path, typer.Argument(help="The YAML spec (see docs/spec-format.md).", show_default=False)]
 OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Recompute every needed stage even if up to date.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (progress goes to stderr).")]

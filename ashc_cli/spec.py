@@ -1,4 +1,4 @@
-"""The YAML spec contract (``shared/spec-format.md``) as pydantic models, and the loader.
+"""The YAML spec contract (``docs/spec-format.md``) as pydantic models, and the loader.
 
 :func:`load_spec` reads a file with a safe YAML loader (no aliases, no duplicate keys), validates it
 against :class:`Spec` (unknown keys are errors, with the closest valid key suggested), checks the
@@ -198,7 +198,7 @@ class Simulate(_Strict):
 
 
 class Spec(_Strict):
-    """A whole ashc spec (``shared/spec-format.md``)."""
+    """A whole ashc spec (``docs/spec-format.md``)."""
 
     name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=100)]
     description: str = ""
@@ -284,9 +284,9 @@ def _yaml_load(text: str, source: str) -> Any:
         where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
         duplicate = str(exc.problem).startswith("duplicate key")
         raise SpecError(where, f"malformed YAML ({exc.problem})",
-                        "every key once in a mapping" if duplicate else "a YAML mapping written to spec-format.md") from None
+                        "every key once in a mapping" if duplicate else "a YAML mapping written to docs/spec-format.md") from None
     except (yaml.YAMLError, RecursionError) as exc:
-        raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to spec-format.md") from None
+        raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to docs/spec-format.md") from None
 
 
 # --- validation errors to one line -----------------------------------------------------------------------
@@ -354,7 +354,7 @@ def _validation_to_spec_error(exc: ValidationError) -> SpecError:
     loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
     where = _path(loc)
     if kind == "missing":
-        return SpecError(where, "missing", "this key (see spec-format.md)")
+        return SpecError(where, "missing", "this key (see docs/spec-format.md)")
     value = err.get("input")
     msg = err["msg"].replace("Value error, ", "")
     return SpecError(where, f"{msg} (got {_short(value)})", _expected_for(kind, err))
@@ -372,7 +372,7 @@ def _expected_for(kind: str, err: dict) -> str:
         return "a finite number"
     if kind.startswith("greater_than"):
         return f"a number > {ctx.get('gt')}"
-    return "a value of the type spec-format.md gives"
+    return "a value of the type docs/spec-format.md gives"
 
 
 # --- shapes across fields ---------------------------------------------------------------------------------
