@@ -1,17 +1,23 @@
-"""`make bench`: wall time and peak memory of the design, per stage, on the ladder family and the Cuk spec.
+"""`make bench`: wall time and peak memory of the design per stage (ladder family, Cuk), and the closed loops.
 
 Each measurement runs in a fresh process (`ashc design` on a generated spec), so imports, compilation and
-memory are counted as a user sees them; peak memory is the child's maximum resident set size.  Prints one
-table (Markdown, ready for README) and the fitted growth exponent of the total time in n (least squares of
-log t on log n over the ladder sizes).
+memory are counted as a user sees them; peak memory is the child's maximum resident set size.  Prints two
+tables (Markdown, ready for README):
 
-    python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900]
+1. the design per stage on the Cuk spec and the ladder family, with the fitted growth exponent of the time in
+   n (least squares of log t on log n over the ladder sizes);
+2. the closed loops and the large plants (issue 13): Cuk `simulate` and `falsify` with the compiled code's
+   first run (an empty cache: numba compiles) and a cached run in a new process, 10,000 falsification runs,
+   the ladder at n = 256 and 512, and `stabilise` with `decay_rate: maximise` at 64 states.
+
+    python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900] [--runs 10000] [--no-closed-loops]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -32,10 +38,10 @@ WRAPPER = ("import resource, subprocess, sys; rc = subprocess.run(sys.argv[1:]).
            "print('__MAXRSS_KIB__', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr); sys.exit(rc)")
 
 
-def run_child(cmd: list[str], timeout: float) -> tuple[float, float, str, int]:
+def run_child(cmd: list[str], timeout: float, env: dict | None = None) -> tuple[float, float, str, int]:
     """Wall seconds, peak RSS (MiB) of the command, its stdout+stderr, its exit code."""
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", WRAPPER, *cmd], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    proc = subprocess.run([sys.executable, "-c", WRAPPER, *cmd], capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=env)
     wall = time.perf_counter() - start
     kib = [float(line.split()[1]) for line in proc.stderr.splitlines() if line.startswith("__MAXRSS_KIB__")]
     return wall, (kib[-1] / 1024.0 if kib else float("nan")), proc.stdout + proc.stderr, proc.returncode
@@ -59,10 +65,72 @@ def parse_progress(text: str) -> dict[str, float]:
     return times
 
 
+def stage_time(text: str, stage: str) -> float:
+    """The seconds on the progress line "<stage> ran X s" (NaN when the stage did not run)."""
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) > 3 and parts[0] == stage and parts[1] == "ran":
+            return float(parts[2])
+    return float("nan")
+
+
+def ladder_spec(folder: Path, stages: int, maximise: bool = False) -> Path:
+    """`ashc example ladder` written to folder (with ``decay_rate: maximise`` when asked)."""
+    path = folder / f"ladder_{stages}{'_max' if maximise else ''}.yaml"
+    subprocess.run(ASHC + ["example", "ladder", "--stages", str(stages), "--output", str(path)], check=True, capture_output=True, cwd=ROOT)
+    if maximise:
+        import yaml
+
+        spec = yaml.safe_load(path.read_text())
+        spec["stabilisability"]["decay_rate"] = "maximise"
+        path.write_text(yaml.safe_dump(spec, sort_keys=False, width=140))
+    return path
+
+
+def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
+    """The rows of issue 13's table: compiled closed loops (compile and cached), the large ladders and the
+    maximised LMI.  Each command runs in a fresh process; ``ASHC_CACHE`` points at an empty folder first, so
+    the first run compiles (numba) and the second, a new process, loads the cache."""
+    env_cache = tmp / "cache"
+    env = {**os.environ, "ASHC_CACHE": str(env_cache)}
+    out = []
+
+    def timed(label: str, cmd: list[str], stage: str, target: str, note: str = "") -> dict:
+        try:
+            wall, mem, text, rc = run_child(cmd, timeout, env)
+        except subprocess.TimeoutExpired:
+            wall, mem, text, rc = float("nan"), float("nan"), "", -1
+        row = {"work": label, "stage": stage_time(text, stage), "wall": wall, "mem": mem, "rc": rc, "target": target, "note": note}
+        out.append(row)
+        print(f"  measured {label}: {row['stage']:.2f} s ({wall:.1f} s wall)", file=sys.stderr, flush=True)
+        return row
+
+    cuk = tmp / "cuk"
+    spec = "specs/cuk_converter.yaml"
+    subprocess.run(ASHC + ["design", spec, "--out", str(cuk)], check=True, capture_output=True, cwd=ROOT, env=env)
+    timed("Cuk `simulate`, first run (compiles)", ASHC + ["simulate", spec, "--out", str(cuk), "--force"], "simulate", "compile <= 10 s")
+    timed("Cuk `simulate`, cached (new process)", ASHC + ["simulate", spec, "--out", str(cuk), "--force"], "simulate", "<= 1.0 s")
+    timed("Cuk `falsify` 12 runs x 1 s, first run (compiles)", ASHC + ["falsify", spec, "--out", str(cuk), "--runs", "12", "--t-final", "1"],
+          "falsify", "compile <= 10 s")
+    row = timed(f"Cuk `falsify` {runs} runs x 10 s, cached", ASHC + ["falsify", spec, "--out", str(cuk), "--runs", str(runs), "--t-final", "10"],
+                "falsify", "10,000 runs <= 120 s")
+    row["note"] = f"{runs / row['stage']:.0f} runs/s" if row["stage"] > 0 else ""
+    for N in (64, 128):
+        path = ladder_spec(tmp, N)
+        timed(f"ladder n = {4 * N} `design`", ASHC + ["design", str(path), "--out", str(tmp / f"big{N}")], "bound",
+              "<= 30 s" if N == 64 else "<= 90 s, <= 2 GiB")
+        out[-1]["stage"] = out[-1]["wall"]    # the whole design is the work here
+    path = ladder_spec(tmp, 16, maximise=True)
+    timed("`stabilise` with decay_rate: maximise, 64 states", ASHC + ["stabilise", str(path), "--out", str(tmp / "max16")], "stabilise", "<= 60 s")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stages", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32])
     ap.add_argument("--timeout", type=float, default=900.0)
+    ap.add_argument("--runs", type=int, default=10000, help="runs of the falsify row")
+    ap.add_argument("--no-closed-loops", action="store_true", help="only the design table")
     args = ap.parse_args()
 
     rows = []
@@ -96,7 +164,16 @@ def main() -> int:
               f"over n = {ladder[0]['n']}..{ladder[-1]['n']} (least squares on log-log)")
     print(f"cold start: `ashc --help` {help_wall:.2f} s; bare import of the dependencies {import_wall:.2f} s; "
           f"Cuk `ashc design` {cuk_wall:.2f} s = {cuk_wall / import_wall:.1f} x the import time (target <= 2.5 x)")
-    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows}) + "\n")
+    loops = []
+    if not args.no_closed_loops:
+        with tempfile.TemporaryDirectory() as tmp:
+            loops = closed_loops(Path(tmp), args.timeout, args.runs)
+        print("\n| work | seconds | wall (s) | peak RSS (MiB) | target | note | exit |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for r in loops:
+            print(f"| {r['work']} | {r['stage']:.2f} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
+        print("(seconds: the stage's own time from its progress line; for the ladders the whole `ashc design`)")
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops}) + "\n")
     return 0
 
 
