@@ -23,6 +23,10 @@ demo: install
 	$(BIN)/ashc simulate $(SPEC) --out $(OUT)
 	$(BIN)/ashc report $(SPEC) --out $(OUT) --runs 32 --t-final 10
 	$(BIN)/ashc summary $(OUT)
+	@echo ""
+	@echo "Done: the design is in $(OUT)/ (open $(OUT)/report.html). To use ashc yourself, put it on PATH:"
+	@echo "    source $(VENV)/bin/activate     # then: ashc --help, ashc check $(SPEC)"
+	@echo "or call it as $(BIN)/ashc. Next: write a spec of your plant (docs/spec-format.md) and run ashc design on it."
 
 test: install
 	$(BIN)/python -m pytest -q
