@@ -14,7 +14,9 @@ whitelisted sympy constructors with literal arguments are allowed.
 from __future__ import annotations
 
 import ast
+import difflib
 import math
+import re
 import warnings
 from collections.abc import Mapping
 
@@ -158,8 +160,12 @@ class _Builder:
             return self.names[ident]
         if ident == "pi":
             return sp.pi
-        known = ", ".join(sorted(self.names)) or "none"
-        raise self.fail(f"unknown name '{ident}'", f"one of the declared names ({known}) or pi")
+        known = _listing(sorted(self.names, key=_natural))
+        if ident in self.functions:
+            raise self.fail(f"unknown name '{ident}' ({ident} is a function: call it as {ident}(...))",
+                            f"one of the declared names ({known}) or pi")
+        hint = _did_you_mean(ident, [*self.names, "pi"])
+        raise self.fail(f"unknown name '{ident}'", f"{hint}one of the declared names ({known}) or pi")
 
     def binop(self, op: ast.operator, left: sp.Expr, right: sp.Expr) -> sp.Expr:
         if isinstance(op, ast.Add):
@@ -185,8 +191,14 @@ class _Builder:
 
     def call(self, node: ast.Call, depth: int) -> sp.Expr:
         if not isinstance(node.func, ast.Name) or node.func.id not in self.functions:
-            what = _describe(node.func)
-            raise self.fail(f"call of '{what}' is not allowed", "one of the functions " + ", ".join(self.functions))
+            what, hint = f"call of '{_describe(node.func)}' is not allowed", ""
+            if isinstance(node.func, ast.Name) and node.func.id in SIGNAL_FUNCTIONS:
+                what += " here (a time signal: only in simulate.m_relation.u)"
+            elif isinstance(node.func, ast.Name) and (node.func.id in self.names or node.func.id == "pi"):
+                what += f" ({node.func.id} is a name, not a function: write {node.func.id}*(...) for a product)"
+            elif isinstance(node.func, ast.Name):
+                hint = _did_you_mean(node.func.id, self.functions)
+            raise self.fail(what, f"{hint}one of the functions " + ", ".join(self.functions))
         if node.keywords:
             raise self.fail(f"keyword arguments in a call of {node.func.id} are not allowed", "positional arguments")
         func, arity = self.functions[node.func.id]
@@ -200,6 +212,56 @@ class _Builder:
         if arity is not None and len(args) != arity:
             raise self.fail(f"{node.func.id} takes {arity} argument(s), got {len(args)}", f"{arity} argument(s)")
         return func(*args)
+
+
+def _did_you_mean(word: str, candidates) -> str:
+    """The hint for an unknown name, as the spec loader gives for an unknown key.
+
+    Parameters
+    ----------
+    word : str
+        The unknown name.
+    candidates : iterable of str
+        The names it could have meant.
+
+    Returns
+    -------
+    str
+        ``"did you mean 'x1'? "`` for the candidate equal to ``word`` but for case, else the closest one
+        (:func:`difflib.get_close_matches`); ``""`` if none is close.
+    """
+    candidates = list(candidates)
+    folded = [c for c in candidates if c.lower() == word.lower()]
+    close = folded or difflib.get_close_matches(word, candidates, n=1) or difflib.get_close_matches(
+        word.lower(), candidates, n=1)
+    return f"did you mean '{close[0]}'? " if close else ""
+
+
+def _natural(name: str) -> list:
+    """Sort key putting x2 before x10."""
+    return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name)]
+
+
+def _listing(names: list[str], limit: int = 40) -> str:
+    """The names for an error message.
+
+    Parameters
+    ----------
+    names : list of str
+        The names, in the order to show them.
+    limit : int
+        Most names shown; past it, the first ``limit`` and how many there are in all.
+
+    Returns
+    -------
+    str
+        ``"a, b, c"``, ``"none"`` for no names.
+    """
+    if not names:
+        return "none"
+    if len(names) <= limit:
+        return ", ".join(names)
+    return ", ".join(names[:limit]) + f", ... ({len(names)} in all)"
 
 
 def _describe(node: ast.AST) -> str:

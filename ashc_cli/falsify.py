@@ -112,6 +112,8 @@ W0_DECADES = (-2.0, 6.0)
 #: A run whose state exceeds this multiple of its scale has diverged (counted up to there, then frozen).
 DIVERGED = 1e12
 STRATEGIES = ("random", "greedy", "square", "linearised", "off_manifold", "refined")
+#: Length of each run when neither --t-final nor the spec's tracking scenario gives one.
+DEFAULT_T_FINAL = 10.0
 
 SETPOINT, TABLE, GREEDY = 0, 1, 2
 
@@ -1068,7 +1070,7 @@ def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Se
     ac = tr.abstract_controller if tr is not None else None
     gain0 = float(getattr(ac, "gain", 1.0) or 1.0)
     v_max_spec = float(getattr(ac, "v_max", 1.0) or 1.0)
-    t_final = float(t_final if t_final is not None else (tr.t_final if tr is not None else 10.0))
+    t_final = float(t_final if t_final is not None else (tr.t_final if tr is not None else DEFAULT_T_FINAL))
     if not t_final > 0:
         raise DesignError("--t-final", f"{t_final}", "a positive length of run")
     bd = arts["bound"].values

@@ -26,7 +26,8 @@ from . import falsify as falsify_mod
 from .stages import DESIGN, ORDER
 
 __all__ = ["STAGES", "DESIGN", "Folder", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers",
-           "run", "run_falsify", "run_for_verdict", "load_all", "StageReport"]
+           "run", "run_falsify", "run_for_verdict", "load_all", "StageReport", "FALSIFY_UPSTREAM", "falsify_t_final", "falsify_differs",
+           "frozen_stages"]
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
@@ -42,6 +43,10 @@ class StageReport:
     status: str          # "ran" or "up to date"
     seconds: float
     headline: str
+
+
+#: Called with (stage, why it runs) just before a stage is computed (for a live progress display).
+OnStart = Callable[[str, str], None]
 
 
 def default_out(spec: Spec) -> Path:
@@ -102,6 +107,27 @@ def needed(targets: Iterable[str]) -> list[str]:
             want.add(name)
             stack.extend(STAGES[name].UPSTREAM)
     return [name for name in STAGES if name in want]
+
+
+def frozen_stages(frozen: bool | Iterable[str], targets: Iterable[str]) -> set[str]:
+    """The stages :func:`run` must not recompute.
+
+    Parameters
+    ----------
+    frozen : bool or iterable of str
+        ``True``: every stage upstream of the targets (a stage command's ``--frozen``); ``False``: none; an
+        iterable: exactly the stages it names (``design --frozen`` names them all).
+    targets : iterable of str
+        The stages asked for.
+
+    Returns
+    -------
+    set of str
+    """
+    if isinstance(frozen, bool):
+        targets = list(targets)
+        return {name for name in needed(targets) if name not in targets} if frozen else set()
+    return set(frozen)
 
 
 def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
@@ -189,9 +215,10 @@ def run(
     targets: Iterable[str],
     *,
     force: bool = False,
-    frozen: bool = False,
+    frozen: bool | Iterable[str] = False,
     on_stage: Callable[[StageReport], None] | None = None,
     numeric: bool | None = None,
+    on_start: OnStart | None = None,
 ) -> dict[str, Artefact]:
     """Bring the target stages (and what they need) up to date.
 
@@ -204,13 +231,18 @@ def run(
     targets : iterable of str
         Stage names wanted.
     force : bool
-        Recompute every needed stage even if up to date (once per :class:`Folder`).
-    frozen : bool
-        Never recompute an upstream stage: refuse (naming the stage to rerun) if one is not up to date.
+        Recompute every needed stage that is not frozen, even if up to date (once per :class:`Folder`).
+    frozen : bool or iterable of str
+        Stages never to recompute: refuse (naming the stage to rerun) if one is not up to date.  ``True``
+        freezes every stage upstream of the targets (the targets themselves may run); an iterable freezes
+        exactly the stages it names (e.g. all of them, for a command that must only read the folder).
+        A frozen stage is not recomputed by ``force`` either.
     on_stage : callable, optional
         Called with a :class:`StageReport` after each stage.
     numeric : bool, optional
         Force the numeric (True) or symbolic (False) paths; None chooses by size (``model.NUMERIC_THRESHOLD``).
+    on_start : callable, optional
+        Called with (stage, reason) just before a stage is computed (not for a stage read as up to date).
 
     Returns
     -------
@@ -220,22 +252,29 @@ def run(
     Raises
     ------
     ArtefactError
-        With ``frozen``, if an upstream stage is not up to date.
+        With ``frozen``, if a frozen stage is not up to date.
     """
     targets, folder = list(targets), as_folder(out)
+    order = needed(targets)
+    fixed = frozen_stages(frozen, targets)
     model = dataclasses.replace(build_model(spec), numeric_paths=numeric)
     remove_leftovers(folder.path)
     arts: dict[str, Artefact] = {}
-    for name in needed(targets):
+    for name in order:
         mod = STAGES[name]
         start = time.perf_counter()
-        reason = "forced" if force and name not in folder.written else staleness(spec, folder, name)
-        if frozen and name not in targets and reason is not None:
-            raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"rerun `ashc {name} SPEC`, or drop --frozen")
+        if name in fixed:
+            reason = staleness(spec, folder, name)
+            if reason is not None:
+                raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"rerun `ashc {name} SPEC`, or drop --frozen")
+        else:
+            reason = "forced" if force and name not in folder.written else staleness(spec, folder, name)
         if reason is None:
             art = folder.read(name)
             status = "up to date"
         else:
+            if on_start is not None:
+                on_start(name, reason)
             check_upstream(spec, name, arts)
             art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
@@ -277,28 +316,129 @@ def design_model(spec: Spec, arts: dict[str, Artefact]):
     return with_domain(build_model(spec), arts["manifold"])
 
 
+#: The design stages a falsify artefact records as its upstream.
+FALSIFY_UPSTREAM = ("stabilise", "manifold", "kappa", "delta", "bound")
+#: Length of a falsification run when neither ``--t-final`` nor the spec's tracking scenario gives one
+#: (the same default as :func:`ashc_cli.falsify.falsify`).
+FALSIFY_T_FINAL = falsify_mod.DEFAULT_T_FINAL
+
+
+def falsify_t_final(spec: Spec, t_final: float | None) -> float:
+    """The length of run :func:`ashc_cli.falsify.falsify` uses: ``t_final``, else the spec's tracking t_final, else 10 s."""
+    if t_final is not None:
+        return float(t_final)
+    tracking = spec.simulate.tracking
+    return float(tracking.t_final) if tracking is not None else FALSIFY_T_FINAL
+
+
+def falsify_differs(spec: Spec, arts: dict[str, Artefact], stored: Artefact, runs: int | None = None, seed: int | None = None,
+                    t_final: float | None = None, *, t_final_given: bool = False) -> str | None:
+    """Why a stored falsify artefact does not answer a request, or None if it does.
+
+    Parameters
+    ----------
+    spec : Spec
+        The current spec.
+    arts : dict of str to Artefact
+        The current design's artefacts (at least :data:`FALSIFY_UPSTREAM`).
+    stored : Artefact
+        The falsify artefact in the folder.
+    runs, seed : int, optional
+        The settings asked for; None accepts any.
+    t_final : float, optional
+        The length of run asked for (None: the default, :func:`falsify_t_final`).
+    t_final_given : bool
+        Whether a length of run is asked for at all (False accepts any).
+
+    Returns
+    -------
+    str or None
+        What is different, to follow "falsify.h5 was": ``made with --runs 64, not 32``; or None.
+    """
+    if stored.provenance.get("spec_sha256") != spec.sha256:
+        return "made from another spec"
+    recorded = stored.provenance.get("upstream", {})
+    for up in FALSIFY_UPSTREAM:
+        if up in arts and recorded.get(up) != arts[up].provenance.get("sha256"):
+            return f"made for an earlier design ({up}.h5 changed since)"
+    differs = []
+    if runs is not None and int(stored.meta.get("runs", -1)) != runs:
+        differs.append(f"--runs {stored.meta.get('runs')}, not {runs}")
+    if seed is not None and int(stored.meta.get("seed", -1)) != seed:
+        differs.append(f"--seed {stored.meta.get('seed')}, not {seed}")
+    if t_final_given:
+        want = falsify_t_final(spec, t_final)
+        have = float(stored.values.get("t_final", float("nan")))
+        if not np.isclose(have, want, rtol=1e-12, atol=0.0):
+            differs.append(f"--t-final {have:g}, not {want:g}")
+    return f"made with {', '.join(differs)}" if differs else None
+
+
 def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, t_final: float | None = None, *,
-                on_stage: Callable[[StageReport], None] | None = None, progress=None, on_runs=None) -> tuple[dict[str, Artefact], Artefact]:
+                on_stage: Callable[[StageReport], None] | None = None, progress=None, on_runs=None,
+                frozen: bool = False, on_start: OnStart | None = None) -> tuple[dict[str, Artefact], Artefact]:
     """Bring the design up to date, run :func:`ashc_cli.falsify.falsify` and store ``falsify.h5``.
 
     The artefact is written whatever the verdict (a violation must be kept to be studied).
+
+    Parameters
+    ----------
+    spec : Spec
+        The validated spec.
+    out : str, Path or Folder
+        The artefact folder.
+    runs, seed, t_final
+        Passed to :func:`ashc_cli.falsify.falsify`.
+    on_stage : callable, optional
+        Called with a :class:`StageReport` after each design stage and after the falsification.
+    progress, on_runs : callable, optional
+        Passed to :func:`ashc_cli.falsify.falsify` (steps done of ``SEGMENTS``; runs done and runs per second).
+    frozen : bool
+        Never recompute a design stage: refuse (naming it) if one is not up to date.
+    on_start : callable, optional
+        Called with (stage, reason) before a design stage is computed and before the falsification starts.
+
+    Returns
+    -------
+    arts : dict
+        The design's artefacts.
+    art : Artefact
+        The falsify artefact just written.
     """
     folder = as_folder(out)
-    arts = run(spec, folder, DESIGN, on_stage=on_stage)
+    arts = run(spec, folder, DESIGN, frozen=DESIGN if frozen else False, on_stage=on_stage, on_start=on_start)
+    if on_start is not None:
+        on_start(falsify_mod.NAME, f"{runs} runs")
     start = time.perf_counter()
     art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress, on_runs)
-    ups = ("stabilise", "manifold", "kappa", "delta", "bound")
     write_artefact(artefact_path(folder.path, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
-                   parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in ups},
+                   parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in FALSIFY_UPSTREAM},
                    names=declared_names(spec))
     if on_stage is not None:
         on_stage(StageReport(falsify_mod.NAME, "ran", time.perf_counter() - start, falsify_mod.headline(art)))
     return arts, art
 
 
-def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False,
-                    on_stage: Callable[[StageReport], None] | None = None) -> tuple[dict[str, Artefact], tuple | None]:
+def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False, frozen: bool = False,
+                    on_stage: Callable[[StageReport], None] | None = None,
+                    on_start: OnStart | None = None) -> tuple[dict[str, Artefact], tuple | None]:
     """Run the design stages one at a time, stopping at the first design condition that fails.
+
+    Parameters
+    ----------
+    spec : Spec
+        The validated spec.
+    out : str, Path or Folder
+        The artefact folder.
+    force : bool
+        Recompute every design stage (once per :class:`Folder`).
+    frozen : bool
+        Recompute nothing: refuse (:class:`~ashc_cli.errors.ArtefactError`, naming the stage) if a design stage
+        is not up to date.
+    on_stage : callable, optional
+        Called with a :class:`StageReport` after each stage.
+    on_start : callable, optional
+        Called with (stage, reason) just before a stage is computed.
 
     Returns
     -------
@@ -312,7 +452,7 @@ def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False
     for stage in DESIGN:
         try:
             # One stage at a time, so a failing condition still leaves the verdict of the stages before it.
-            arts.update(run(spec, folder, [stage], force=force,
+            arts.update(run(spec, folder, [stage], force=force, frozen=DESIGN if frozen else False, on_start=on_start,
                             on_stage=lambda report, stage=stage: on_stage(report) if on_stage and report.stage == stage else None))
         except DesignError as exc:
             return arts, (stage, exc)

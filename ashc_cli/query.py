@@ -16,7 +16,7 @@ from .errors import ArtefactError, DesignError, SpecError
 from .pipeline import EXTRAS, STAGES
 from .stages.inverse import certified_set, format_box, outside_certified_set
 
-__all__ = ["summary", "EVALUABLE", "parse_point", "evaluate"]
+__all__ = ["summary", "EVALUABLE", "parse_point", "evaluate", "no_negative_zero", "number_text"]
 
 #: Functions built from m: evaluated only at states x whose output h(x) lies where m is certified
 #: (``inverse.m_domain``).
@@ -52,12 +52,47 @@ def summary(arts: dict[str, Artefact]) -> dict:
         entry["checks"] = {k: {"value": _num(c.value), "passed": c.passed, "description": c.description, "evidence": c.evidence}
                            for k, c in art.checks.items()}
         entry["provenance"] = {k: art.provenance.get(k) for k in ("spec_sha256", "created", "ashc_version", "sha256")}
-        out[name] = entry
+        out[name] = no_negative_zero(entry)
     return out
 
 
 def _num(x: float):
-    return x if math.isfinite(x) else str(x)
+    return x + 0.0 if math.isfinite(x) else str(x)
+
+
+def no_negative_zero(obj):
+    """``obj`` with every float -0.0 replaced by 0.0, through dicts, lists, tuples and numpy arrays.
+
+    Printed, -0.0 reads as "-0" or "-0.0": a sign that means nothing (a product with a zero, a rounding).
+
+    Parameters
+    ----------
+    obj : object
+        A number or a JSON-like structure of them (other objects are returned as they are).
+
+    Returns
+    -------
+    object
+        The same structure (new containers), with 0.0 for -0.0.
+    """
+    if isinstance(obj, bool):
+        return obj
+    if isinstance(obj, (float, np.floating)):
+        return obj + 0.0 if obj == 0 else obj   # -0.0 + 0.0 is +0.0; NaN and inf are left alone
+    if isinstance(obj, dict):
+        return {k: no_negative_zero(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [no_negative_zero(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(no_negative_zero(v) for v in obj)
+    if isinstance(obj, np.ndarray) and obj.dtype.kind == "f":
+        return obj + 0.0
+    return obj
+
+
+def number_text(value: float, spec: str = ".6g") -> str:
+    """``format(value, spec)`` with -0.0 shown as 0 (see :func:`no_negative_zero`)."""
+    return format(no_negative_zero(value), spec)
 
 
 def parse_point(text: str) -> dict[str, float]:
@@ -80,7 +115,7 @@ def parse_point(text: str) -> dict[str, float]:
             raise SpecError("--at", f"value of {name} is '{value.strip()}', not a number", "name=number") from None
         if not math.isfinite(number):
             raise SpecError("--at", f"value of {name} is not finite", "a finite number")
-        point[name] = number
+        point[name] = number + 0.0  # -0 is 0
     if not point:
         raise SpecError("--at", "no values given", "a list like xi=0.6156")
     return point
@@ -166,7 +201,7 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
         values = _theta(art, point, params)
     if np.any(np.isnan(values)):
         raise DesignError(name, f"{name} is not real at {point}", "a point where it is defined (see `ashc summary`)")
-    return values.tolist()
+    return no_negative_zero(values.tolist())
 
 
 def _require_certified(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> None:

@@ -87,8 +87,9 @@ def _contract(group) -> list[str]:
         "**Calling convention.** " + _code_list(spec_first) + " take the spec path first, then options; "
         + ("each takes `--out DIR`" if not without_out else f"all but {_code_list(without_out)} take `--out DIR`")
         + " (default `outputs/<name>`, with `<name>` the spec's `name` key, relative to the working directory). "
-        "A command that needs upstream stages runs the stale ones first (a stage command with `--frozen` fails "
-        "instead, exit 5, naming the stale stage). `summary DIR` and `eval DIR NAME --at ...` read a finished "
+        "A command that needs upstream stages runs the stale ones first; with `--frozen` it fails instead (exit 5, "
+        "naming the stale stage): stage commands, `simulate` and `falsify` still compute their own result, `design`, "
+        "`check`, `plot` and `report` compute nothing. `summary DIR` and `eval DIR NAME --at ...` read a finished "
         "artefact folder and need no spec. `--debug` is accepted anywhere on the line (it is not a click option, so "
         "it is not in the help below): it shows the traceback and library warnings.",
         "",
@@ -103,7 +104,7 @@ def _contract(group) -> list[str]:
         f"  {stage_files}",
         "      one HDF5 artefact per stage (layout: the docstring of ashc_cli/artefacts.py)",
         f"  {extra_files}",
-        "      written by falsify, and by report when falsify has not run on this spec",
+        "      written by falsify, and by report when there is none for this design or it was made with other --runs/--seed/--t-final than report is given",
         "  plots/*.png",
         "      written by plot and report",
         "  report.html",
@@ -113,8 +114,10 @@ def _contract(group) -> list[str]:
         "```",
         "",
         "**Output streams.** Results go to stdout; errors go to stderr. Each stage prints one progress line, "
-        "`<stage> <status> <seconds> s  <headline>` with status `ran` or `up to date`. It goes to stdout, "
-        "or to stderr when `--json` is given (and always for `check`, `falsify` and `report`). "
+        "`<stage> <status> <seconds> s  <headline>` with status `ran` or `up to date`. It goes to stderr for "
+        "every command (stdout carries only results: a summary line or table, JSON, file paths; a stage command "
+        "prints its artefact's path); when stderr is a terminal a live display (spinner, or a bar with runs/s for "
+        "`falsify`) shows while a step runs and is erased after. "
         f"With `--json` ({_code_list(with_json)}), stdout holds exactly one JSON document.",
         "",
         "**`ashc summary DIR --json`** prints one JSON object whose keys are the stage names present in the folder. "

@@ -96,6 +96,10 @@ CASES: tuple[Case, ...] = (
     Case("name-time", "a state named t", edits=(("states: [xi]", "states: [t]"),), fragment="reserved"),
     # --- expressions ----------------------------------------------------------------------------------
     Case("expr-undeclared", "an undeclared name", edits=(('"x1/C_2"', '"x5/C_2"'),), fragment="concrete.f_bar[1]: unknown name 'x5'"),
+    Case("expr-typo-name", "a misspelt parameter name", edits=(('"x1/C_2"', '"x1/C2"'),),
+         fragment="concrete.f_bar[1]: unknown name 'C2'; expected did you mean 'C_2'? one of the declared names"),
+    Case("expr-typo-function", "a misspelt function", edits=(('"x1/C_2"', '"sine(x1)/C_2"'),),
+         fragment="concrete.f_bar[1]: call of 'sine' is not allowed; expected did you mean 'sin'? one of the functions"),
     Case("expr-wrong-side", "an abstract state in the concrete drift", edits=(('"x1/C_2"', '"xi/C_2"'),), fragment="concrete.f_bar[1]: uses xi"),
     Case("expr-syntax", "a syntax error", edits=(('"x1/C_2"', '"x1/"'),), fragment="concrete.f_bar[1]: syntax error"),
     Case("expr-div-zero", "a division by a literal zero", edits=(('"x1/C_2"', '"x1/0"'),), fragment="division by zero"),

@@ -1,10 +1,22 @@
 """Tests of the command line through the real `ashc` entry point (the contract of cli.md)."""
 
 import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import pytest
+import typer
+from typer.testing import CliRunner
 
-from .conftest import CUK, CUK_PAPER_M, ashc
+from ashc_cli.artefacts import read_artefact
+from ashc_cli.cli import Progress, app, plain_text
+
+from .conftest import CUK, CUK_PAPER_M, ROOT, ashc
 
 SUMMARY_KEYS = {
     "stabilise": ["lambda", "M", "lmi_margin"],
@@ -17,16 +29,18 @@ SUMMARY_KEYS = {
 
 
 def test_design_progress_lines(cli_run):
-    out = cli_run["design"].stdout.splitlines()
-    stages = [line.split()[0] for line in out[:6]]
+    # Progress (the stage lines) goes to stderr; stdout carries only the result, the design's summary line.
+    err = cli_run["design"].stderr.splitlines()
+    stages = [line.split()[0] for line in err[:6]]
     assert stages == list(SUMMARY_KEYS)
-    assert all(" s  " in line for line in out[:6])
-    assert "checks passed" in out[-1]
+    assert all(" s  " in line for line in err[:6])
+    out = cli_run["design"].stdout.splitlines()
+    assert len(out) == 1 and "checks passed" in out[0]
 
 
 def test_design_skips_up_to_date_stages(cli_run):
     again = ashc("design", str(CUK), "--out", str(cli_run["out"]), check=True)
-    assert all("up to date" in line for line in again.stdout.splitlines()[:6])
+    assert all("up to date" in line for line in again.stderr.splitlines()[:6])
 
 
 def test_summary_json_keys(cli_run):
@@ -94,3 +108,204 @@ def test_help_explains():
     for word in ("design", "simulate", "summary", "eval", "Exit codes"):
         assert word in proc.stdout
     assert "eq. egLMI" in ashc("stabilise", "--help", check=True).stdout
+
+
+# --- issue 14: one output channel, progress, options that do what they say ------------------------------
+
+#: One progress line: `<stage> <status> <seconds> s  <headline>`.
+STAGE_LINE = re.compile(r"^(%s) +(ran|up to date) +\d+\.\d\d s  \S" % "|".join([*SUMMARY_KEYS, "simulate", "falsify"]))
+#: A negative zero standing alone ("-0", "-0.0"; not "-0.5").
+NEGATIVE_ZERO = re.compile(r"(?<![\w.])-0(?:\.0*)?(?:e[+-]?0+)?(?![\w.])")
+
+
+def _copy(cli_run, tmp_path: Path) -> Path:
+    """A copy of the session's designed (and simulated) Cuk folder that a test may change."""
+    out = tmp_path / "out"
+    shutil.copytree(cli_run["out"], out)
+    return out
+
+
+def invoke(*args):
+    """The typer app in-process (stderr is not a terminal), for options that fail or finish fast."""
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_stdout_carries_only_the_result(cli_run):
+    # simulate used to print its stage lines on stdout; now stdout is the artefact's path, the stage lines are stderr.
+    sim = cli_run["simulate"]
+    assert sim.stdout == f"{cli_run['out'] / 'simulate.h5'}\n"
+    lines = sim.stderr.splitlines()
+    assert [line.split()[0] for line in lines] == [*SUMMARY_KEYS, "simulate"]
+    assert all(STAGE_LINE.match(line) for line in lines), lines
+
+
+def test_falsify_then_report_reruns_only_when_the_options_differ(cli_run, tmp_path):
+    out = _copy(cli_run, tmp_path)
+    falsify = ashc("falsify", str(CUK), "--out", str(out), "--runs", "8", "--t-final", "2", check=True)
+    # Not a terminal: the stage lines only (the progress bar's label used to be printed among them).
+    assert falsify.stdout.startswith("falsify 'cuk_converter': 8 runs") and falsify.stdout.count("\n") == 1
+    lines = falsify.stderr.splitlines()
+    assert [line.split()[0] for line in lines] == [*SUMMARY_KEYS, "falsify"]
+    assert all(STAGE_LINE.match(line) for line in lines), lines
+
+    # The same settings: the stored falsify.h5 is used.
+    same = ashc("report", str(CUK), "--out", str(out), "--runs", "8", "--t-final", "2", check=True)
+    assert any(line.startswith("falsify    up to date") for line in same.stderr.splitlines()), same.stderr
+    assert "running falsify" not in same.stderr and same.stdout.startswith(str(out / "report.html"))
+    # Other settings: never silently reused; --frozen refuses, naming the difference.
+    frozen = ashc("report", str(CUK), "--out", str(out), "--runs", "9", "--t-final", "2", "--frozen")
+    assert frozen.returncode == 5
+    assert frozen.stderr.splitlines()[-1] == ("error: falsify.h5: was made with --runs 8, not 9 (--frozen runs nothing); "
+                                              "expected `ashc falsify SPEC --runs 9 --seed 0 --t-final 2` first, or drop --frozen")
+    again = ashc("report", str(CUK), "--out", str(out), "--runs", "9", "--t-final", "2", check=True)
+    assert "note: running falsify --runs 9 --seed 0 --t-final 2: falsify.h5 was made with --runs 8, not 9" in again.stderr
+    assert any(line.startswith("falsify    ran") for line in again.stderr.splitlines())
+    stored = read_artefact(out / "falsify.h5")
+    assert stored.meta["runs"] == 9 and stored.meta["seed"] == 0 and stored.values["t_final"] == 2.0
+    # A setting not given keeps the stored run's (9 runs), the one given (--seed 1) reruns it.
+    seed = ashc("report", str(CUK), "--out", str(out), "--seed", "1", check=True)
+    assert "note: running falsify --runs 9 --seed 1 --t-final 2: falsify.h5 was made with --seed 0, not 1" in seed.stderr
+
+
+def _with_terminal_stderr(*args: str) -> tuple[subprocess.CompletedProcess, str]:
+    """Run ashc with stderr on a pseudo-terminal (stdout a pipe); return the process and what stderr showed."""
+    pty = pytest.importorskip("pty")
+    master, slave = pty.openpty()
+    exe = Path(sys.executable).with_name("ashc")
+    proc = subprocess.Popen([str(exe), *args], stdout=subprocess.PIPE, stderr=slave, cwd=ROOT, text=True,
+                            env={**os.environ, "TERM": "xterm", "COLUMNS": "120", "PYTHONWARNINGS": "ignore"})
+    os.close(slave)
+    chunks: list[bytes] = []
+
+    def read() -> None:
+        while True:
+            try:
+                data = os.read(master, 4096)
+            except OSError:  # the terminal closed (EIO on Linux)
+                return
+            if not data:
+                return
+            chunks.append(data)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    stdout = proc.stdout.read()
+    proc.wait(timeout=600)
+    reader.join(timeout=10)
+    os.close(master)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, None), b"".join(chunks).decode(errors="replace")
+
+
+def test_live_progress_when_stderr_is_a_terminal(cli_run, tmp_path):
+    out = _copy(cli_run, tmp_path)
+    proc, shown = _with_terminal_stderr("falsify", str(CUK), "--out", str(out), "--runs", "8", "--t-final", "2")
+    assert proc.returncode == 0, shown
+    # The bar (with runs/s) is on the terminal, and the stage lines; stdout is the result line alone, no escapes.
+    assert "falsify: 8 runs" in shown and "runs/s" in shown and "\x1b[" in shown
+    plain = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", shown).replace("\r", "\n")
+    assert [line.split()[0] for line in plain.splitlines() if STAGE_LINE.match(line)] == [*SUMMARY_KEYS, "falsify"], plain
+    assert proc.stdout.startswith("falsify 'cuk_converter': 8 runs") and proc.stdout.count("\n") == 1 and "\x1b" not in proc.stdout
+
+
+def test_progress_without_a_terminal_prints_lines_only(capsys):
+    progress = Progress(live=False)
+    progress.start("simulate: forced")
+    progress.update(completed=3, note="10 runs/s")
+    progress.line("kappa      ran           0.06 s  kappa(V) = [[-126.1875, -0.0]]")
+    progress.stop()
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == "kappa      ran           0.06 s  kappa(V) = [[-126.1875, 0.0]]\n"
+
+
+def test_frozen_on_every_command_that_runs_stages(cli_run, tmp_path):
+    out = _copy(cli_run, tmp_path)
+    ok = invoke("design", CUK, "--out", out, "--frozen")
+    assert ok.exit_code == 0 and "checks passed" in ok.stdout
+    assert all("up to date" in line for line in ok.stderr.splitlines())
+    (out / "delta.h5").unlink()
+    for command in ("design", "check", "plot", "falsify", "report", "simulate", "bound"):
+        res = invoke(command, CUK, "--out", out, "--frozen")
+        assert res.exit_code == 5, (command, res.stderr)
+        assert res.stderr.splitlines()[-1] == ("error: delta.h5: is not up to date (no artefact yet); "
+                                               "expected rerun `ashc delta SPEC`, or drop --frozen"), command
+    assert not (out / "delta.h5").exists()  # nothing was recomputed
+    assert invoke("kappa", CUK, "--out", out, "--frozen").exit_code == 0  # kappa does not need delta
+
+
+def test_force_with_frozen(cli_run, tmp_path):
+    out = _copy(cli_run, tmp_path)
+    for command in ("design", "check", "plot", "report"):
+        res = invoke(command, CUK, "--out", out, "--force", "--frozen")
+        assert res.exit_code == 2, (command, res.stderr)
+        assert res.stderr.startswith(f"error: --force: cannot be combined with --frozen on `ashc {command}`") and res.stderr.count("\n") == 1
+    # A stage command: --force --frozen recomputes that stage only (it used to fail on the "forced" upstream).
+    res = invoke("kappa", CUK, "--out", out, "--force", "--frozen")
+    assert res.exit_code == 0, res.stderr
+    assert [line.split()[:2] for line in res.stderr.splitlines()] == [["manifold", "up"], ["kappa", "ran"]]
+    assert res.stdout == f"{out / 'kappa.h5'}\n"
+
+
+def test_numeric_on_up_to_date_stages_is_not_silent(cli_run, tmp_path):
+    out = _copy(cli_run, tmp_path)
+    res = invoke("kappa", CUK, "--out", out, "--numeric")
+    assert res.exit_code == 0
+    assert res.stderr.splitlines()[-1] == ("note: --numeric did not apply to the stage(s) kept as they were (manifold, kappa); "
+                                           "add --force to recompute them")
+
+
+def test_sweep_refuses_workers_with_a_scheduler():
+    res = invoke("sweep", CUK, "--param", "E=10:12:2", "--scheduler", "tcp://127.0.0.1:9", "--workers", "3")
+    assert res.exit_code == 2
+    assert res.stderr == ("error: --workers: 3 worker processes are for the local cluster, but --scheduler tcp://127.0.0.1:9 is given; "
+                          "expected --workers (a local cluster) or --scheduler (a running one), not both\n")
+
+
+def test_help_summaries_are_whole_sentences():
+    # click cut the summaries at the first ". ": "Compose the abstract output map kappa = h o p (eq."
+    text = ashc("--help", check=True).stdout
+    listing = text.split("Commands:\n", 1)[1].splitlines()
+    group = typer.main.get_command(app)
+    assert len(listing) == len(group.commands)  # one line each: nothing wrapped
+    for line in listing:
+        name, summary_text = line.split(None, 1)
+        assert name in group.commands
+        assert summary_text.endswith(".") and not summary_text.endswith("...") and "eq." not in summary_text, line
+
+
+def test_debug_is_no_option_and_works_anywhere(tmp_path):
+    group = typer.main.get_command(app)
+    for name, command in group.commands.items():
+        assert "--debug" not in command.get_help(typer.Context(command, info_name=name)), name
+    # After the command and given twice (the second one used to reach click: "No such option").
+    proc = ashc("--debug", "design", "no/such.yaml", "--debug")
+    assert proc.returncode == 2 and "Traceback" in proc.stderr and "No such option" not in proc.stderr
+
+
+def test_negative_zero_prints_as_zero(cli_run):
+    out = cli_run["out"]
+    assert ashc("eval", str(out), "kappa", "--at", "xi=-0", check=True).stdout == "kappa(xi=0) = [0]\n"
+    text = ashc("summary", str(out), check=True).stdout
+    assert "range_on_V = [[-126.1875" in text and not NEGATIVE_ZERO.search(text)
+    data = ashc("summary", str(out), "--json", check=True).stdout
+    assert not re.search(r"-0\.0(?!\d)", data)
+    kappa_line = next(line for line in cli_run["design"].stderr.splitlines() if line.startswith("kappa"))
+    assert kappa_line.endswith("kappa(V) = [[-126.1875, 0.0]]")
+    assert not NEGATIVE_ZERO.search(cli_run["design"].stdout + cli_run["design"].stderr)
+
+
+@pytest.mark.parametrize("text, shown", [
+    ("kappa(V) = [[-126.1875, -0.0]]", "kappa(V) = [[-126.1875, 0.0]]"),
+    ("[-0, 1, -0.5, -0.05, x-0, 1e-0, -0e+00]", "[0, 1, -0.5, -0.05, x-0, 1e-0, 0e+00]"),
+    ("lmi_margin = -0.0317", "lmi_margin = -0.0317"),
+])
+def test_plain_text_drops_the_sign_of_zero_only(text, shown):
+    assert plain_text(text) == shown
+
+
+@pytest.mark.parametrize("command", ["falsify", "report"])
+def test_t_final_must_be_positive_before_any_work(command, tmp_path):
+    # --t-final 0 used to design first and then fail as a design condition (exit 3).
+    res = invoke(command, CUK, "--out", tmp_path / "o", "--t-final", "0")
+    assert res.exit_code == 2
+    assert res.stderr == "error: --t-final: 0 s; expected a positive, finite length of run in seconds\n"
+    assert not (tmp_path / "o").exists()

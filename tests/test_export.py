@@ -12,6 +12,7 @@ tracking error.
 from __future__ import annotations
 
 import ctypes
+import json
 import importlib.util
 import os
 import re
@@ -519,3 +520,27 @@ def test_c_pseudo_inverse_matches_numpy(tmp_path):
         deficient += int(np.linalg.matrix_rank(a) < min(rows, cols))
     assert deficient > 50
     assert worst <= RTOL
+
+
+@needs_cc
+def test_cli_export_and_eval_u_w_agree(cli_run, tmp_path):
+    """A user's check of exported code: `ashc export` writes FILE.c/.h; the compiled ashc_interface gives what
+    `ashc eval DIR u_w` prints at the same point."""
+    from .conftest import ashc
+
+    out = cli_run["out"]
+    proc = ashc("export", str(CUK), "--out", str(out), "--output", str(tmp_path / "cuk.c"), "--frozen", "--json")
+    assert proc.returncode == 0, proc.stderr
+    files = json.loads(proc.stdout)["files"]
+    assert [Path(f).name for f in files] == ["cuk.c", "cuk.h"]
+    lib = CDesign(Path(files[0]), (4, 1, 1, 1, 1))
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        xi, x, v = rng.uniform(0.1, 0.9, 1), rng.uniform(-20, 20, 4), rng.uniform(-50, 50, 1)
+        at = ",".join([f"xi={float(xi[0])!r}"] + [f"x{i + 1}={float(x[i])!r}" for i in range(4)] + [f"v={float(v[0])!r}"])
+        ev = ashc("eval", str(out), "u_w", "--spec", str(CUK), "--at", at, "--json")
+        assert ev.returncode == 0, ev.stderr
+        assert lib.interface(xi, x, v) == pytest.approx(json.loads(ev.stdout)["value"], rel=1e-12, abs=1e-15)
+    # u_w needs the spec; a missing one is a clear one-line error.
+    bad = ashc("eval", str(out), "u_w", "--at", "xi=0.5,x1=0,x2=0,x3=0,x4=0,v=0")
+    assert bad.returncode == 2 and "--spec" in bad.stderr and "Traceback" not in bad.stderr

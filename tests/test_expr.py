@@ -120,3 +120,56 @@ def test_hostile_expressions_refused_quickly(text, tmp_path, monkeypatch):
         pass
     assert time.perf_counter() - start < 1.0
     assert not (tmp_path / "pwned").exists()
+
+
+# --- "did you mean": an unknown name gets the closest declared one, as an unknown spec key does ----------
+
+
+@pytest.mark.parametrize(
+    "text, what, hint",
+    [
+        ("X + 1", "unknown name 'X'", "did you mean 'x'? "),      # case first
+        ("xx + 1", "unknown name 'xx'", "did you mean 'x'? "),
+        ("pii * x", "unknown name 'pii'", "did you mean 'pi'? "),
+        ("sine(x)", "call of 'sine' is not allowed", "did you mean 'sin'? "),
+        ("Exp(x)", "call of 'Exp' is not allowed", "did you mean 'exp'? "),
+        ("tanh2(y)", "call of 'tanh2' is not allowed", "did you mean 'tanh'? "),
+    ],
+)
+def test_unknown_names_get_a_suggestion(text, what, hint):
+    with pytest.raises(SpecError) as err:
+        parse(text)
+    line = err.value.line()
+    # One line: the field, the value, what was expected (the hint first, then the full list).
+    assert line.startswith(f"field.f[0]: {what}; expected {hint}") and "\n" not in line
+    assert line.endswith("or pi") or line.endswith("min, max")
+
+
+def test_no_suggestion_when_nothing_is_close():
+    with pytest.raises(SpecError) as err:
+        parse("z + 1")
+    assert err.value.line() == "field.f[0]: unknown name 'z'; expected one of the declared names (x, y) or pi"
+    with pytest.raises(SpecError) as err:
+        parse("foo(x)")
+    assert "did you mean" not in err.value.line()
+
+
+def test_a_function_as_a_name_and_a_name_as_a_function_are_explained():
+    with pytest.raises(SpecError, match=r"unknown name 'exp' \(exp is a function: call it as exp\(\.\.\.\)\)"):
+        parse("exp + 1")
+    with pytest.raises(SpecError, match=r"call of 'x' is not allowed \(x is a name, not a function: write x\*\(\.\.\.\) for a product\)"):
+        parse("x(y + 1)")
+    with pytest.raises(SpecError, match=r"call of 'triangle' is not allowed here \(a time signal: only in simulate.m_relation.u\)"):
+        parse("triangle(x)")
+    t = sp.Symbol("t", real=True)
+    with pytest.raises(SpecError, match="did you mean 'triangle'"):
+        parse_expression("triangel(t)", {"t": t}, "u", signal=True)
+
+
+def test_a_long_list_of_names_is_shortened():
+    names = {f"v{k}": sp.Symbol(f"v{k}") for k in range(100)}
+    with pytest.raises(SpecError) as err:
+        parse_expression("vv1 + 1", names, "f[0]")
+    line = err.value.line()
+    assert "did you mean 'v1'? one of the declared names (v0, v1, v2, v3," in line  # in natural order
+    assert "v39, ... (100 in all)) or pi" in line and len(line) < 400

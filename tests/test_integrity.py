@@ -26,7 +26,7 @@ def test_kill_during_a_stage_leaves_artefacts_intact(paper_out, tmp_path):
     proc = subprocess.Popen([str(exe), "design", str(CUK_PAPER_M), "--out", str(out), "--force"], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     # Wait for the second stage to finish, then kill while the later (slower) stages run.
-    for line in proc.stdout:
+    for line in proc.stderr:
         if line.startswith("kappa"):
             break
     time.sleep(0.3)

@@ -2,8 +2,11 @@
 
 import shutil
 
+import pytest
+
 from ashc_cli import pipeline
-from ashc_cli.artefacts import read_artefact, write_artefact
+from ashc_cli.artefacts import Artefact, read_artefact, write_artefact
+from ashc_cli.errors import ArtefactError
 from ashc_cli.pipeline import DESIGN, Folder, needed, run, run_for_verdict, staleness
 from ashc_cli.spec import load_spec, parse_spec_text
 
@@ -74,3 +77,59 @@ def test_a_folder_reads_each_artefact_once(paper_out, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "write_artefact", lambda path, art, **kw: written.append(path.name) or write_artefact(path, art, **kw))
     run_for_verdict(spec, Folder(out), force=True)
     assert written == [f"{s}.h5" for s in DESIGN]
+
+
+def test_frozen_stages_and_force(paper_out, tmp_path):
+    spec = load_spec(CUK_PAPER_M)
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    # A collection freezes exactly those stages, targets included: nothing is recomputed.
+    run(spec, out, DESIGN, frozen=DESIGN)  # all up to date: fine
+    (out / "delta.h5").unlink()
+    with pytest.raises(ArtefactError, match=r"delta.h5: is not up to date \(no artefact yet\); expected rerun `ashc delta SPEC`"):
+        run(spec, Folder(out), DESIGN, frozen=DESIGN)
+    with pytest.raises(ArtefactError, match="delta.h5"):
+        run_for_verdict(spec, Folder(out), frozen=True)
+    assert not (out / "delta.h5").exists()
+    # frozen=True with force: the target is recomputed, its upstream only read (this used to refuse the
+    # upstream as "not up to date (forced)").
+    seen = []
+    run(spec, out, ["kappa"], force=True, frozen=True, on_stage=lambda r: seen.append((r.stage, r.status)))
+    assert seen == [("manifold", "up to date"), ("kappa", "ran")]
+    assert pipeline.frozen_stages(True, ["bound"]) == set(DESIGN) - {"bound"}
+    assert pipeline.frozen_stages(False, ["bound"]) == set()
+    assert pipeline.frozen_stages(["stabilise"], ["bound"]) == {"stabilise"}
+
+
+def test_on_start_is_called_before_each_stage_computed(paper_out, tmp_path):
+    spec = load_spec(CUK_PAPER_M)
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    (out / "delta.h5").unlink()
+    events = []
+    run(spec, out, DESIGN, on_start=lambda stage, reason: events.append(("start", stage, reason)),
+        on_stage=lambda r: events.append(("done", r.stage, r.status)))
+    started = [e for e in events if e[0] == "start"]
+    assert started[0] == ("start", "delta", "no artefact yet")
+    assert {stage for _, stage, _ in started} <= {"delta", "bound"}  # bound only if delta.h5 came out different
+    for event in started:  # each start comes just before its stage's report
+        assert events[events.index(event) + 1] == ("done", event[1], "ran")
+
+
+def test_falsify_differs_names_the_setting(paper_design, paper_spec):
+    stored = Artefact(stage="falsify", meta={"runs": 64, "seed": 0}, values={"t_final": 10.0})
+    stored.provenance = {"spec_sha256": paper_spec.sha256,
+                         "upstream": {up: paper_design[up].provenance["sha256"] for up in pipeline.FALSIFY_UPSTREAM}}
+    t_default = pipeline.falsify_t_final(paper_spec, None)
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored) is None           # nothing asked: any run will do
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 64, 0) is None
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 32, 0) == "made with --runs 64, not 32"
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 32, 1) == "made with --runs 64, not 32, --seed 0, not 1"
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final=10.0, t_final_given=True) is None
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final=2.0, t_final_given=True) == "made with --t-final 10, not 2"
+    if t_default != 10.0:
+        assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final_given=True) == f"made with --t-final 10, not {t_default:g}"
+    stored.provenance["upstream"]["bound"] = "0" * 64
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 64, 0) == "made for an earlier design (bound.h5 changed since)"
+    stored.provenance["spec_sha256"] = "other"
+    assert pipeline.falsify_differs(paper_spec, paper_design, stored) == "made from another spec"
