@@ -30,6 +30,7 @@ from .errors import ArtefactError, AshcError, SpecError
 from .falsify import NAME as FALSIFY, SEGMENTS, headline as falsify_headline
 from .pipeline import (DESIGN, STAGES, Folder, StageReport, artefact_path, default_out, falsify_differs, falsify_t_final, load_all,
                        needed, run, run_falsify, run_for_verdict)
+from .paper import cite
 from .query import EVALUABLE, evaluate, no_negative_zero, number_text, parse_point, summary
 from .spec import load_spec
 from .verdict import verdict
@@ -269,7 +270,7 @@ _STAGE_HELP = {
     "inverse": "Find the left inverse m of p and check injectivity, V covering Y (eq. SimuLocalRequire), conditions (i)-(ii) of Theorem mCondi and where m is real.",
     "delta": "Check delta's rank on V and build the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).",
     "bound": "Compute alpha_h, epsilon, dbar (q = 0 and least squares, eq. iota) and the gain G of the error bound (eq. egErrorBound).",
-    "simulate": "Run the tracking and m-relation scenarios of the spec (Figs. Example_*), designing first if needed. A scenario check "
+    "simulate": "Run the tracking and m-relation scenarios of the spec (Figs. Example_BoundedIn/Out, Example_mRelationIn/Out), designing first if needed. A scenario check "
                 "that fails (psi not settled, u outside U, ...) is printed as 'FAILED (simulated)' and listed by `ashc check`; the exit "
                 "status stays 0, since it observes one run and is not a design condition of Problem 1.",
 }
@@ -310,7 +311,7 @@ def _make_stage_command(stage: str):
             typer.echo(str(artefact_path(folder.path, stage)))
 
     command.__name__ = f"{stage}_command"
-    command.__doc__ = (_STAGE_HELP[stage] + " Runs any stale upstream stage first (unless --frozen).\n\n"
+    command.__doc__ = (cite(_STAGE_HELP[stage]) + " Runs any stale upstream stage first (unless --frozen).\n\n"
                        f"Prints the artefact's path ({stage}.h5), or with --json the stage's entry of `ashc summary`.")
     app.command(name=stage, help=command.__doc__, short_help=SHORT_HELP[stage])(_guard(command))
 

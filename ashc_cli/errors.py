@@ -50,10 +50,12 @@ class AshcError(Exception):
 
     def line(self) -> str:
         """The one-line message the CLI prints (without the ``error:`` prefix)."""
+        from .paper import cite   # the paper's numbers, not its LaTeX labels
+
         text = f"{self.where}: {self.what}" if self.where else self.what
         if self.expected:
             text += f"; expected {self.expected}"
-        return " ".join(text.split())  # one line, whatever the parts held
+        return cite(" ".join(text.split()))  # one line, whatever the parts held
 
 
 class SpecError(AshcError):

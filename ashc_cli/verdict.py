@@ -17,6 +17,7 @@ import numpy as np
 
 from .artefacts import Artefact
 from .errors import AshcError
+from .paper import cite
 
 __all__ = ["Row", "ROWS", "verdict"]
 
@@ -74,11 +75,12 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
     rows : list of Row
     """
     rows = []
-    for condition, reference, requirement, stage, check in ROWS:
+    for condition, label, requirement, stage, check in ROWS:
+        reference = cite(label)   # as the published paper numbers it (the labels are in docs/theory.md)
         if stage in arts and check in arts[stage].checks:
             chk = arts[stage].checks[check]
             value = float(chk.value) if np.isfinite(chk.value) else None
-            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, chk.description, chk.evidence))
+            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, cite(chk.description), chk.evidence))
         elif stopped is not None and stopped[0] == stage and getattr(stopped[1], "check", None) in (check, None):
             # The failure is about this row (or about the stage as a whole, e.g. an unsupported case).
             rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
