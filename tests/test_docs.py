@@ -179,3 +179,16 @@ def test_labels_json_matches_the_table_of_theory_md():
     for value in labels.values():
         assert re.fullmatch(r"eq\. \(\d+[a-z]?\)|(Theorem|Lemma|Assumption|Problem|Remark|Corollary|Proposition|Definition|Fig\.) \d+|"
                             r"Table [IVX]+|Section [IVX]+(-[A-Z])?", value), value
+
+
+def test_readme_tour_shows_the_real_output(tmp_path):
+    """README's tour quotes `ashc design` and `ashc check` on the Cuk spec: they must be what the code prints."""
+    from .conftest import CUK, ashc
+
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```\n(.*?)```", readme, flags=re.S)
+    out = tmp_path / "cuk_converter"
+    design = ashc("design", str(CUK), "--out", str(out), check=True).stdout
+    check = ashc("check", str(CUK), "--out", str(out), check=True).stdout
+    assert check in blocks, "README's `ashc check` block differs from the real output"
+    assert design.strip().replace(str(out), "outputs/cuk_converter") + "\n" in blocks, "README's `ashc design` line differs"
