@@ -12,6 +12,9 @@ That normalisation bounds trace(M) / lambda_min(M) by 4000, so a rate whose ever
 is refused by it; such a rate is then tried scale-free (:func:`solve_lmi_scale_free`: minimise the condition
 number, I <= M <= kappa I), and accepted only if the numpy re-check of its margin, relative to ||M||, is
 negative (:func:`certify_rate`, used by the fixed rate and by every step of the ``maximise`` bisection).
+``maximise`` tries the eigenvalue bound on lambda first (often attained: then one solve decides), and narrows
+its bracket from below by the rate each M found certifies and from above by the infeasibility the solver's
+duals prove (:func:`largest_decay_rate`); the rate it reports is always one its M certifies.
 M is searched in full, or diagonal (``stabilisability.structure``; ``auto`` tries a diagonal M first above
 :data:`FULL_MAX_STATES` states, where the dense SDP grows like n^6: 13 s at n = 64, 300 s and 7.7 GiB at 128).
 
@@ -238,38 +241,106 @@ def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> 
     status : str
         cvxpy's status string.
     """
-    M, t, status, _ = _max_margin(A_list, lam, structure)
+    M, t, status, _, _ = _max_margin(A_list, lam, structure)
     return M, t, status
 
 
-def _max_margin(A_list: list[np.ndarray], lam: float, structure: str) -> tuple[np.ndarray | None, float, str, float]:
-    """:func:`solve_lmi`, and the optimal margin without the cone M >= eps I (inf when that problem had none).
+def _max_margin(A_list: list[np.ndarray], lam: float, structure: str, cone: bool = True,
+                hopeless_cone: bool = False) -> tuple[np.ndarray | None, float, str, float, list[np.ndarray] | None]:
+    """:func:`solve_lmi`, the optimal margin without the cone M >= eps I (inf when that problem had none), and
+    that problem's dual matrices (one per vertex; None without them).
 
     The second number decides whether the scale-free problem can help: any M > 0 with a negative margin,
     scaled to trace n, has a negative margin in the problem without the cone, so a non-negative optimum there
-    means that lambda is infeasible for every M.
+    means that lambda is infeasible for every M.  ``cone=False`` skips the problem with the cone (the caller
+    knows it fails at this lambda); ``hopeless_cone`` skips it when the margin without the cone is already
+    >= -MARGIN_TOL (the cone only raises the margin, so it cannot certify), returning that margin as t.
     """
     n = A_list[0].shape[0]
     eye = np.eye(n)
-    free_t = np.inf
+    free_t, duals = np.inf, None
     # First without the cone M >= eps I (a third of the work at n = 64): when some A + lambda/2 I is Hurwitz,
     # the LMI with t < 0 already forces M > 0 (Lyapunov), and M is checked; otherwise solve with the cone.
     for with_cone in (False, True):
+        if with_cone and not cone:
+            return None, free_t, "not solved (the cone problem fails at a lower rate)", free_t, duals
+        if with_cone and hopeless_cone and free_t >= -MARGIN_TOL:
+            return None, free_t, "not solved (the margin without the cone is >= -MARGIN_TOL)", free_t, duals
         var, M, positive = _unknown(n, structure)
         t = cp.Variable()
-        constraints = [cp.trace(M) == n] + (positive if with_cone else [])
-        constraints += [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
+        lmis = [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
+        constraints = [cp.trace(M) == n] + (positive if with_cone else []) + lmis
         problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g} ({structure} M)")
         if var.value is None or t.value is None:
             if with_cone:
-                return None, np.inf, str(problem.status), free_t
+                return None, np.inf, str(problem.status), free_t, duals
             continue
         Mv = _matrix(var, structure)
         if not with_cone:
             free_t = float(t.value)
+            if all(c.dual_value is not None for c in lmis):
+                duals = [np.asarray(c.dual_value, dtype=float) for c in lmis]
         if with_cone or (float(t.value) < -MARGIN_TOL and np.linalg.eigvalsh(Mv).min() >= M_MIN_EIG):
-            return Mv, float(t.value), str(problem.status), free_t
-    return None, np.inf, "infeasible", free_t
+            return Mv, float(t.value), str(problem.status), free_t, duals
+    return None, np.inf, "infeasible", free_t, duals
+
+
+def infeasible_from(A_list: list[np.ndarray], Z_list: list[np.ndarray], lam: float, structure: str = "full") -> float:
+    """A rate above which eq. egLMI is infeasible, from dual matrices Z_k (one per vertex): inf if they prove nothing.
+
+    For any Z_k >= 0 let W = sum Z_k and S(mu) = sum (A_k Z_k + Z_k A_k^T) + mu W.  An M > 0 feasible at mu
+    gives 0 >= sum tr(Z_k (A_k^T M + M A_k + mu M)) = tr(M S(mu)), which is impossible when S(mu) >= 0 and
+    S(mu) != 0; S(mu) grows with mu, so every rate from the smallest such mu on is infeasible.  For a diagonal
+    M only diag(S(mu)) counts (>= 0 with a positive entry).  The Z_k are the solver's duals of the problem
+    without the cone (projected onto Z >= 0), which put that mu at or below the probed lambda when the probed
+    margin is >= 0.  The test is a numpy one, with a margin for rounding (S(mu) positive definite, or for a
+    diagonal M diag(S(mu)) positive where W is non-zero); the bound only ends the search, it is never a
+    certificate (the rate reported is always one its M certifies).
+
+    Parameters
+    ----------
+    A_list : list of ndarray
+        The vertex matrices.
+    Z_list : list of ndarray
+        One symmetric n x n matrix per vertex.
+    lam : float
+        The probed rate: mu is sought in [0, lam].
+    structure : {"full", "diagonal"}
+
+    Returns
+    -------
+    float
+        The smallest mu in [0, lam] (to 1e-12 relative) at which the test passes, or inf if it fails at lam.
+    """
+    Zs = []
+    for Z in Z_list:
+        w, V = np.linalg.eigh(0.5 * (Z + Z.T))
+        Zs.append((V * np.clip(w, 0.0, None)) @ V.T)
+    S0 = sum(A @ Z + Z @ A.T for A, Z in zip(A_list, Zs))
+    W = sum(Zs)
+    scale = np.abs(S0).max() + lam * np.abs(W).max()
+    if not np.isfinite(scale) or scale == 0:
+        return np.inf
+    floor = 1e-9 * scale           # S(mu) must be positive by more than the rounding of its sums
+    if structure == "diagonal":
+        # A row where Z vanishes (W_jj = 0, so S_jj = 0 exactly) adds nothing; every other S_jj must be > 0.
+        active = np.diag(W) > 0
+
+        def proves(mu: float) -> bool:
+            d = np.diag(S0) + mu * np.diag(W)
+            return bool(active.any() and d[active].min() > floor and np.all(d[~active] >= 0))
+    else:
+        def proves(mu: float) -> bool:
+            return bool(np.linalg.eigvalsh(S0 + mu * W).min() > floor)
+    if not proves(lam):
+        return np.inf
+    a, b = 0.0, lam
+    if proves(a):
+        return a
+    while b - a > 1e-12 * lam:
+        mid = 0.5 * (a + b)
+        a, b = (a, mid) if proves(mid) else (mid, b)
+    return b
 
 
 def solve_lmi_scale_free(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
@@ -312,37 +383,48 @@ def relative_margin(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> floa
     return float(lmi_margins(A_list, M, lam).max() / np.linalg.eigvalsh(M).max())
 
 
-def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str, dict]:
+def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full", cone: bool = True,
+                 scale_free: bool = True) -> tuple[np.ndarray | None, float, str, dict]:
     """An M certifying eq. egLMI at lambda, or None: the feasibility test of a fixed rate and of the bisection.
 
     First the maximum-margin problem (:func:`solve_lmi`; accepted when its margin is below -MARGIN_TOL, as
     before, and the numpy margin of its M is negative), then, unless that problem shows lambda infeasible for
     every M, the scale-free one (:func:`solve_lmi_scale_free`), accepted only when the numpy margin of its M
     relative to ||M|| is below -MARGIN_TOL (the solver's word is not taken near the edge of feasibility).
+    The maximum-margin problem with the cone is not solved when the one without it already has a margin
+    >= -MARGIN_TOL (it could not certify), nor with ``cone=False`` (the bisection knows it fails here); the
+    scale-free problem not with ``scale_free=False``.
 
     Returns
     -------
     M : ndarray or None
     t : float
-        The maximum-margin problem's optimal margin (for messages).
+        The maximum-margin problem's optimal margin (for messages; without the cone when that one was skipped).
     status : str
     info : dict
         ``formulation`` ("max_margin" or "scale_free"), and for the scale-free one its condition number bound
-        and re-checked relative margin.
+        and re-checked relative margin, when M is found.  Always: ``cone_failed`` (the cone problem cannot
+        certify this rate, hence no higher one) and ``infeasible_from`` (a rate above which no M exists, by
+        :func:`infeasible_from`; inf when not shown).
     """
-    M, t, status, free_t = _max_margin(A_list, lam, structure)
+    M, t, status, free_t, duals = _max_margin(A_list, lam, structure, cone=cone, hopeless_cone=True)
+    failed = {"cone_failed": not cone or t >= -MARGIN_TOL, "infeasible_from": np.inf}
     if M is not None and t < -MARGIN_TOL and lmi_margins(A_list, M, lam).max() < 0:
-        return M, t, status, {"formulation": "max_margin"}
+        return M, t, status, {"formulation": "max_margin", "cone_failed": False, "infeasible_from": np.inf}
     # Necessary: every vertex has Re eig(A) < -lambda / 2; and the problem without the cone must have t < 0.
     if free_t >= 0 or any(np.linalg.eigvals(A).real.max() >= -0.5 * lam for A in A_list):
-        return None, t, status, {}
+        if free_t >= 0 and duals is not None:
+            failed["infeasible_from"] = infeasible_from(A_list, duals, lam, structure)
+        return None, t, status, failed
+    if not scale_free:
+        return None, t, status, failed
     Ms, kappa, status_s = solve_lmi_scale_free(A_list, lam, structure)
     if Ms is None or not np.all(np.isfinite(Ms)):
-        return None, t, status, {}
+        return None, t, status, failed
     rel = relative_margin(A_list, Ms, lam)
     if rel < -MARGIN_TOL and np.linalg.eigvalsh(Ms).min() > 0:
-        return Ms, t, status_s, {"formulation": "scale_free", "condition_bound": kappa, "relative_margin": rel}
-    return None, t, status, {}
+        return Ms, t, status_s, {**failed, "formulation": "scale_free", "condition_bound": kappa, "relative_margin": rel}
+    return None, t, status, failed
 
 
 def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full") -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
@@ -374,37 +456,71 @@ def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, stru
 
 def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, structure: str = "full",
                        info: dict | None = None) -> tuple[float, np.ndarray | None]:
-    """The largest lambda for which eq. egLMI is feasible, by bisection, and its M.
+    """The largest lambda for which eq. egLMI is feasible, by bisection on lambda, and its M.
 
-    lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces
-    Re eig(A) <= -lambda / 2), which brackets the search.  Each M found certifies its own rate
-    (:func:`largest_decay_rate_for`), often well above the trial value, and that raises the lower end.
-    Without feedback each trial rate is decided by :func:`certify_rate` (maximum margin, then scale-free,
-    both re-checked), so the answer does not depend on how M is normalised; ``info``, if given, receives
-    certify_rate's description of the M returned.
+    lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces Re eig(A) <= -lambda / 2),
+    which brackets the search; it stops when the bracket is narrower than BISECTION_RTOL times that bound.
+    Without feedback each trial rate is decided by :func:`certify_rate` (maximum margin, then scale-free, both
+    re-checked), so the answer does not depend on how M is normalised, and:
+
+    * first the bound itself less half the tolerance, with the maximum-margin problem only (the scale-free one
+      costs about four times as much at n = 64, and its M grows ill-conditioned towards a supremum that is not
+      attained): the bound is often attained (one vertex, a ladder of cells), and then this one test ends the
+      search.  Failing there leaves the bracket as it was unless the duals prove more (it would narrow it by
+      half the tolerance only), so the bisection that follows is the one without this try (for the quarter car
+      the scale-free M near the supremum depends on the exact rates tried);
+    * each M found certifies its own rate (:func:`largest_decay_rate_for`), often well above the trial value,
+      and that raises the lower end (the rate returned is always one an M certifies, less CERTIFIED_BACKOFF);
+    * a rate the maximum-margin problem without the cone shows infeasible lowers the upper end to where its
+      duals prove infeasibility (:func:`infeasible_from`), often well below the trial value;
+    * above a rate where the maximum-margin problem with the cone M >= eps I failed it is not solved again (its
+      margin only grows with lambda);
+    * a solver failure at one rate counts as "not certified there" (re-raised if no rate is certified).
+
+    ``info``, if given, receives certify_rate's description of the M returned and ``upper_bound``, the upper end
+    of the final bracket (no rate above it was certified).
     """
-    if B is None:
-        upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
-    else:
-        upper = FEEDBACK_MAX_RATE  # with feedback any rate may be reachable: search up to a cap
+    if B is not None:
+        return _largest_feedback_rate(A_list, B, structure)
+    upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
     if upper <= 0:
         return 0.0, None
     lo, hi, best = 0.0, upper, None
+    cone_fails_from, failure = np.inf, None
+    trial, first = (1.0 - 0.5 * BISECTION_RTOL) * upper, True
+    while hi - lo > BISECTION_RTOL * upper:
+        try:
+            M, _, _, how = certify_rate(A_list, trial, structure, cone=trial < cone_fails_from, scale_free=not first)
+        except NumericalError as exc:
+            M, how, failure = None, {}, exc
+        if M is not None:
+            lo, best = max(trial, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(A_list, M))), M
+            if info is not None:
+                info.clear()
+                info.update({k: v for k, v in how.items() if k not in ("cone_failed", "infeasible_from")})
+        else:
+            hi = max(lo, min(upper if first else trial, how.get("infeasible_from", np.inf)))
+        if how.get("cone_failed"):
+            cone_fails_from = min(cone_fails_from, trial)
+        trial, first = 0.5 * (lo + hi), False
+    if best is None and failure is not None:
+        raise failure
+    if info is not None and best is not None:
+        info["upper_bound"] = hi
+    return lo, best
+
+
+def _largest_feedback_rate(A_list: list[np.ndarray], B: np.ndarray, structure: str) -> tuple[float, tuple | None]:
+    """:func:`largest_decay_rate` with a synthesised gain K: bisection on lambda up to FEEDBACK_MAX_RATE (any rate
+    may be reachable with feedback), each M, K found raising the lower end to the rate it certifies."""
+    upper = FEEDBACK_MAX_RATE
+    lo, hi, best = 0.0, upper, None
     while hi - lo > BISECTION_RTOL * upper:
         mid = 0.5 * (lo + hi)
-        if B is None:
-            M, _, _, how = certify_rate(A_list, mid, structure)    # None unless certified (either formulation)
-            found, closed_loop = M, A_list
-            if M is not None and info is not None:
-                info.clear()
-                info.update(how)
-        else:
-            M, K, t, _ = solve_lmi_feedback(A_list, B, mid, structure)
-            M = M if M is not None and t < -MARGIN_TOL else None
-            found = None if M is None else (M, K)
-            closed_loop = None if M is None else [A + B @ K for A in A_list]
-        if M is not None:
-            lo, best = max(mid, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(closed_loop, M))), found
+        M, K, t, _ = solve_lmi_feedback(A_list, B, mid, structure)
+        if M is not None and t < -MARGIN_TOL:
+            closed_loop = [A + B @ K for A in A_list]
+            lo, best = max(mid, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(closed_loop, M))), (M, K)
         else:
             hi = mid
     return lo, best
@@ -605,7 +721,8 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> t
             how: dict = {}
             lam, M = largest_decay_rate(A_vertices, structure=structure, info=how)
             if M is not None:
-                meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL, **_formulation_meta(how))
+                meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL,
+                            bisection_bracket=[lam, float(how["upper_bound"])], **_formulation_meta(how))
                 return M, lam, meta
             continue
         lam = float(st.decay_rate)
