@@ -295,6 +295,7 @@ SHORT_HELP = {
     "regress": "Rerun a folder of specs and compare with golden values.",
     "summary": "Print each stage's headline numbers, formulas and checks.",
     "eval": "Evaluate a stored function (p, kappa, m, ...) or u_w at a point.",
+    "tradeoff": "Time to reach the levels against the guaranteed tolerance.",
     "export": "Write the design as C99 code (file and header) or a numpy module.",
     "version": "Print the ashc version.",
 }
@@ -547,6 +548,40 @@ def _falsify_for_report(spec, folder: Folder, arts: dict, runs: int | None, seed
     return run_falsify(spec, folder, runs, seed, t_final, on_stage=progress.on_stage, on_start=progress.on_start,
                        progress=lambda step: progress.update(completed=step),
                        on_runs=lambda count, per_second: progress.update(note=f"{count} runs integrated, {per_second:.0f} runs/s"))[1]
+
+
+TolerancesOpt = Annotated[str, typer.Option("--tolerances", show_default=False, help=(
+    "Comma-separated tolerances EPS > 0 on |psi - y|, in the output's units, e.g. 1,2,5,10,20."))]
+
+
+@app.command(name="tradeoff", short_help=SHORT_HELP["tradeoff"])
+@_guard
+def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = None, as_json: JsonOpt = False,
+                     frozen: _frozen_opt("Never rerun a design stage: fail (exit 5, naming the stage) if one is stale.") = False) -> None:
+    """Time to reach every reference level against the guaranteed tolerance, for the budget and the governor.
+
+    For each tolerance EPS, the guaranteed controller (docs/guaranteed.md) tracks the spec's reference levels
+    from its start in both modes, with the spec's set-point gain, each level held until |y - level| <= EPS for
+    good: the budget (uniform v_max = (EPS - sqrt(W0 / alpha_h)) / G) and the governor (v scaled so that the
+    comparison system stays below EPS^2 alpha_h). Prints one row per tolerance and mode with the seconds to
+    reach each level ('-': not reached; a refused mode gives its reason), stores <out>/tradeoff.h5 and draws
+    <out>/plots/tradeoff.png, the speed/accuracy frontier. The governor runs on scipy: a wide range of
+    tolerances takes minutes.
+    """
+    from . import tradeoff as tradeoff_mod
+
+    values = tradeoff_mod.parse_tolerances(tolerances)
+    spec_obj, folder = _load(spec, out)
+    with Progress() as progress:
+        _, art, figure = tradeoff_mod.run_tradeoff(spec_obj, folder, values, on_stage=progress.on_stage, on_start=progress.on_start,
+                                                   frozen=frozen)
+    stored = artefact_path(folder, tradeoff_mod.NAME)
+    if as_json:
+        _emit_json({**tradeoff_mod.summarise(art), "artefact": str(stored), "figure": str(figure)})
+    else:
+        for row in tradeoff_mod.table(art):
+            typer.echo(row)
+        typer.echo(f"tradeoff '{spec_obj.name}': {stored}, {figure}")
 
 
 @app.command(short_help=SHORT_HELP["report"])

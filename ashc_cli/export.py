@@ -215,7 +215,7 @@ def gather(spec: Spec, arts: Mapping[str, Artefact]) -> Design:
     K = np.asarray(arts["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
     V = model.V if model.V is not None else np.asarray(arts["manifold"].value("V"), dtype=float)
     tracking = spec.simulate.tracking
-    ctl = tracking.abstract_controller if tracking is not None else None
+    ctl = tracking.abstract_controller if tracking is not None and tracking.abstract_controller.kind == "setpoint" else None
     provenance = {"spec": spec.sha256, **{stage: str(arts[stage].provenance.get("sha256", "")) for stage in NEEDED}}
     design = Design(
         name=spec.name, provenance=provenance, states=list(spec.concrete.states), inputs=list(spec.concrete.inputs),

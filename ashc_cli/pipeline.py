@@ -23,6 +23,7 @@ from .errors import ArtefactError, DesignError
 from .model import build_model
 from .spec import Spec
 from . import falsify as falsify_mod
+from . import tradeoff as tradeoff_mod
 from .stages import DESIGN, ORDER
 
 __all__ = ["STAGES", "DESIGN", "Folder", "default_out", "artefact_path", "needed", "staleness", "check_upstream", "remove_leftovers",
@@ -32,7 +33,7 @@ __all__ = ["STAGES", "DESIGN", "Folder", "default_out", "artefact_path", "needed
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
 #: Artefacts made by commands that are not flow-chart stages (they read a finished design).
-EXTRAS = {falsify_mod.NAME: falsify_mod}
+EXTRAS = {falsify_mod.NAME: falsify_mod, tradeoff_mod.NAME: tradeoff_mod}
 
 
 @dataclass(frozen=True)

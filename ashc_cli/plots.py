@@ -262,8 +262,11 @@ def _inputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str):
     _series(ax_v, t, s[f"{scenario}/v"], spec.abstract.inputs)
     tr = spec.simulate.tracking
     if scenario == "tracking" and tr is not None:
-        vm = float(tr.abstract_controller.v_max)
-        _limit_lines(ax_v, [[-vm, vm]], r"$\pm v_{\max}$", spec.abstract.inputs)
+        vm = getattr(tr.abstract_controller, "v_max", None)
+        if vm is None and s.get("tracking/guaranteed_mode") == "budget":
+            vm = s["tracking/budget_v_max"]
+        if vm is not None and np.isfinite(vm):
+            _limit_lines(ax_v, [[-float(vm), float(vm)]], r"$\pm v_{\max}$", spec.abstract.inputs)
     _series(ax_u, t, s[f"{scenario}/u"], spec.concrete.inputs)
     _limit_lines(ax_u, spec.concrete.input_bounds, "limits of $U$", spec.concrete.inputs)
     for ax, names in ((ax_v, spec.abstract.inputs), (ax_u, spec.concrete.inputs)):

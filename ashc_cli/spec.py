@@ -171,15 +171,60 @@ class SetpointController(_Strict):
     v_max: Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
 
+class GuaranteedController(_Strict):
+    """A controller that meets |psi - y| <= tolerance by construction (eq. TrackConst, docs/guaranteed.md).
+
+    ``budget``: the set-point law with the largest v_max for which the uniform bound of Theorem ErrorBound,
+    sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max, stays below the tolerance.  ``governor``: v = s v_sp
+    with the largest s in [0, 1] that keeps the comparison system's w below tolerance^2 alpha_h.  ``auto``: the
+    governor when its conditions hold (it then allows every v the budget allows, and more), else the budget.
+    """
+
+    kind: Literal["guaranteed"]
+    tolerance: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    gain: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    mode: Literal["auto", "budget", "governor"] = "auto"
+
+
+#: The abstract controllers, told apart by ``kind``.
+AbstractController = Annotated[Union[SetpointController, GuaranteedController], Field(discriminator="kind")]
+#: The tags of the discriminated unions: pydantic puts them in an error's location, the messages leave them out.
+_UNION_TAGS = {"setpoint", "guaranteed", "TimedLevel"}
+
+
+class TimedLevel(_Strict):
+    """A reference level with a deadline: held within the tolerance from ``by`` seconds after the switch to it,
+    for ``hold`` seconds (a guaranteed controller reports whether its guarantee covers it)."""
+
+    level: Union[FiniteFloat, list[FiniteFloat]]
+    by: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    hold: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
 class Tracking(_Strict):
     """The tracking scenario of Figs. Example_BoundedIn/Out."""
 
     t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     xi0: list[FiniteFloat]
     x0: Union[Literal["on_manifold"], list[FiniteFloat]] = "on_manifold"
-    reference_levels: list[Union[FiniteFloat, list[FiniteFloat]]] = Field(min_length=1)
+    reference_levels: list[Union[FiniteFloat, list[FiniteFloat], TimedLevel]] = Field(min_length=1)
     dwell: Annotated[float, Field(gt=0, allow_inf_nan=False)]
-    abstract_controller: SetpointController
+    abstract_controller: AbstractController
+
+    def level_values(self) -> list[Union[float, list[float]]]:
+        """The levels as numbers (one, or one list per level), deadlines dropped."""
+        return [r.level if isinstance(r, TimedLevel) else r for r in self.reference_levels]
+
+    def segment(self, index: int) -> tuple[float, float] | None:
+        """(start, end) in s of the dwell in which level ``index`` is held, None if the run ends before it.
+
+        Level k is held from k dwell to (k + 1) dwell, the last one to t_final (as ``simulate`` runs them).
+        """
+        start = index * self.dwell
+        if start >= self.t_final - 1e-12:
+            return None
+        last = index == len(self.reference_levels) - 1
+        return start, self.t_final if last else min(self.t_final, (index + 1) * self.dwell)
 
 
 class MRelation(_Strict):
@@ -306,26 +351,56 @@ def _path(loc: tuple) -> str:
     return out or "spec"
 
 
-def _model_at(loc: tuple) -> type[BaseModel] | None:
-    """The pydantic model that holds the keys at ``loc`` (for suggesting a key), if one does."""
+def _model_at(loc: tuple, branch: str | None = None) -> type[BaseModel] | None:
+    """The pydantic model that holds the keys at ``loc`` (for suggesting a key), if one does.
+
+    ``branch``: the tag of the union member the location is in (``guaranteed``, ``TimedLevel``), if any.
+    """
     model: Any = Spec
-    for part in loc:
+    last = max((k for k, part in enumerate(loc) if not isinstance(part, int)), default=-1)
+    for k, part in enumerate(loc):
         if isinstance(part, int) or model is None:
             continue
         field = model.model_fields.get(part)
         if field is None:
             return None
-        model = _first_model(field.annotation)
+        model = _first_model(field.annotation, branch if k == last else None)
     return model
 
 
-def _first_model(annotation: Any) -> type[BaseModel] | None:
+def _tags_at(loc: tuple) -> list[str]:
+    """The tags of the union members a field at ``loc`` may hold (``setpoint``, ``guaranteed``)."""
+    parent = _model_at(loc[:-1]) if loc else None
+    field = parent.model_fields.get(loc[-1]) if parent is not None and isinstance(loc[-1], str) else None
+    found: list[str] = []
+
+    def walk(annotation: Any) -> None:
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            found.append(_tag_of(annotation))
+        else:
+            for arg in typing.get_args(annotation):
+                walk(arg)
+
+    if field is not None:
+        walk(field.annotation)
+    return found
+
+
+def _tag_of(model: type[BaseModel]) -> str:
+    """The tag pydantic gives a union member in an error's location: its ``kind`` literal, else its class name."""
+    kind = model.model_fields.get("kind")
+    args = typing.get_args(kind.annotation) if kind is not None else ()
+    return str(args[0]) if args else model.__name__
+
+
+def _first_model(annotation: Any, branch: str | None = None) -> type[BaseModel] | None:
+    """The model an annotation refers to: the union member tagged ``branch`` when given, else the first one."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
+        return annotation if branch is None or _tag_of(annotation) == branch else None
     origin = typing.get_origin(annotation)
-    if origin in (Union, types.UnionType) or origin is Annotated:
+    if origin in (Union, types.UnionType, list) or origin is Annotated:
         for arg in typing.get_args(annotation):
-            found = _first_model(arg)
+            found = _first_model(arg, branch)
             if found is not None:
                 return found
     return None
@@ -345,17 +420,27 @@ def _validation_to_spec_error(exc: ValidationError) -> SpecError:
     if kind == "extra_forbidden":
         # The offending key can be anything YAML allows (a number, punctuation): keep it as it is.
         parent = tuple(p for p in err["loc"][:-1] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+        branch = next((p for p in err["loc"][:-1] if p in _UNION_TAGS), None)   # the union member holding the key
+        parent = tuple(p for p in parent if p not in _UNION_TAGS)
         key = str(err["loc"][-1]) if err["loc"] else "?"
-        model = _model_at(parent)
+        model = _model_at(parent, branch)
         valid = sorted(model.model_fields) if model else []
         close = difflib.get_close_matches(key, valid, n=1)
         hint = f"did you mean '{close[0]}'? valid keys: {', '.join(valid)}" if close else f"one of: {', '.join(valid)}"
         return SpecError(_path(parent + (key,)), f"unknown key {_short(key)}", hint)
-    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS and p not in _UNION_TAGS))
     where = _path(loc)
     if kind == "missing":
         return SpecError(where, "missing", "this key (see docs/spec-format.md)")
     value = err.get("input")
+    if kind in ("union_tag_invalid", "union_tag_not_found"):
+        ctx = err.get("ctx") or {}
+        key = ctx.get("discriminator", "kind").strip("'")
+        tags = ctx.get("expected_tags", "").replace("'", "") or ", ".join(_tags_at(loc))
+        shown = f"{key} {_short(value.get(key))}" if isinstance(value, dict) and key in value else f"no {key}"
+        return SpecError(f"{where}.{key}" if kind == "union_tag_invalid" else where,
+                         f"{shown} is not one of the kinds" if kind == "union_tag_invalid" else f"{shown} given (got {_short(value)})",
+                         f"{key}: {' or '.join(t.strip() for t in tags.split(','))}" if tags else f"a {key}")
     msg = err["msg"].replace("Value error, ", "")
     return SpecError(where, f"{msg} (got {_short(value)})", _expected_for(kind, err))
 
@@ -370,6 +455,8 @@ def _expected_for(kind: str, err: dict) -> str:
         return "a pair [lo, hi]" if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 else "the right number of items"
     if kind.startswith("finite") or "nan" in kind:
         return "a finite number"
+    if kind.startswith("greater_than_equal"):
+        return f"a number >= {ctx.get('ge')}"
     if kind.startswith("greater_than"):
         return f"a number > {ctx.get('gt')}"
     return "a value of the type docs/spec-format.md gives"
@@ -475,10 +562,23 @@ def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:
         _check_len("simulate.tracking.xi0", tr.xi0, nh, "one per abstract state")
         if tr.x0 != "on_manifold":
             _check_len("simulate.tracking.x0", tr.x0, n, "one per concrete state")
-        for i, level in enumerate(tr.reference_levels):
+        for i, (entry, level) in enumerate(zip(tr.reference_levels, tr.level_values())):
+            where = f"simulate.tracking.reference_levels[{i}]" + (".level" if isinstance(entry, TimedLevel) else "")
             size = len(level) if isinstance(level, list) else 1
             if size != p:
-                raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has {size} values", f"{p} (one per output)")
+                raise SpecError(where, f"has {size} values", f"{p} (one per output)")
+            if isinstance(entry, TimedLevel):
+                if tr.abstract_controller.kind != "guaranteed":
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline (by, hold) but the controller is '{tr.abstract_controller.kind}', which guarantees no tolerance",
+                                    "abstract_controller.kind: guaranteed, or a plain level")
+                seg = tr.segment(i)
+                held = None if seg is None else seg[1] - seg[0]
+                if held is None:
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline but the run ends (t_final = {tr.t_final:g} s) before level {i} is asked for",
+                                    "a t_final that reaches every level with a deadline")
+                if entry.by + entry.hold > held * (1 + 1e-12):
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}].hold", f"by + hold = {entry.by + entry.hold:g} s runs past the {held:g} s this level is held",
+                                    "by + hold within the level's dwell (the last level: up to t_final)")
     mr = spec.simulate.m_relation
     if mr is not None:
         _check_len("simulate.m_relation.x0", mr.x0, n, "one per concrete state")

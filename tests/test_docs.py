@@ -47,7 +47,7 @@ def spec_keys(model: type[BaseModel] = Spec, prefix: str = "") -> list[str]:
         path = prefix + name
         keys.append(path)
         for sub in _models_in(field.annotation):
-            keys += spec_keys(sub, path + ".")
+            keys += [key for key in spec_keys(sub, path + ".") if key not in keys]   # a union's members share keys (kind, gain)
     return keys
 
 

@@ -131,3 +131,239 @@ def test_a_failed_scenario_check_is_shown_by_simulate_and_by_check(tmp_path):
     assert proc.returncode == 0                                     # the design verdict is unchanged
     assert "Simulated scenarios" in proc.stdout
     assert any(line.split()[:3] == ["fail", "simulated", "tracking_settled"] for line in proc.stdout.splitlines())
+
+
+# --- the guaranteed controller (issue 15, docs/guaranteed.md) -------------------------------------------------------
+
+from ashc_cli.errors import DesignError  # noqa: E402
+
+GUARANTEED = SPECS.parent / "tests" / "specs" / "cuk_guaranteed.yaml"
+
+
+@pytest.fixture(scope="module")
+def guaranteed(tmp_path_factory):
+    """tests/specs/cuk_guaranteed.yaml (the Cuk spec, kind: guaranteed, tolerance 5 V, mode auto) designed and simulated."""
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+    out = tmp_path_factory.mktemp("cuk_guaranteed")
+    arts = run(load_spec(GUARANTEED), out, ("simulate",))
+    return arts
+
+
+def test_guaranteed_cuk_meets_five_volts_at_every_sample(guaranteed):
+    sim_art, bound = guaranteed["simulate"], guaranteed["bound"].values
+    v = sim_art.values
+    assert v["tracking/guaranteed_mode"] == "governor" and v["tracking/guaranteed_mode_requested"] == "auto"
+    assert v["tracking/tolerance"] == 5.0 and v["tracking/guaranteed_tolerance"] == pytest.approx(5.0, rel=1e-12)
+    err = np.linalg.norm(v["tracking/e_y"], axis=0)
+    assert np.all(err <= 5.0)
+    assert sim_art.checks["tracking_error_within_tolerance"].passed
+    assert sim_art.checks["tracking_error_within_tolerance"].evidence == "simulated"
+    # Measured: 0.60 V. The uniform bound of the same run, G ||v||_inf, is 753 V: only the construction proves 5 V.
+    assert err.max() < 1.0 < 5.0 < v["tracking/uniform_bound"]
+    assert v["tracking/budget_v_max"] == pytest.approx(5.0 / bound["gain"], rel=1e-12)   # W0 = 0: (EPS - 0) / G
+    assert not v["tracking/compiled"]   # the compiled loop knows only the set-point law: the governor runs on scipy
+
+
+def test_governor_keeps_w_below_its_level_and_works_at_it(guaranteed):
+    v = guaranteed["simulate"].values
+    alpha_h = guaranteed["bound"].values["alpha_h"]
+    level = 5.0**2 * alpha_h
+    w = v["tracking/w_comparison"]
+    assert np.all(w <= level)                                         # the invariant: w(t) <= W_max for all t
+    assert w.max() >= (1 - 2 * simulate.GOVERNOR_MARGIN) * level      # ... and the governor did push w to it
+    assert np.all(v["tracking/governor_slack"] >= 0.0)                # its condition (G) at every sample
+    s = v["tracking/governor_scale"]
+    assert np.all((s >= 0.0) & (s <= 1.0)) and s.min() < 0.01 and s.max() == 1.0
+    # |psi - y| <= sqrt(W / alpha_h) <= sqrt(w / alpha_h): the comparison system bounds the true W.
+    assert np.all(v["tracking/W"] <= w * (1 + 1e-9) + 1e-12)
+    assert guaranteed["simulate"].checks["tracking_w_below_level"].passed
+
+
+def test_governor_reaches_every_level_at_least_twice_as_fast_as_the_budget(guaranteed):
+    v = guaranteed["simulate"].values
+    gov, bud = v["tracking/level_reached_within_tolerance_time"], v["tracking/budget_reach_time"]
+    assert np.array_equal(gov, v["tracking/governor_reach_time"])
+    assert np.all(np.isfinite(gov)) and np.all(np.isfinite(bud))      # every level reached, by both
+    assert gov[0] == bud[0] == 0.0                                    # the start's own output
+    # Measured (s): governor 16.29, 9.21, 9.66, 0.72, 4.13; budget 702.0, 662.6, 162.0, 2.82, 45.8.
+    assert gov[1:].max() < 20.0 and bud[1:3].min() > 600.0
+    speedup = v["tracking/governor_speedup"]
+    assert np.isnan(speedup[0]) and np.all(speedup[1:] >= 2.0)       # 43.1, 71.9, 16.8, 3.9, 11.1
+    assert speedup[1:] == pytest.approx(bud[1:] / gov[1:])
+
+
+def _adversarial_start(paper_design, paper_spec, fraction, sign):
+    """x0 off the manifold with W0 = fraction x W_max in the direction that makes |psi - y| largest for its W."""
+    from ashc_cli.pipeline import design_model
+    model = design_model(paper_spec, paper_design)
+    plant = simulate._Plant(model, paper_design)
+    M = np.asarray(paper_design["stabilise"].value("M"))
+    alpha_h = float(paper_design["bound"].value("alpha_h"))
+    d = np.linalg.solve(M, model.C.T)[:, 0]             # maximises |C e|^2 / e^T M e: |psi - y| = sqrt(W0 / alpha_h)
+    xi0 = np.array([0.6156])
+    p0 = plant.p_map(*xi0)[:, 0]
+    e = sign * d * np.sqrt(fraction * 5.0**2 * alpha_h / (d @ M @ d))
+    x0 = p0 - e
+    return model, plant, xi0, x0, float(e @ M @ e), alpha_h
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_governor_holds_the_tolerance_from_an_adversarial_start(paper_design, paper_spec, sign):
+    # W0 = 0.98 W_max, along M^-1 C^T: the run starts with |psi - y| = sqrt(0.98) x 5 V and is asked for the farthest level.
+    model, plant, xi0, x0, W0, alpha_h = _adversarial_start(paper_design, paper_spec, 0.98, sign)
+    plan = simulate.guaranteed_plan(5.0, "governor", W0, paper_design)
+    law = plan.law("governor", 80.0, 1, np.inf, 2.0, 1.0)
+    ref = simulate.reference_state(model, plant, np.array([-80.9]), 0, paper_design["kappa"].expr("kappa"))
+    segments = simulate.tracking_segments(3.0, 3.0, 1)
+    res = simulate.closed_loop_run(model, plant, paper_design, law, np.r_[xi0, x0, W0], segments, [ref])
+    err = np.abs(plant.kappa(*res["xi"])[:, 0, :] - res["y"])[0]
+    assert err[0] == pytest.approx(np.sqrt(0.98) * 5.0, rel=1e-9)         # 4.95 V
+    assert np.all(err <= 5.0) and np.all(res["w"] <= 5.0**2 * alpha_h)
+    assert np.all(res["slack"] >= 0.0)
+    assert plant.kappa(*res["xi"][:, -1:])[0, 0, 0] < -25.0       # it still moves towards -80.9 (from -19.1)
+    # The same start under the unchecked set-point law (v_max 60) leaves the tolerance: the test can fail.
+    free = simulate.closed_loop_run(model, plant, paper_design, simulate.Law("setpoint", 80.0, 60.0), np.r_[xi0, x0, W0], segments, [ref])
+    assert np.abs(plant.kappa(*free["xi"])[:, 0, :] - free["y"]).max() > 5.5
+
+
+def test_a_start_beyond_the_tolerance_is_refused_with_the_least_tolerance(paper_design):
+    alpha_h = float(paper_design["bound"].value("alpha_h"))
+    W0 = 1.2 * 5.0**2 * alpha_h                                   # sqrt(W0 / alpha_h) = 5.477 V > 5 V
+    for mode in ("budget", "governor", "auto"):
+        with pytest.raises(DesignError) as err:
+            simulate.guaranteed_plan(5.0, mode, W0, paper_design)
+        line = err.value.line()
+        assert err.value.exit_code == 3 and "\n" not in line
+        assert line.startswith("simulate.tracking.abstract_controller.tolerance: 5 cannot be guaranteed")
+        assert f"a tolerance of at least {np.sqrt(1.2) * 5.0 * (1 + simulate.BUDGET_MARGIN):.6g}" in line
+    # Just above the start's share, the budget exists and its v_max is what is left of the tolerance over G.
+    plan = simulate.guaranteed_plan(6.0, "budget", W0, paper_design)
+    G = float(paper_design["bound"].value("gain"))
+    assert plan.budget_v_max == pytest.approx((6.0 - np.sqrt(1.2) * 5.0) / G, rel=1e-12)
+    assert plan.budget_tolerance == pytest.approx(6.0, rel=1e-12)
+
+
+def test_auto_takes_the_governor_only_when_it_can_run(paper_design):
+    alpha_h = float(paper_design["bound"].value("alpha_h"))
+    assert simulate.guaranteed_plan(5.0, "auto", 0.0, paper_design).mode == "governor"
+    # W0 between the governor's level (less its margin) and EPS^2 alpha_h: only the budget certifies EPS.
+    W0 = (1 - 0.5 * simulate.GOVERNOR_MARGIN) * 5.0**2 * alpha_h
+    plan = simulate.guaranteed_plan(5.0, "auto", W0, paper_design)
+    assert plan.mode == "budget" and plan.governor_refusal is not None and plan.budget_v_max > 0
+    with pytest.raises(DesignError, match="above the level the governor keeps"):
+        simulate.guaranteed_plan(5.0, "governor", W0, paper_design)
+
+
+def _random_interface(rng, m, saturate):
+    n = 4
+    L = np.linalg.cholesky(np.cov(rng.normal(size=(n, 3 * n))) + 0.1 * np.eye(n))
+    g = rng.normal(size=(n, m))
+    U = np.sort(rng.uniform(-1, 1, size=(m, 2)), axis=1) + np.array([[-0.5, 0.5]])
+    l = rng.uniform(U[:, 0], U[:, 1])
+    feedback = np.zeros(m) if rng.random() < 0.5 else rng.normal(scale=0.3, size=m)
+    qv = rng.normal(scale=3.0, size=m)
+    dv = rng.normal(scale=3.0, size=n)
+    return L, l, feedback, qv, dv, g, U
+
+
+@pytest.mark.parametrize("saturate", [True, False, "scale"])
+@pytest.mark.parametrize("m", [1, 2])
+def test_governor_scale_is_admissible_and_the_largest(saturate, m):
+    # Against brute force: |L^T r(s)|^2 evaluated on 20001 values of s through the actual interface.
+    rng = np.random.default_rng(100 + m + 10 * ["x", True, False, "scale"].index(saturate))
+    grid = np.linspace(0.0, 1.0, 20001)
+    for _ in range(60):
+        L, l, fb, qv, dv, g, U = _random_interface(rng, m, saturate)
+        _, _, q2 = simulate._interface_r(grid, L, l, fb, qv, dv, g, U, saturate)
+        bound = float(rng.uniform(0.05, 1.5) * np.median(q2)) + 1e-3
+        s, u, r, admissible = simulate.governor_scale(L, l, fb, qv, dv, g, U, saturate, bound)
+        u_s, r_s, q2_s = simulate._interface_r(s, L, l, fb, qv, dv, g, U, saturate)
+        assert np.allclose(u, u_s[0]) and np.allclose(r, r_s[0])
+        ok = q2 <= bound
+        if not admissible:                      # only when s = 0 itself is not admissible (K e clipped)
+            assert s == 0.0 and not ok[0] and np.any(fb != 0)
+            continue
+        assert q2_s[0] <= bound                 # never an s that violates the condition
+        best = grid[ok].max()
+        exact = saturate != "scale" or not np.any(fb)
+        # Piecewise affine: the true largest admissible s; otherwise at least the largest on the 65-point grid.
+        assert s >= (best - 1e-9 if exact else grid[ok & np.isin(grid, np.linspace(0, 1, 65))].max() - 1e-12)
+
+
+def test_s_zero_is_admissible_without_feedback_and_with_l_in_U():
+    # K = 0 and l in U: r(0) = 0, so s = 0 meets any positive bound (docs/guaranteed.md, "When s = 0 is admissible").
+    rng = np.random.default_rng(7)
+    for saturate in (True, "scale", False):
+        L, l, _, qv, dv, g, U = _random_interface(rng, 2, saturate)
+        _, r0, q0 = simulate._interface_r(0.0, L, l, np.zeros(2), qv, dv, g, U, saturate)
+        assert np.all(r0 == 0.0) and q0[0] == 0.0
+        s, *_, admissible = simulate.governor_scale(L, l, np.zeros(2), 1e6 * qv, 1e6 * dv, g, U, saturate, 1e-12)
+        assert admissible and 0.0 <= s < 1e-3
+
+
+def test_reach_time_is_from_the_last_entry_into_the_band():
+    t = np.arange(0.0, 10.0, 1.0)
+    y = np.array([[10.0, 8.0, 4.0, 3.0, 6.0, 4.5, 4.0, 1.0, 0.5, 0.0]])
+    assert simulate.reach_time(t, y, np.array([0.0]), 5.0, 0.0) == 5.0     # entered at 2, left at 4, in for good from 5
+    assert simulate.reach_time(t + 20.0, y, np.array([0.0]), 5.0, 20.0) == 5.0
+    assert np.isnan(simulate.reach_time(t, y[:, ::-1], np.array([0.0]), 5.0, 0.0))   # outside at the end: not reached
+
+
+def test_deadline_is_met_only_when_psi_sits_on_the_level_through_the_window(guaranteed):
+    from ashc_cli.spec import TimedLevel
+    v = guaranteed["simulate"].values
+    t, psi, y = v["tracking/t"], v["tracking/psi"], v["tracking/y"]
+    level, seg = np.array([-80.9]), (20.0, 40.0)          # level 1, reached within 5 V after 16.3 s, psi settled after 17.7 s
+    met, bound, observed, why = simulate._deadline_report(TimedLevel(level=-80.9, by=3.0, hold=2.0), 1, level, seg, t, psi, y,
+                                                          5.0, 1e-4 * 120, "governor", "w <= W_max")
+    assert not met and bound > 5.0 + 40.0 and observed > 5.0
+    assert "later than by = 3 s: the deadline is too short for the v the governor mode allows" in why
+    met, bound, observed, why = simulate._deadline_report(TimedLevel(level=-80.9, by=18.0, hold=2.0), 1, level, seg, t, psi, y,
+                                                          5.0, 1e-4 * 120, "governor", "w <= W_max")
+    assert met and bound == pytest.approx(5.0, abs=0.012) and observed <= 5.0
+
+
+def test_deadlines_are_reported_by_simulate(tmp_path):
+    # unstable_linear (feedback: linear_gain, a local bound: v_max_certified = 0.0158) in budget mode: compiled, and slow.
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+    spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("reference_levels: [0.5, -0.8, 0.2]", "reference_levels: [0.0, {level: 0.05, by: 2.0, hold: 1.0}, {level: 0.1, by: 0.5, hold: 1.0}]"),
+                  ("{kind: setpoint, gain: 5.0, v_max: 2.0}", "{kind: guaranteed, tolerance: 0.3, gain: 5.0, mode: budget}"))
+    arts = run(load_spec(spec), tmp_path / "out", ("simulate",))
+    art, bound = arts["simulate"], arts["bound"].values
+    v = art.values
+    assert v["tracking/guaranteed_mode"] == "budget" and bool(v["tracking/compiled"]) is simulate.compiled.available()
+    v_max = min(0.3 / bound["gain"], bound["v_max_certified"])          # W0 = 0
+    assert v["tracking/budget_v_max"] == pytest.approx(v_max, rel=1e-12)
+    assert np.abs(v["tracking/v"]).max() <= v_max * (1 + 1e-12)
+    assert v["tracking/guaranteed_tolerance"] == pytest.approx(bound["gain"] * v_max, rel=1e-12) and v["tracking/guaranteed_tolerance"] <= 0.3
+    assert art.checks["tracking_error_within_tolerance"].passed
+    # psi moves at |v| <= 0.0134 per s: 0.05 takes about 3.7 s (deadline 2 s missed), 0.1 from 0.05 about 3.7 s too.
+    assert list(v["tracking/deadline_levels"]) == [1, 2] and not any(v["tracking/deadline_met"])
+    assert not art.checks["tracking_deadline_1"].passed
+    assert "the deadline is too short for the v the budget mode allows (|v| <= 0.01" in art.checks["tracking_deadline_1"].description
+
+
+def test_s_zero_inadmissible_when_the_feedback_clips_is_returned_and_flagged():
+    # linear_gain with l + K e outside U: r(0) = -g (SAT(l + K e) - l - K e) != 0, so no s meets a small bound.
+    L, g, U = np.eye(2), np.array([[0.0], [1.0]]), np.array([[-1.0, 1.0]])
+    l, feedback = np.array([0.5]), np.array([1.0])                    # l + K e = 1.5, clipped to 1: r(0) = (0, 0.5)
+    s, u, r, admissible = simulate.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 0.2)
+    assert not admissible and s == 0.0 and u[0] == 1.0 and np.allclose(r, [0.0, 0.5])
+    # With room for r(0) the same point is admissible, and s is the largest that keeps |L^T r|^2 <= bound.
+    s, u, r, admissible = simulate.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 1.0)
+    assert admissible and s == pytest.approx(0.5, abs=1e-12) and float(r @ r) <= 1.0   # r(s) = (0, s + 0.5), clipped u
+
+
+def test_simulate_refuses_a_tolerance_the_start_cannot_meet(tmp_path):
+    # The real entry point: exit 3, one line naming the tolerance, with the least tolerance that can be met.
+    from .conftest import ashc
+    spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("{kind: setpoint, gain: 5.0, v_max: 2.0}", "{kind: guaranteed, tolerance: 0.01, gain: 5.0}"),
+                  ("x0: on_manifold", "x0: [0.01, 0.0]"))
+    proc = ashc("simulate", str(spec), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 3
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: simulate.tracking.abstract_controller.tolerance: 0.01 cannot be guaranteed (budget mode): "
+                           "the start alone takes sqrt(W0 / alpha_h) = 0.158311 of the tolerance 0.01")
+    assert line.endswith("expected a tolerance of at least 0.159895 (sqrt(W0 / alpha_h) = 0.158311 plus a margin), or a start nearer the manifold")

@@ -129,3 +129,88 @@ def test_explicit_m_is_optional_and_hashed_only_when_given():
     given = parse_spec_text(cuk(("  domain: [[0, 0.95]]\n", '  domain: [[0, 0.95]]\n  m: ["x4"]\n')))
     assert given.abstract.m == ["x4"] and given.sha256 != plain.sha256
     assert "abstract.m: has 2 entries; expected 1" in error_of(cuk(("  domain: [[0, 0.95]]\n", '  domain: [[0, 0.95]]\n  m: ["x4", "x3"]\n')))
+
+
+# --- the guaranteed controller and timed levels (issue 15, docs/guaranteed.md) ------------------------------------
+
+SETPOINT = "{kind: setpoint, gain: 80.0, v_max: 60.0}"
+LEVELS = "reference_levels: [-19.11, -80.90, -44.27, -4.31, -12.48, -32.91]"
+
+
+def test_guaranteed_controller_loads_with_mode_auto_by_default():
+    spec = parse_spec_text(cuk((SETPOINT, "{kind: guaranteed, tolerance: 5, gain: 80.0}")))
+    ctl = spec.simulate.tracking.abstract_controller
+    assert (ctl.kind, ctl.tolerance, ctl.gain, ctl.mode) == ("guaranteed", 5.0, 80.0, "auto")
+    assert not hasattr(ctl, "v_max")
+    for mode in ("budget", "governor", "auto"):
+        assert parse_spec_text(cuk((SETPOINT, f"{{kind: guaranteed, tolerance: 5, gain: 80.0, mode: {mode}}}"))).simulate.tracking.abstract_controller.mode == mode
+    # The set-point controller is unchanged, and so is the hash of every spec that uses it.
+    setpoint = parse_spec_text(cuk()).simulate.tracking.abstract_controller
+    assert (setpoint.kind, setpoint.gain, setpoint.v_max) == ("setpoint", 80.0, 60.0)
+
+
+def test_the_guaranteed_spec_of_the_tests_is_the_cuk_spec_but_for_its_controller():
+    from .conftest import ROOT
+    spec = load_spec(ROOT / "tests" / "specs" / "cuk_guaranteed.yaml")
+    base = load_spec(CUK)
+    assert spec.concrete == base.concrete and spec.abstract == base.abstract and spec.stabilisability == base.stabilisability
+    assert spec.simulate.tracking.reference_levels == base.simulate.tracking.reference_levels
+    assert spec.simulate.tracking.abstract_controller.tolerance == 5.0
+
+
+@pytest.mark.parametrize("controller, line", [
+    ("{kind: pid, gain: 80.0}",
+     "simulate.tracking.abstract_controller.kind: kind 'pid' is not one of the kinds; expected kind: setpoint or guaranteed"),
+    ("{gain: 80.0}", "simulate.tracking.abstract_controller: no kind given (got {'gain': 80.0}); expected kind: setpoint or guaranteed"),
+    ("{kind: guaranteed, tolerance: 5, gain: 80.0, v_max: 3}",
+     "simulate.tracking.abstract_controller.v_max: unknown key 'v_max'; expected one of: gain, kind, mode, tolerance"),
+    ("{kind: guaranteed, tolerence: 5, gain: 80.0}",
+     "simulate.tracking.abstract_controller.tolerence: unknown key 'tolerence'; expected did you mean 'tolerance'? valid keys: gain, kind, mode, tolerance"),
+    ("{kind: setpoint, gain: 80.0, v_max: 60.0, tolerance: 5}",
+     "simulate.tracking.abstract_controller.tolerance: unknown key 'tolerance'; expected one of: gain, kind, v_max"),
+    ("{kind: guaranteed, gain: 80.0}", "simulate.tracking.abstract_controller.tolerance: missing; expected this key"),
+    ("{kind: guaranteed, tolerance: 0, gain: 80.0}",
+     "simulate.tracking.abstract_controller.tolerance: Input should be greater than 0 (got 0); expected a number > 0"),
+    ("{kind: guaranteed, tolerance: .inf, gain: 80.0}", "simulate.tracking.abstract_controller.tolerance"),
+    ("{kind: guaranteed, tolerance: 5, gain: 80.0, mode: fast}",
+     "simulate.tracking.abstract_controller.mode: Input should be 'auto', 'budget' or 'governor' (got 'fast'); expected 'auto', 'budget' or 'governor'"),
+])
+def test_controller_problems_are_one_line_naming_the_field(controller, line):
+    assert line in error_of(cuk((SETPOINT, controller)))
+
+
+def test_timed_levels_load_next_to_plain_ones():
+    text = cuk((LEVELS, "reference_levels: [-19.11, {level: -80.9, by: 3.0, hold: 2.0}, [-44.27], -4.31]"),
+               (SETPOINT, "{kind: guaranteed, tolerance: 5, gain: 80.0}"))
+    tr = parse_spec_text(text).simulate.tracking
+    timed = tr.reference_levels[1]
+    assert (timed.level, timed.by, timed.hold) == (-80.9, 3.0, 2.0)
+    assert tr.level_values() == [-19.11, -80.9, [-44.27], -4.31]
+    # Level k is held from k dwell; the last one to t_final (dwell 5, t_final 30).
+    assert tr.segment(0) == (0.0, 5.0) and tr.segment(1) == (5.0, 10.0) and tr.segment(3) == (15.0, 30.0)
+
+
+@pytest.mark.parametrize("levels, controller, line", [
+    ("[-19.11, {level: -80.9, by: 3.0, hold: 2.5}, -44.27]", "guaranteed",
+     "simulate.tracking.reference_levels[1].hold: by + hold = 5.5 s runs past the 5 s this level is held"),
+    ("[-19.11, -44.27, {level: -80.9, by: 20.0, hold: 5.5}]", "guaranteed",     # the last level: from 10 s to t_final = 30 s
+     "simulate.tracking.reference_levels[2].hold: by + hold = 25.5 s runs past the 20 s this level is held"),
+    ("[-19.11, {level: -80.9, by: 3.0, hold: 2.0}]", "setpoint",
+     "simulate.tracking.reference_levels[1]: has a deadline (by, hold) but the controller is 'setpoint', which guarantees no tolerance"),
+    ("[-19.11, {level: -80.9, by: 3.0, hodl: 2.0}]", "guaranteed",
+     "simulate.tracking.reference_levels[1].hodl: unknown key 'hodl'; expected did you mean 'hold'? valid keys: by, hold, level"),
+    ("[-19.11, {level: -80.9, by: -3.0, hold: 2.0}]", "guaranteed",
+     "simulate.tracking.reference_levels[1].by: Input should be greater than or equal to 0 (got -3.0); expected a number >= 0"),
+    ("[-19.11, {level: [-80.9, 1.0], by: 3.0, hold: 2.0}]", "guaranteed",
+     "simulate.tracking.reference_levels[1].level: has 2 values; expected 1 (one per output)"),
+    ("[-19.11, {by: 3.0, hold: 2.0}]", "guaranteed", "simulate.tracking.reference_levels[1].level: missing"),
+])
+def test_timed_level_problems_are_named(levels, controller, line):
+    ctl = SETPOINT if controller == "setpoint" else "{kind: guaranteed, tolerance: 5, gain: 80.0}"
+    assert line in error_of(cuk((LEVELS, f"reference_levels: {levels}"), (SETPOINT, ctl)))
+
+
+def test_a_timed_level_the_run_never_reaches_is_refused():
+    text = cuk((LEVELS, "reference_levels: [-19.11, -80.9, -44.27, -4.31, -12.48, -32.91, {level: -30, by: 1, hold: 1}]"),
+               (SETPOINT, "{kind: guaranteed, tolerance: 5, gain: 80.0}"))
+    assert "simulate.tracking.reference_levels[6]: has a deadline but the run ends (t_final = 30 s) before level 6 is asked for" in error_of(text)

@@ -7,6 +7,14 @@ system receives the interface u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, e
 q = 0 or the least-squares q of eq. egqLS.  The run records psi = kappa(xi), y = h(x), their error and the
 uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x0 = p(xi0)).
 
+**Guaranteed controller** (``abstract_controller.kind: guaranteed``, docs/guaranteed.md): the tracking run meets
+|psi - y| <= EPS by construction (eq. TrackConst).  Budget mode: the set-point law with the largest uniform
+v_max = (EPS - sqrt(W0 / alpha_h)) / G (Theorem ErrorBound, eq. egErrorBound).  Governor mode: v = s v_sp with
+the largest s in [0, 1] keeping the comparison system w' = -(lambda - eps) w + |L^T r|^2 / eps below
+EPS^2 alpha_h (:func:`governor_law`); it runs on solve_ivp (the compiled loop knows only the set-point law).  The
+run also reports the time each level is reached within EPS, deadlines of timed levels and, for the governor,
+its speed-up over the budget (:func:`reach_times`).
+
 **m-relation** (Figs. Example_mRelationIn/Out).  The concrete system runs open loop under the spec's u(t);
 the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
 mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
@@ -20,7 +28,7 @@ expression has no numba form, or ASHC_COMPILED=0.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cvxpy as cp
 import numpy as np
@@ -36,6 +44,7 @@ from ..expr import parse_expression
 from ..grids import domain_grid
 from .inverse import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
 from ..model import TIME, Model, apply_saturation, compile_flat, compile_terms
+from ..spec import TimedLevel
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
@@ -49,6 +58,26 @@ POSTERIOR_FLOOR_RTOL = 1e-7
 SETTLE_RTOL = 1e-4
 #: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
 M_RELATION_TOL_ABS = 1e-6
+#: Governor: the design constant c of its invariance condition |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w),
+#: as a multiple of lambda - eps (docs/guaranteed.md).  Any c >= 0 keeps w <= W_max; a larger c spends the room
+#: below W_max faster.
+GOVERNOR_RATE = 1.0
+#: Governor: the level it keeps invariant is (1 - GOVERNOR_MARGIN) tolerance^2 alpha_h, so that the integrator's
+#: error on w (rtol, atol 1e-9) cannot carry the simulated w over tolerance^2 alpha_h, the level the proof needs.
+GOVERNOR_MARGIN = 1e-6
+#: Budget refusal: the least tolerance quoted is sqrt(W0 / alpha_h) (1 + BUDGET_MARGIN), which leaves a v_max > 0.
+BUDGET_MARGIN = 1e-2
+#: Bisection steps of the governor's search for s where the interface is not piecewise affine in s.
+GOVERNOR_BISECTIONS = 60
+#: Relative steps back from a root of the governor's quadratic tried before bisecting (rounding puts it a few
+#: ulps either side of the boundary).
+GOVERNOR_BACKOFF = (0.0, 1e-13, 1e-11)
+#: Grid of s in [0, 1] searched first where the interface is not piecewise affine in s (saturate: scale, K e != 0).
+GOVERNOR_GRID = 64
+#: Reach-time runs (``reach_times``): a level is held in chunks of the spec's dwell until it is reached, at most
+#: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
+REACH_HORIZON_DWELLS = 1000
+REACH_SAMPLE_DWELLS = 5e-4
 #: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
 #: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
 EDGE_MARGIN = 1e-3
@@ -184,6 +213,328 @@ def tracking_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarra
     return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
 
 
+# --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Law:
+    """The abstract controller that closes a tracking run.
+
+    Attributes
+    ----------
+    kind : str
+        ``setpoint`` (the set-point law, also the budget mode) or ``governor``.
+    gain : float
+        The set-point gain.
+    v_max : float
+        Elementwise clip of the set-point law (the governor's v_sp: v_max_certified / sqrt(m_hat), inf when the
+        bound is global).
+    w_level : float
+        Governor: the level W_max that it keeps w below.
+    rate : float
+        Governor: the design constant c.
+    """
+
+    kind: str
+    gain: float
+    v_max: float
+    w_level: float = np.inf
+    rate: float = 0.0
+
+
+@dataclass(frozen=True)
+class GuaranteedPlan:
+    """What a guaranteed controller can certify for one run (eq. TrackConst, docs/guaranteed.md).
+
+    Attributes
+    ----------
+    tolerance : float
+        The spec's EPS.
+    mode : str
+        The mode that runs: ``budget`` or ``governor`` (``auto`` resolved).
+    requested : str
+        The spec's mode (``auto``, ``budget`` or ``governor``).
+    W0, alpha_h, gain_G : float
+        W(xi0, x0), alpha_h and the gain G of eq. egErrorBound.
+    budget_v_max : float
+        The largest |v| (2-norm) with sqrt(W0 / alpha_h) + G |v| <= EPS, capped by v_max_certified; NaN when
+        none exists.
+    budget_tolerance : float
+        sqrt(W0 / alpha_h) + G budget_v_max: what the budget mode proves (<= EPS).
+    budget_refusal : str or None
+        Why the budget mode cannot run (None when it can).
+    governor_level : float
+        W_max = (1 - GOVERNOR_MARGIN) min(EPS^2 alpha_h, w0_max_certified), the level the governor keeps w below
+        (the margin absorbs the integrator's error on w).
+    governor_tolerance : float
+        sqrt(min(EPS^2 alpha_h, w0_max_certified) / alpha_h): what the governor proves (<= EPS).
+    governor_refusal : str or None
+        Why the governor cannot run (None when it can).
+    """
+
+    tolerance: float
+    mode: str
+    requested: str
+    W0: float
+    alpha_h: float
+    gain_G: float
+    budget_v_max: float
+    budget_tolerance: float
+    budget_refusal: str | None
+    governor_level: float
+    governor_tolerance: float
+    governor_refusal: str | None
+
+    @property
+    def guaranteed_tolerance(self) -> float:
+        """The EPS proved for the run of ``mode``."""
+        return self.budget_tolerance if self.mode == "budget" else self.governor_tolerance
+
+    def law(self, mode: str, gain: float, m_hat: int, v_certified: float, lam: float, eps: float) -> Law:
+        """The :class:`Law` of ``mode`` (budget: the set-point law with v_max = budget_v_max / sqrt(m_hat), so that
+        the elementwise clip keeps the 2-norm of v below budget_v_max; governor: v_sp clipped at
+        v_max_certified / sqrt(m_hat))."""
+        root = np.sqrt(m_hat)
+        if mode == "budget":
+            return Law("setpoint", gain, self.budget_v_max / root)
+        return Law("governor", gain, v_certified / root, self.governor_level, GOVERNOR_RATE * (lam - eps))
+
+
+def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict[str, Artefact]) -> GuaranteedPlan:
+    """Budget and governor of a guaranteed controller for a start with W(xi0, x0) = W0.
+
+    Budget (eq. TrackConst with the uniform bound of Theorem ErrorBound, eq. egErrorBound): the largest v_max with
+    sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max <= EPS for all t >= 0; the left side is largest at t = 0,
+    so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).
+    Governor: the level W_max = min(EPS^2 alpha_h, w0_max_certified), kept invariant (less GOVERNOR_MARGIN); it
+    needs W0 <= W_max.
+
+    Parameters
+    ----------
+    tolerance : float
+        EPS.
+    mode : str
+        ``auto``, ``budget`` or ``governor``.
+    W0 : float
+        W(xi0, x0).
+    up : dict
+        The design's artefacts (``bound`` is read).
+
+    Returns
+    -------
+    GuaranteedPlan
+
+    Raises
+    ------
+    DesignError
+        Naming ``simulate.tracking.abstract_controller.tolerance`` (exit 3), with the least tolerance that
+        can be met, when the mode asked for (``auto``: either) cannot certify EPS from this start.
+    """
+    bd = up["bound"].values
+    alpha_h, G = float(bd["alpha_h"]), float(bd["gain"])
+    w0_max = float(bd.get("w0_max_certified", np.inf))
+    v_cert = float(bd.get("v_max_certified", np.inf))
+    start = float(np.sqrt(max(W0, 0.0) / alpha_h))          # sqrt(W0 / alpha_h), the first term of eq. TrackConst at t = 0
+    least = start * (1.0 + BUDGET_MARGIN)
+    region = "" if not np.isfinite(w0_max) else f", W0 <= w0_max_certified = {w0_max:.6g}"
+    budget_refusal = governor_refusal = None
+    if W0 > w0_max:
+        budget_refusal = governor_refusal = (f"W(xi0, x0) = {W0:.6g} is outside the region where the bound is certified (W0 <= {w0_max:.6g}): "
+                                             "no tolerance is certified from this start")
+    elif not tolerance > start:
+        budget_refusal = (f"the start alone takes sqrt(W0 / alpha_h) = {start:.6g} of the tolerance {tolerance:g} (W0 = {W0:.6g}, "
+                          f"alpha_h = {alpha_h:.6g}), which leaves no v (eq. TrackConst at t = 0)")
+    budget_v = min((tolerance - start) / G, v_cert) if budget_refusal is None else np.nan
+    budget_tol = start + G * budget_v if budget_refusal is None else np.nan
+    proved = min(tolerance**2 * alpha_h, w0_max)                # w <= proved gives |psi - y| <= sqrt(proved / alpha_h) <= EPS
+    level = (1.0 - GOVERNOR_MARGIN) * proved
+    if governor_refusal is None and not W0 <= level:
+        governor_refusal = (f"W(xi0, x0) = {W0:.6g} is above the level the governor keeps, W_max = {level:.6g} "
+                            f"(tolerance^2 alpha_h less {GOVERNOR_MARGIN:g}{region})")
+    chosen = mode
+    if mode == "auto":
+        # The governor allows every v the budget allows, and more (docs/guaranteed.md): it runs whenever it can.
+        chosen = "governor" if governor_refusal is None else "budget"
+    why = budget_refusal if chosen == "budget" else governor_refusal
+    if why is not None:
+        if W0 > w0_max:
+            raise DesignError("simulate.tracking.x0", why, f"a start with W(xi0, x0) <= {w0_max:.6g} (bound.w0_max_certified)")
+        raise DesignError("simulate.tracking.abstract_controller.tolerance", f"{tolerance:g} cannot be guaranteed ({chosen} mode): {why}",
+                          f"a tolerance of at least {least:.6g} (sqrt(W0 / alpha_h) = {start:.6g} plus a margin), or a start nearer the manifold")
+    return GuaranteedPlan(tolerance=float(tolerance), mode=chosen, requested=mode, W0=float(W0), alpha_h=alpha_h, gain_G=G,
+                          budget_v_max=float(budget_v), budget_tolerance=float(budget_tol), budget_refusal=budget_refusal,
+                          governor_level=float(level), governor_tolerance=float(np.sqrt(proved / alpha_h)), governor_refusal=governor_refusal)
+
+
+def _interface_r(s: np.ndarray, L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray,
+                 g: np.ndarray, U: np.ndarray, saturate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u(s), r(s) and |L^T r(s)|^2 for v = s v_sp, at each s of an array (one point (xi, x)).
+
+    u(s) = SAT(l + K e + s q v_sp) (the actual interface, eqs. Interface, egInterfaceSat) and
+    r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) (eq. iota: what drives W in W' <= -(lambda - eps) W + |L^T r|^2 / eps).
+    """
+    s = np.atleast_1d(np.asarray(s, dtype=float))
+    u = apply_saturation(l, feedback + s[:, None] * qv, U, saturate)          # (N, m)
+    r = s[:, None] * dv - (u - l - feedback) @ g.T                            # (N, n)
+    return u, r, np.sum((r @ L) ** 2, axis=1)
+
+
+def _breakpoints(l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, U: np.ndarray, saturate) -> tuple[list[float], bool]:
+    """The s in (0, 1) where the interface changes form, and whether r(s) is affine between them.
+
+    ``saturate: true`` clips each channel of l + K e + s q v_sp, an affine function of s: the pieces end where a
+    channel meets a bound.  ``scale`` with K e = 0 applies min(s, s_c) q v_sp: one end, s_c.  ``false``: no end.
+    ``scale`` with K e != 0 is not piecewise affine in s (the factor divides the whole correction).
+    """
+    if saturate is False:
+        return [], True
+    if saturate == "scale" and np.any(feedback):
+        return [], False
+    ends, s_c = set(), np.inf
+    for j in range(qv.size):                        # a few channels: plain floats are faster than arrays here
+        d = float(qv[j])
+        if d == 0.0:
+            continue
+        lo = (float(U[j, 0]) - float(l[j]) - float(feedback[j])) / d
+        hi = (float(U[j, 1]) - float(l[j]) - float(feedback[j])) / d
+        if saturate is True:
+            ends.update(e for e in (lo, hi) if 0.0 < e < 1.0)
+        else:
+            s_c = min(s_c, hi if d > 0 else lo)
+    if saturate == "scale" and 0.0 < s_c < 1.0:
+        ends.add(s_c)
+    return sorted(ends), True
+
+
+def governor_scale(L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray, g: np.ndarray,
+                   U: np.ndarray, saturate, bound: float) -> tuple[float, np.ndarray, np.ndarray, bool]:
+    """The largest s in [0, 1] with |L^T r(s)|^2 <= bound, r(s) through the actual interface (:func:`_interface_r`).
+
+    Where r is piecewise affine in s (every ``saturate`` but ``scale`` with K e != 0), |L^T r(s)|^2 is a convex
+    quadratic on each piece, and the largest admissible s of a piece is a root found in closed form; the pieces
+    are searched from s = 1 down.  Elsewhere a grid of GOVERNOR_GRID + 1 values of s, then bisection between the
+    largest admissible one and the next.  Every s returned has been evaluated and found admissible: a root that
+    rounding puts just outside is bisected back inside.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        M = L L^T.
+    l, feedback, qv : ndarray (m,)
+        l(xi), K (x - p(xi)) and q(xi, x) v_sp.
+    dv : ndarray (n,)
+        dp/dxi delta(xi) v_sp.
+    g : ndarray (n, m)
+        g(x).
+    U : ndarray (m, 2)
+        The input box.
+    saturate : bool or str
+        ``interface.saturate``.
+    bound : float
+        eps ((lambda - eps) W_max + c (W_max - w)).
+
+    Returns
+    -------
+    s : float
+    u, r : ndarray
+        u(s) and r(s), as evaluated when s was accepted.
+    admissible : bool
+        False only when not even s = 0 is admissible (r(0) != 0: K e clipped, outside the region of the proof);
+        s = 0 is returned then.
+    """
+    def at(s_values):
+        return _interface_r(s_values, L, l, feedback, qv, dv, g, U, saturate)
+
+    def largest_verified(lo: float, hi: float):
+        """The largest s in [lo, hi] found admissible by evaluation: hi, or hi a few roundings lower (a root in
+        closed form is accurate to a few ulps), else bisection from lo."""
+        for back in GOVERNOR_BACKOFF:
+            s_try = max(lo, hi * (1.0 - back))
+            u, r, q2 = at(s_try)
+            if q2[0] <= bound:
+                return s_try, u[0], r[0]
+        u, r, q2 = at(lo)
+        if not q2[0] <= bound:
+            return None
+        good = (lo, u[0], r[0])
+        for _ in range(GOVERNOR_BISECTIONS):
+            mid = 0.5 * (good[0] + hi)
+            if not good[0] < mid < hi:
+                break
+            u, r, q2 = at(mid)
+            if q2[0] <= bound:
+                good = (mid, u[0], r[0])
+            else:
+                hi = mid
+        return good
+
+    ends, affine = _breakpoints(l, feedback, qv, U, saturate)
+    grid = np.array([0.0, *ends, 1.0]) if affine else np.linspace(0.0, 1.0, GOVERNOR_GRID + 1)
+    u, r, q2 = at(grid)
+    ok = q2 <= bound
+    if ok[-1]:
+        return 1.0, u[-1], r[-1], True
+    if affine:
+        R = r @ L
+        for k in range(grid.size - 2, -1, -1):
+            s0, s1 = grid[k], grid[k + 1]
+            if ok[k + 1]:
+                return float(s1), u[k + 1], r[k + 1], True
+            h = s1 - s0
+            D = (R[k + 1] - R[k]) / h
+            a, b, c0 = float(D @ D), float(R[k] @ D), float(R[k] @ R[k]) - bound
+            if a <= 0.0:
+                continue                                    # constant on the piece and inadmissible at its end
+            disc = b * b - a * c0
+            if disc < 0.0:
+                continue
+            root = np.sqrt(disc)
+            upper = -c0 / (b + root) if b > 0 else (root - b) / a         # the larger root, without cancellation
+            lower = (-b - root) / a if b > 0 else (c0 / (a * upper) if upper != 0 else (-b - root) / a)
+            if upper < 0.0 or lower > h:
+                continue
+            found = largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    else:
+        k = np.flatnonzero(ok)
+        if k.size:
+            found = largest_verified(float(grid[k[-1]]), float(grid[k[-1] + 1]))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    return 0.0, u[0], r[0], bool(ok[0])
+
+
+def governor_law(plant: _Plant, xi: np.ndarray, x: np.ndarray, w: float, xi_ref: np.ndarray, law: Law, q_kind: str, saturate,
+                 lam: float, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """The governed closed loop at one point (docs/guaranteed.md).
+
+    v = s v_sp, v_sp = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max), with the largest s in [0, 1]
+    such that |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w) (:func:`governor_scale`): then the comparison
+    system w' = -(lambda - eps) w + |L^T r|^2 / eps satisfies w' <= (lambda - eps + c) (W_max - w), so w <= W_max
+    is invariant.
+
+    Returns
+    -------
+    v, u, dxi, dx, r : ndarray
+        As :func:`tracking_law`.
+    s : float
+        The scale applied to v_sp.
+    slack : float
+        (lambda - eps) W_max + c (W_max - w) - |L^T r|^2 / eps (>= 0 where the condition holds).
+    """
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v_sp = np.clip(_pinv(delta) @ (law.gain * (xi_ref - xi) - phi[:, 0]), -law.v_max, law.v_max)
+    feedback = plant.K @ (x - p[:, 0])
+    q = _pinv(plant.L.T @ g) @ (plant.L.T @ dpd) if q_kind == "least_squares" else np.zeros((g.shape[1], v_sp.size))
+    room = (lam - eps) * law.w_level + law.rate * (law.w_level - w)
+    s, u, r, _ = governor_scale(plant.L, l[:, 0], feedback, q @ v_sp, dpd @ v_sp, g, plant.U, saturate, eps * room)
+    v = s * v_sp
+    slack = room - float(np.sum((plant.L.T @ r) ** 2)) / eps
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, r, s, slack
+
+
 def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
     """Sample times t0, t0 + dt, ... strictly below t1, then t1: increasing, never outside [t0, t1].
 
@@ -210,67 +561,240 @@ def _integrate(rhs, t_span, z0, t_eval, tol, what, events=None):
     return sol
 
 
-def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[dict, dict]:
-    """The tracking scenario; returns (values, checks) with keys under ``tracking/``."""
+def tracking_start(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
+    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
+
+    Raises
+    ------
+    DesignError
+        If xi0 is outside V or a level is out of kappa's reach.
+    """
     tr = model.spec.simulate.tracking
-    ctl = tr.abstract_controller
-    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
     xi0 = np.array(tr.xi0, dtype=float)
     if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
         raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
     x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
-    levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.reference_levels]
+    levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
     refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
+    M = np.asarray(up["stabilise"].value("M"))
+    e0 = plant.p_map(*xi0)[:, 0] - x0
+    return xi0, x0, float(e0 @ M @ e0), levels, refs
+
+
+def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = SAMPLE_DT) -> list[tuple[float, float, np.ndarray, int]]:
+    """(t0, t1, sample times, level index), one per dwell: level k from k dwell, the last one to t_final."""
+    segments = []
+    t0, k = 0.0, 0
+    while t0 < t_final - 1e-12:
+        i = min(k, n_levels - 1)
+        # Segment ends as multiples of the dwell (not sums, which drift by rounding).
+        t1 = t_final if k >= n_levels - 1 else min(t_final, (k + 1) * dwell)
+        segments.append((t0, t1, sample_times(t0, t1, dt), i))
+        t0, k = t1, k + 1
+    return segments
+
+
+def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
+    """The compiled tracking loop for ``law``, or None where the scipy path runs.
+
+    The compiled loop knows the set-point law only (the budget mode is that law): the governor goes to the scipy
+    path without asking it.
+    """
+    if law.kind != "setpoint" or TRACKING_TOL["method"] != "DOP853":
+        return None
+    try:
+        return compiled.tracking_loop(model, up)
+    except compiled.Unsupported:
+        return None
+
+
+def closed_loop_run(model: Model, plant: _Plant, up: dict[str, Artefact], law: Law, z0: np.ndarray,
+                    segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop=None) -> dict:
+    """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0].
+
+    Returns
+    -------
+    dict
+        t, xi, x, w (the comparison system), reference_index, v, u, y at the samples; psi_end (psi at the end of
+        each segment); z_end; compiled (whether the compiled loop ran); for the governor also scale (s) and slack
+        (the margin of its invariance condition) at the samples.
+    """
+    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
+    lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
     nh = model.n_hat
+    z = np.asarray(z0, dtype=float)
+    out: dict = {"compiled": loop is not None}
+    if loop is not None:
+        res = loop.run(z, segments, refs, gain=law.gain, v_max=law.v_max, q_kind=q_kind, saturate=saturate,
+                       rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"])
+        out.update(t=res.t, xi=res.xi, x=res.x, w=res.w, reference_index=res.reference_index, v=res.v, u=res.u, y=res.y,
+                   psi_end=[res.psi_end[j] for j in range(len(segments))], z_end=np.r_[res.xi[:, -1], res.x[:, -1], res.w[-1]])
+        return out
 
     def rhs_for(xi_ref):
         def rhs(t, z):
-            _, _, dxi, dx, r = tracking_law(plant, z[:nh], z[nh:-1], xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
+            if law.kind == "governor":
+                _, _, dxi, dx, r, *_ = governor_law(plant, z[:nh], z[nh:-1], z[-1], xi_ref, law, q_kind, saturate, lam, eps)
+            else:
+                _, _, dxi, dx, r = tracking_law(plant, z[:nh], z[nh:-1], xi_ref, law.gain, law.v_max, q_kind, saturate)
             # The comparison system of the a-posteriori bound: w' = -(lambda - eps) w + |sqrt(M) r|^2 / eps.
             dw = -(lam - eps) * z[-1] + float(np.sum((plant.L.T @ r) ** 2)) / eps
             return np.r_[dxi, dx, dw]
         return rhs
 
+    ts, zs, ref_idx, psi_end = [], [], [], []
+    for t0, t1, t_eval, i in segments:
+        sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
+        keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
+        ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
+        z = sol.y[:, -1]
+        psi_end.append(plant.at_xi(z[:nh])[4][:, 0])
+    t = np.concatenate(ts)
+    Z = np.concatenate(zs, axis=1)
+    idx = np.concatenate(ref_idx)
+    xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
+    v = np.empty((model.m_hat, t.size))
+    u = np.empty((model.m, t.size))
+    if law.kind == "governor":
+        scale, slack = np.empty(t.size), np.empty(t.size)
+        for k in range(t.size):
+            v[:, k], u[:, k], _, _, _, scale[k], slack[k] = governor_law(plant, xi[:, k], x[:, k], w[k], refs[idx[k]], law, q_kind, saturate, lam, eps)
+        out.update(scale=scale, slack=slack)
+    else:
+        for k in range(t.size):
+            v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], law.gain, law.v_max, q_kind, saturate)
+    y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
+    out.update(t=t, xi=xi, x=x, w=w, reference_index=idx, v=v, u=u, y=y, psi_end=psi_end, z_end=z)
+    return out
+
+
+def reach_time(t: np.ndarray, y: np.ndarray, level: np.ndarray, tolerance: float, t_start: float) -> float:
+    """The time after ``t_start`` from which |y - level| <= tolerance holds at every sample to the last; NaN if it
+    does not hold at the last sample.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+        Sample times of the level's dwell.
+    y : ndarray (p, N)
+        The plant's output there.
+    level : ndarray (p,)
+    tolerance : float
+    t_start : float
+        When the level was asked for.
+    """
+    inside = np.linalg.norm(np.asarray(y) - np.asarray(level, dtype=float).reshape(-1, 1), axis=0) <= tolerance
+    if not inside.size or not inside[-1]:
+        return float("nan")
+    out = np.flatnonzero(~inside)
+    return float((t[out[-1] + 1] if out.size else t[0]) - t_start)
+
+
+def reach_times(model: Model, plant: _Plant, up: dict[str, Artefact], law: Law, z0: np.ndarray, levels: list[np.ndarray],
+                refs: list[np.ndarray], tolerance: float, dwell: float, horizon_dwells: int = REACH_HORIZON_DWELLS,
+                loop=None) -> np.ndarray:
+    """The time to reach each level within ``tolerance`` when each is held until it is reached.
+
+    The levels are asked for in turn from z0; each is held in chunks of ``dwell`` until, at the end of a chunk,
+    |y - level| <= tolerance and psi has settled on the level (|psi - level| <= SETTLE_RTOL x output span), or psi
+    has stopped elsewhere (it moved less than that over the last chunk), at most ``horizon_dwells`` chunks; its
+    time is :func:`reach_time` over all its chunks (NaN if never reached).  With a
+    guaranteed controller, once psi sits on the level |y - level| <= |y - psi| stays within the tolerance, so the
+    time does not depend on how long the level is held after that.  Samples every REACH_SAMPLE_DWELLS dwell.
+
+    Returns
+    -------
+    ndarray (len(levels),)
+        Seconds from the switch to each level; NaN where it is not reached within the horizon.
+    """
+    span = float(np.ptp(model.Y, axis=1).max())
+    settle_tol = SETTLE_RTOL * span
+    dt = max(SAMPLE_DT, REACH_SAMPLE_DWELLS * dwell)
+    z = np.asarray(z0, dtype=float)
+    t = 0.0
+    times = []
+    for i, level in enumerate(levels):
+        t_start, ts, ys, psi_before = t, [], [], None
+        for _ in range(max(1, int(horizon_dwells))):
+            seg = [(t, t + dwell, sample_times(t, t + dwell, dt), i)]
+            res = closed_loop_run(model, plant, up, law, z, seg, refs, loop)
+            keep = slice(None) if not ts else slice(1, None)
+            ts.append(res["t"][keep]); ys.append(res["y"][:, keep])
+            z, t = res["z_end"], t + dwell
+            psi_now = np.asarray(res["psi_end"][-1], dtype=float)
+            at_level = np.linalg.norm(res["y"][:, -1] - level) <= tolerance
+            if at_level and float(np.abs(psi_now - level).max()) <= settle_tol:
+                break
+            if psi_before is not None and float(np.abs(psi_now - psi_before).max()) <= settle_tol:
+                break           # psi has stopped short of the level (e.g. a drift phi_bar the allowed v cannot hold against)
+            psi_before = psi_now
+        times.append(reach_time(np.concatenate(ts), np.concatenate(ys, axis=1), level, tolerance, t_start))
+    return np.array(times, dtype=float)
+
+
+def _deadline_report(entry, i: int, level: np.ndarray, seg: tuple[float, float], t: np.ndarray, psi: np.ndarray, y: np.ndarray,
+                     tolerance: float, settle_tol: float, mode: str, v_limit: str) -> tuple[bool, float, float, str]:
+    """Whether the guarantee covers the timed task ``entry`` (level i held within the tolerance from ``by`` for ``hold``).
+
+    The guarantee gives |y - level| <= |y - psi| + |psi - level| <= EPS + |psi - level|: it covers the task when psi
+    sits on the level (within settle_tol) over the whole window.
+
+    Returns
+    -------
+    met : bool
+    bound : float
+        EPS + max |psi - level| over the window: what the guarantee proves for |y - level| there.
+    observed : float
+        max |y - level| over the window (simulated).
+    why : str
+        How it was met, or why not.
+    """
+    t_on = seg[0]
+    window = (t >= t_on + entry.by - 1e-9) & (t <= t_on + entry.by + entry.hold + 1e-9)
+    lev = level.reshape(-1, 1)
+    psi_off = np.linalg.norm(psi - lev, axis=0)
+    y_off = np.linalg.norm(y - lev, axis=0)
+    bound = float(tolerance + psi_off[window].max())
+    observed = float(y_off[window].max())
+    if psi_off[window].max() <= settle_tol:
+        return True, bound, observed, (f"psi is on the level from {t_on + entry.by:g} s to {t_on + entry.by + entry.hold:g} s, so "
+                                       f"|y - level| <= {tolerance:g} + {psi_off[window].max():.2g} (observed {observed:.4g})")
+    mine = (t >= t_on - 1e-9) & (t <= seg[1] + 1e-9)
+    reached = reach_time(t[mine], psi[:, mine], level, settle_tol, t_on)
+    when = (f"psi reaches the level {reached:.4g} s after the switch, later than by = {entry.by:g} s"
+            if np.isfinite(reached) else f"psi does not reach the level in the {seg[1] - seg[0]:g} s it is held")
+    return False, bound, observed, (f"{when}: the deadline is too short for the v the {mode} mode allows ({v_limit}); "
+                                    f"the guarantee gives only |y - level| <= {bound:.4g} over the window (observed {observed:.4g})")
+
+
+def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The tracking scenario; returns (values, checks) with keys under ``tracking/``.
+
+    With ``abstract_controller.kind: guaranteed`` (docs/guaranteed.md) the run is the budget or the governor mode
+    of :func:`guaranteed_plan`, and the values also hold the tolerance proved, the time each level is reached
+    within it, the deadlines of timed levels and, for the governor, its speed-up over the budget mode.
+    """
+    tr = model.spec.simulate.tracking
+    ctl = tr.abstract_controller
+    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
+    xi0, x0, W0, levels, refs = tracking_start(model, plant, up)
     lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
     alpha_h = float(up["bound"].value("alpha_h"))
     M = np.asarray(up["stabilise"].value("M"))
-    e0 = plant.p_map(*xi0)[:, 0] - x0
-    W0 = float(e0 @ M @ e0)
-    z = np.r_[xi0, x0, W0]
-    segments = []   # (t0, t1, sample times, reference index), one per dwell
-    t0, k = 0.0, 0
-    while t0 < tr.t_final - 1e-12:
-        i = min(k, len(levels) - 1)
-        # Segment ends as multiples of the dwell (not sums, which drift by rounding).
-        t1 = tr.t_final if k >= len(levels) - 1 else min(tr.t_final, (k + 1) * tr.dwell)
-        segments.append((t0, t1, sample_times(t0, t1, SAMPLE_DT), i))
-        t0, k = t1, k + 1
-    try:
-        loop = compiled.tracking_loop(model, up) if TRACKING_TOL["method"] == "DOP853" else None
-    except compiled.Unsupported:
-        loop = None
-    if loop is not None:
-        res = loop.run(z, segments, refs, gain=ctl.gain, v_max=ctl.v_max, q_kind=q_kind, saturate=saturate,
-                       rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"])
-        t, xi, x, w, idx, v, u, y = res.t, res.xi, res.x, res.w, res.reference_index, res.v, res.u, res.y
-        settle = [float(np.abs(res.psi_end[j] - levels[i]).max()) for j, (*_, i) in enumerate(segments)]
+    w0_max = float(up["bound"].values.get("w0_max_certified", np.inf))
+    v_cert = float(up["bound"].values.get("v_max_certified", np.inf))
+    plan = None
+    if ctl.kind == "guaranteed":
+        plan = guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
+        law = plan.law(plan.mode, ctl.gain, model.m_hat, v_cert, lam, eps)
     else:
-        ts, zs, ref_idx, settle = [], [], [], []
-        for t0, t1, t_eval, i in segments:
-            sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
-            keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
-            ts.append(sol.t[keep]); zs.append(sol.y[:, keep]); ref_idx.append(np.full(sol.t[keep].size, i))
-            z = sol.y[:, -1]
-            settle.append(float(np.abs(plant.at_xi(z[:nh])[4][:, 0] - levels[i]).max()))
-        t = np.concatenate(ts)
-        Z = np.concatenate(zs, axis=1)
-        idx = np.concatenate(ref_idx)
-        xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
-        v = np.empty((model.m_hat, t.size))
-        u = np.empty((model.m, t.size))
-        for k in range(t.size):
-            v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], ctl.gain, ctl.v_max, q_kind, saturate)
-        y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
+        law = Law("setpoint", ctl.gain, ctl.v_max)
+    z = np.r_[xi0, x0, W0]
+    segments = tracking_segments(tr.t_final, tr.dwell, len(levels))
+    loop = tracking_loop_for(model, up, law)
+    res = closed_loop_run(model, plant, up, law, z, segments, refs, loop)
+    t, xi, x, w, idx, v, u, y = (res[k] for k in ("t", "xi", "x", "w", "reference_index", "v", "u", "y"))
+    settle = [float(np.abs(res["psi_end"][j] - levels[i]).max()) for j, (*_, i) in enumerate(segments)]
     xi_ref = np.stack([refs[i] for i in idx], axis=1)
     psi = plant.kappa(*xi)[:, 0, :]
     e = psi - y
@@ -290,14 +814,12 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
     U = model.U
     u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))
     xi_ok = bool(np.all(xi >= model.V[:, 0:1] - 1e-9) and np.all(xi <= model.V[:, 1:2] + 1e-9))
-    w0_max = float(up["bound"].values.get("w0_max_certified", np.inf))
-    v_cert = float(up["bound"].values.get("v_max_certified", np.inf))
     inside = bool(W0 <= w0_max and v_inf <= v_cert)
     region_note = ("the run is inside the certified region" if inside else
                    f"the run is outside the certified region (W0 = {W0:.4g} vs {w0_max:.4g}, ||v||_inf = {v_inf:.4g} vs {v_cert:.4g}): "
                    "the uniform bound is not certified for it, only compared")
     values = {
-        "tracking/inside_certified_region": inside, "tracking/compiled": loop is not None,
+        "tracking/inside_certified_region": inside, "tracking/compiled": res["compiled"],
         "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
         "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
         "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
@@ -319,6 +841,73 @@ def run_tracking(model: Model, plant: _Plant, up: dict[str, Artefact]) -> tuple[
         box = model.state_box
         excursion = float(max((box[:, 0:1] - x).max(), (x - box[:, 1:2]).max()))
         checks["tracking_x_in_state_box"] = Check(excursion, excursion <= 0, "largest excursion of x outside concrete.state_box (<= 0: the Jacobian LMI and L_h hold along the run)")
+    if plan is not None:
+        more_values, more_checks = _guaranteed_results(model, plant, up, tr, plan, z, res, levels, refs, psi, err, segments, settle)
+        values.update(more_values)
+        checks.update(more_checks)
+    return values, checks
+
+
+def _guaranteed_results(model: Model, plant: _Plant, up: dict[str, Artefact], tr, plan: GuaranteedPlan, z0: np.ndarray, res: dict,
+                        levels: list[np.ndarray], refs: list[np.ndarray], psi: np.ndarray, err: np.ndarray, segments,
+                        settle: list[float]) -> tuple[dict, dict]:
+    """The values and checks of a guaranteed controller's run (``tracking/guaranteed_*``, reach times, deadlines)."""
+    ctl = tr.abstract_controller
+    t, y, w, idx = res["t"], res["y"], res["w"], res["reference_index"]
+    span = float(np.ptp(model.Y, axis=1).max())
+    settle_tol = SETTLE_RTOL * span
+    eps_proved = plan.guaranteed_tolerance
+    w_level = eps_proved**2 * plan.alpha_h                     # |psi - y| <= sqrt(w / alpha_h) <= eps_proved while w stays below it
+    reached = np.full(len(levels), np.nan)
+    for t0, _, _, i in segments:
+        mine = idx == i
+        reached[i] = reach_time(t[mine], y[:, mine], levels[i], plan.tolerance, t0)
+    v_text = (f"|v| <= {plan.budget_v_max:.4g}" if plan.mode == "budget" else
+              f"v = s v_sp with w <= W_max = {plan.governor_level:.4g}")
+    values = {
+        "tracking/guaranteed_mode": plan.mode, "tracking/guaranteed_mode_requested": plan.requested,
+        "tracking/tolerance": float(plan.tolerance), "tracking/guaranteed_tolerance": float(eps_proved),
+        "tracking/guaranteed_w_level": float(w_level), "tracking/budget_v_max": float(plan.budget_v_max),
+        "tracking/budget_tolerance": float(plan.budget_tolerance), "tracking/governor_w_max": float(plan.governor_level),
+        "tracking/level_reached_within_tolerance_time": reached,
+    }
+    err_ok = bool(err.max() <= eps_proved)
+    checks = {
+        "tracking_error_within_tolerance": Check(float(err.max() - eps_proved), err_ok,
+                                                 f"max |psi - y| - {eps_proved:.6g} (<= 0: the tolerance the {plan.mode} mode proves, eq. TrackConst)"),
+    }
+    if plan.mode == "governor":
+        values["tracking/governor_scale"] = res["scale"]
+        values["tracking/governor_slack"] = res["slack"]
+        w_ok = bool(np.max(w) <= w_level)
+        checks["tracking_w_below_level"] = Check(float(np.max(w) - w_level), w_ok,
+                                                 f"max over the run of w(t) - {w_level:.6g} (<= 0: the governor keeps w <= W_max = {plan.governor_level:.6g}, "
+                                                 f"{GOVERNOR_MARGIN:g} below, so |psi - y| <= sqrt(w / alpha_h) <= {eps_proved:.6g})")
+        if plan.budget_refusal is None:
+            budget = plan.law("budget", ctl.gain, model.m_hat, np.inf, 0.0, 0.0)
+            budget_times = reach_times(model, plant, up, budget, z0, levels, refs, plan.tolerance, tr.dwell,
+                                       loop=tracking_loop_for(model, up, budget))
+            # Comparable only from the same start: level 0 from z0, level k from level k - 1 settled (the budget
+            # run holds each level until it has settled; the governor's run must have settled it in its dwell).
+            same_start = np.array([k == 0 or (k - 1 < len(settle) and settle[k - 1] <= settle_tol) for k in range(len(levels))])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                speedup = np.where((reached > 0) & same_start, budget_times / reached, np.nan)
+            values.update({"tracking/budget_reach_time": budget_times, "tracking/governor_reach_time": reached,
+                           "tracking/governor_speedup": speedup})
+    timed = [(i, entry) for i, entry in enumerate(tr.reference_levels) if isinstance(entry, TimedLevel)]
+    if timed:
+        rows = []
+        for i, entry in timed:
+            seg = tr.segment(i)
+            met, bound_i, observed, why = _deadline_report(entry, i, levels[i], seg, t, psi, y, eps_proved, settle_tol, plan.mode, v_text)
+            rows.append((i, met, bound_i, observed, why))
+            checks[f"tracking_deadline_{i}"] = Check(bound_i - eps_proved, met,
+                                                     f"reference_levels[{i}] (level {np.round(levels[i], 6).tolist()}, by {entry.by:g} s, hold {entry.hold:g} s): {why}")
+        values["tracking/deadline_levels"] = np.array([i for i, *_ in rows], dtype=np.int64)
+        values["tracking/deadline_met"] = np.array([m for _, m, *_ in rows], dtype=bool)
+        values["tracking/deadline_bound"] = np.array([b for _, _, b, *_ in rows], dtype=float)
+        values["tracking/deadline_observed"] = np.array([o for *_, o, _ in rows], dtype=float)
+        values["tracking/deadline_reasons"] = [why for *_, why in rows]
     return values, checks
 
 
@@ -479,6 +1068,15 @@ def summarise(art: Artefact) -> dict:
             out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
     if "tracking" in out:
         out["tracking"]["settle_errors"] = np.asarray(art.values["tracking/settle_errors"]).tolist()
+        v = art.values
+        if "tracking/guaranteed_mode" in v:        # a guaranteed controller (docs/guaranteed.md)
+            g = out["tracking"]
+            g["guaranteed_mode"] = str(v["tracking/guaranteed_mode"])
+            for key in ("tolerance", "guaranteed_tolerance", "budget_v_max", "governor_w_max"):
+                g[key] = float(v[f"tracking/{key}"])
+            for key in ("level_reached_within_tolerance_time", "budget_reach_time", "governor_speedup", "deadline_met"):
+                if f"tracking/{key}" in v:
+                    g[key] = np.asarray(v[f"tracking/{key}"]).tolist()
     return out
 
 
@@ -488,7 +1086,15 @@ def headline(art: Artefact) -> str:
     if "tracking/t" in art.values:
         v = art.values
         post = f" (a posteriori {v['tracking/posterior_bound_max']:.4g})" if "tracking/posterior_bound_max" in v else ""
-        parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}{post}")
+        if "tracking/guaranteed_mode" in v:
+            times = ", ".join(f"{x:.3g}" for x in np.asarray(v["tracking/level_reached_within_tolerance_time"]))
+            speed = np.asarray(v.get("tracking/governor_speedup", []), dtype=float)
+            speed = speed[np.isfinite(speed)]
+            faster = f"; {speed.min():.3g} to {speed.max():.3g} times the budget's speed" if speed.size else ""
+            parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/guaranteed_tolerance']:.5g} guaranteed "
+                         f"({v['tracking/guaranteed_mode']}; levels reached within it in [{times}] s{faster})")
+        else:
+            parts.append(f"tracking max|psi - y| = {v['tracking/max_abs_error']:.4g} <= {v['tracking/uniform_bound']:.5g}{post}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
     failed = failed_checks(art)
