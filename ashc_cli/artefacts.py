@@ -7,11 +7,17 @@ Layout of ``<out>/<stage>.h5``::
                              packages (JSON), created (UTC ISO 8601), ashc_version, meta (JSON: solver,
                              tolerances, integrator, ...)
     /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
-    /exprs/<name>     attrs shape; datasets srepr (exact, read back by a whitelist) and text (readable)
+    /exprs/<name>     attrs shape; datasets srepr (exact, read back by a whitelist) and text (readable); or, for a
+                      matrix kept as a Chebyshev series (:class:`~ashc_cli.chebyshev.Series`): attrs shape and
+                      variables (JSON names), datasets coeffs and box (the series, exact) and text (one line)
     /checks/<name>    attrs value (float), passed (bool), description (str), evidence (proved | sampled | simulated)
 
 A write goes to a temporary file in the same folder and is renamed over the target only once complete,
 so an interrupted run leaves the previous artefact intact.
+
+A series-backed matrix (``Artefact.set_series``) is stored as its coefficients, and its sympy formula is
+built only when a reader asks for it (``Artefact.exprs`` builds it on first access): on the 512-state
+ladder, printing and parsing p, dp/dxi and dp/dxi delta as formulas took longer than designing them.
 """
 
 from __future__ import annotations
@@ -31,13 +37,14 @@ import numpy as np
 import sympy as sp
 
 from . import __version__
+from .chebyshev import Series
 from .errors import ArtefactError
 from .expr import from_srepr
 
 __all__ = ["SCHEMA_VERSION", "Artefact", "Check", "write_artefact", "read_artefact", "file_sha256", "package_versions"]
 
 #: Bumped whenever the layout or the meaning of a stored value changes; older artefacts are stale.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic", "python-flint", "numba")
 _STR = h5py.string_dtype()
@@ -67,6 +74,72 @@ class Check:
     evidence: str = "sampled"
 
 
+class Exprs(dict):
+    """The expression matrices of an artefact: a dict whose series-backed entries are built when first read.
+
+    ``defer(name, build)`` registers a matrix by the function that builds it; reading it (``exprs[name]``,
+    ``get``, ``values()``, ``items()``) builds it once.  ``name in exprs``, ``len`` and iteration over the
+    names do not build anything.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._pending: dict = {}
+
+    def defer(self, name: str, build) -> None:
+        """Register ``name`` as built by ``build()`` on first access."""
+        dict.pop(self, name, None)
+        self._pending[name] = build
+
+    def __missing__(self, key):
+        if key in self._pending:
+            value = self._pending.pop(key)()
+            dict.__setitem__(self, key, value)
+            return value
+        raise KeyError(key)
+
+    def __setitem__(self, key, value):
+        self._pending.pop(key, None)
+        dict.__setitem__(self, key, value)
+
+    def __delitem__(self, key):
+        if self._pending.pop(key, None) is None:
+            dict.__delitem__(self, key)
+
+    def update(self, *args, **kwargs):
+        for key, value in dict(*args, **kwargs).items():
+            self[key] = value
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+    def pop(self, key, *default):
+        if key in self._pending:
+            self[key]
+        return dict.pop(self, key, *default)
+
+    def __contains__(self, key) -> bool:
+        return dict.__contains__(self, key) or key in self._pending
+
+    def __iter__(self):
+        yield from list(dict.keys(self)) + list(self._pending)
+
+    def __len__(self) -> int:
+        return dict.__len__(self) + len(self._pending)
+
+    def keys(self):
+        return list(self)
+
+    def values(self):
+        return [self[k] for k in self]
+
+    def items(self):
+        return [(k, self[k]) for k in self]
+
+    def __repr__(self) -> str:
+        return f"Exprs({sorted(self)})"
+
+
 @dataclass
 class Artefact:
     """What a stage produces: plain data, independent of how it is stored.
@@ -78,7 +151,10 @@ class Artefact:
     values : dict
         Numbers, strings and arrays; keys may contain '/' to group them.
     exprs : dict of str to sympy Matrix
-        Symbolic results (with parameters as symbols).
+        Symbolic results (with parameters as symbols); series-backed ones are built on first access.
+    series : dict of str to Series
+        The expressions kept numeric (``set_series``): their Chebyshev series, which the stages evaluate with
+        numpy; ``exprs[name]`` is the series' formula.
     checks : dict of str to Check
         The stage's self-checks.
     meta : dict
@@ -89,7 +165,10 @@ class Artefact:
 
     stage: str
     values: dict[str, Any] = field(default_factory=dict)
-    exprs: dict[str, sp.Matrix] = field(default_factory=dict)
+    exprs: dict[str, sp.Matrix] = field(default_factory=Exprs)
+    series: dict[str, Series] = field(default_factory=dict)
+    #: The variables of each series' formula (sympy Symbols), by name.
+    series_variables: dict[str, tuple] = field(default_factory=dict)
     checks: dict[str, Check] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
@@ -100,6 +179,15 @@ class Artefact:
             return self.exprs[name]
         except KeyError:
             raise ArtefactError(self.stage, f"artefact holds no expression '{name}'", f"one of {sorted(self.exprs)}") from None
+
+    def set_series(self, name: str, series: Series, variables) -> None:
+        """Store a matrix as a Chebyshev series in ``variables``; its formula (``exprs[name]``) is built when read."""
+        if not isinstance(self.exprs, Exprs):
+            self.exprs = Exprs(self.exprs)
+        variables = tuple(variables)
+        self.series[name] = series
+        self.series_variables[name] = variables
+        self.exprs.defer(name, lambda: series.to_sympy(list(variables)))
 
     def value(self, name: str):
         """A stored value by name (an :class:`ArtefactError` if it is not there)."""
@@ -172,8 +260,11 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
             for key, value in art.values.items():
                 _write_value(values, key, value)
             exprs = fh.create_group("exprs")
-            for name, matrix in art.exprs.items():
-                matrix = sp.Matrix(matrix)
+            for name in list(art.exprs):
+                if name in art.series:
+                    _write_series(exprs.create_group(name), art.series[name], art.series_variables[name])
+                    continue
+                matrix = sp.Matrix(art.exprs[name])
                 grp = exprs.create_group(name)
                 grp.attrs["shape"] = np.array(matrix.shape, dtype=np.int64)
                 grp.create_dataset("srepr", data=np.array([sp.srepr(e) for e in matrix], dtype=object), dtype=_STR)
@@ -192,6 +283,17 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
         raise
     art.provenance = {**provenance, "sha256": sha}
     return sha
+
+
+def _write_series(grp: h5py.Group, series: Series, variables) -> None:
+    """A series-backed matrix: its coefficients and box (exact), its variables, and one line of text."""
+    grp.attrs["shape"] = np.array(series.shape, dtype=np.int64)
+    grp.attrs["variables"] = json.dumps([str(v) for v in variables])
+    grp.create_dataset("coeffs", data=series.coeffs)
+    grp.create_dataset("box", data=series.box)
+    text = (f"Chebyshev series of degree {series.degree} per axis on {series.box.tolist()} in {', '.join(str(v) for v in variables)} "
+            f"(one per entry of the {series.shape[0]} x {series.shape[1]} matrix; the formula is rebuilt from these coefficients when read)")
+    grp.create_dataset("text", data=np.array([text], dtype=object), dtype=_STR)
 
 
 def _json_default(obj):
@@ -240,6 +342,11 @@ def read_artefact(path: str | Path) -> Artefact:
             fh["values"].visititems(lambda name, obj: _read_value(art.values, name, obj))
             for name, grp in fh["exprs"].items():
                 shape = tuple(int(s) for s in grp.attrs["shape"])
+                if "coeffs" in grp:
+                    # Variables are real symbols, as the model declares its states (model.state_symbol).
+                    variables = [sp.Symbol(v, real=True) for v in json.loads(grp.attrs["variables"])]
+                    art.set_series(name, Series(grp["coeffs"][()], grp["box"][()], shape), variables)
+                    continue
                 entries = [from_srepr(s.decode() if isinstance(s, bytes) else s, str(path)) for s in grp["srepr"][()]]
                 art.exprs[name] = sp.Matrix(shape[0], shape[1], entries) if entries else sp.zeros(*shape)
             for name, grp in fh["checks"].items():

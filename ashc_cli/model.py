@@ -91,11 +91,33 @@ def compile_flat(
     """Compile a flat list of expressions into one numpy function (one call evaluates them all).
 
     Cheaper per call than :func:`lambdify` (no broadcasting), for the right-hand sides of ODEs:
-    ``f(*scalars)`` returns a list of numbers, one per expression.
+    ``f(*scalars)`` returns a list of numbers, one per expression.  Common subexpressions are eliminated
+    first, except in long lists of small expressions (:func:`_worth_cse`).
     """
     subs = {k: sp.Float(v) for k, v in (values or {}).items()}
     flat = [sp.sympify(e).xreplace(subs) for e in exprs]
-    return sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=True)
+    return sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=_worth_cse(flat))
+
+
+#: Lists longer than this, of expressions of at most ``CSE_SMALL_NODES`` nodes each, are compiled without
+#: common-subexpression elimination.
+CSE_MIN_SKIP = 64
+CSE_SMALL_NODES = 32
+
+
+def _worth_cse(flat: Sequence[sp.Expr]) -> bool:
+    """Whether sympy's CSE is worth its cost: not on a long list of small expressions (a large plant's
+    equations or sparse Jacobian entries, which share few subtrees), where it took 3/4 of the compile time
+    (1.3 s of 1.6 s for the 512-state ladder's f, and most of the n^2 entries of its Jacobian)."""
+    if len(flat) <= CSE_MIN_SKIP:
+        return True
+    for e in flat:
+        if e.is_Atom:
+            continue
+        for k, _ in enumerate(sp.preorder_traversal(e)):
+            if k >= CSE_SMALL_NODES:
+                return True
+    return False
 
 
 def compile_terms(
@@ -249,6 +271,12 @@ class Model:
         if any(e.free_symbols & set(self.x) for e in jac) or any(sp.simplify(e) != 0 for e in self.h - jac * self.x):
             return None
         return np.array(jac.xreplace({k: sp.Float(v) for k, v in self.values.items()}), dtype=float)
+
+    @cached_property
+    def valued(self) -> dict[str, sp.Matrix]:
+        """f_bar, g, h, phi_bar and l with the parameter values put in, once (:meth:`substitute`): numbers for the
+        stages to differentiate and compile repeatedly (substituting took 1 s per compile at n = 512)."""
+        return {name: self.substitute(getattr(self, name)) for name in ("f_bar", "g", "h", "phi_bar", "l")}
 
     def numeric(self, exprs, args: Sequence[sp.Symbol]) -> Callable[..., np.ndarray]:
         """:func:`lambdify` with this model's parameter values."""

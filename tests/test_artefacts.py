@@ -75,3 +75,31 @@ def test_tampered_expression_is_not_executed(tmp_path):
     with pytest.raises(ArtefactError):
         read_artefact(path)
     assert not (tmp_path / "pwned").exists()
+
+
+def test_series_backed_exprs_are_stored_as_coefficients_and_built_when_read(tmp_path, monkeypatch):
+    from ashc_cli import chebyshev
+
+    xi = sp.Symbol("xi", real=True)
+    box = np.array([[0.0, 0.6]])
+    z = chebyshev.nodes(box, 12)
+    series = chebyshev.Series.column(chebyshev.fit(np.stack([np.exp(z[0]), 1 / (2 - z[0])]), box, z, 10), box)
+    art = sample()
+    art.set_series("q", series, [xi])
+    assert "q" in art.exprs and len(art.exprs) == 2 and sorted(art.exprs) == ["p", "q"]
+    path = tmp_path / "demo.h5"
+    write(path, art)
+    with h5py.File(path) as fh:       # the coefficients, exactly; no formula printed
+        assert "srepr" not in fh["exprs/q"] and np.array_equal(fh["exprs/q/coeffs"][()], series.coeffs)
+        assert fh["exprs/q/text"][0].decode().startswith("Chebyshev series of degree 10")
+
+    expected = series.to_sympy([xi])
+    built = []
+    to_sympy = chebyshev.Series.to_sympy
+    monkeypatch.setattr(chebyshev.Series, "to_sympy", lambda self, v: built.append(1) or to_sympy(self, v))
+    back = read_artefact(path)
+    assert np.array_equal(back.series["q"].coeffs, series.coeffs) and np.array_equal(back.series["q"].box, box)
+    assert back.exprs["p"] == sample().exprs["p"] and "q" in back.exprs and built == []    # not built until asked for
+    assert back.expr("q") == expected and built == [1]
+    assert back.exprs["q"].free_symbols == {xi} and back.exprs.get("q") is back.exprs["q"] and built == [1]
+    assert dict(back.exprs.items()).keys() == {"p", "q"}

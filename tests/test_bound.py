@@ -216,3 +216,32 @@ def test_saturating_feedback_is_local_and_the_region_excludes_the_counter_exampl
         bound_t = np.sqrt(w0_max * np.exp(-(lam - eps) * t) / alpha_h) + G * v_max
         worst = max(worst, float(np.max(np.abs(sol.y[0] - sol.y[1]) / bound_t)))
     assert worst <= 1.0
+
+
+def test_sqrt_M_times_is_L_transpose_times_w_at_every_point():
+    rng = np.random.default_rng(5)
+    w = rng.normal(size=(7, 2, 11))
+    for L in (np.linalg.cholesky(np.cov(rng.normal(size=(7, 20)))), np.diag(rng.uniform(1, 2, 7))):
+        assert np.allclose(bound.sqrt_M_times(L, w), np.einsum("ij,jkN->Nik", L.T, w), rtol=1e-14, atol=1e-14)
+
+
+def test_alpha_h_proved_entry_by_entry_for_a_diagonal_M_at_any_size(monkeypatch):
+    # A diagonal M and an output reading one state: M - alpha C^T C is diagonal, so its entries decide, with no
+    # n^3 Cholesky: proved above proofs.MAX_PROOF_STATES too (the 512-state ladder), refused when alpha is too big.
+    from ashc_cli import proofs
+    from ashc_cli.examples import ladder
+    from ashc_cli.model import build_model
+    from ashc_cli.spec import parse_spec_text
+
+    model = build_model(parse_spec_text(ladder(2)))
+    M = np.diag(np.linspace(0.5, 2.0, model.n))
+    alpha = bound.alpha_h_linear(M, model.C)
+    assert alpha == pytest.approx(M[-1, -1], rel=1e-12)
+    monkeypatch.setattr(proofs, "MAX_PROOF_STATES", 4)
+    a, L_h, how = bound.prove_alpha_h(model, M, alpha)
+    assert a == alpha * (1 - 1e-9) and L_h == 1.0 and how.startswith("M diagonal")
+    assert bound.prove_alpha_h(model, M, alpha * 1.001) is None
+    M[0, 1] = M[1, 0] = 0.1            # not diagonal: the Cholesky, skipped above MAX_PROOF_STATES
+    assert bound.prove_alpha_h(model, M, alpha) is None
+    monkeypatch.setattr(proofs, "MAX_PROOF_STATES", 64)
+    assert bound.prove_alpha_h(model, M, bound.alpha_h_linear(M, model.C))[2].endswith("arb Cholesky")

@@ -1,10 +1,13 @@
 """Tests of ashc example (the ladder family) and of the numeric fast paths against the symbolic ones."""
 
+import functools
+
 import numpy as np
 import pytest
+import sympy as sp
 
 from ashc_cli.artefacts import read_artefact
-from ashc_cli.examples import ladder
+from ashc_cli.examples import TOTALS, ladder, parameters
 from ashc_cli.model import NUMERIC_THRESHOLD, build_model
 from ashc_cli.spec import parse_spec_text
 
@@ -13,16 +16,59 @@ from .conftest import ashc
 
 @pytest.mark.parametrize("stages", [1, 3])
 def test_ladder_spec_is_the_documented_model(stages):
-    # f(x, u) = A(u) x + b with A(u) = H^-1 (J(u) - D), J skew: check the skew part and the damping.
+    # f(x, u) = A(u) x + b with A(u) = H^-1 (J(u) - D), J skew: check the skew part and the damping, with the
+    # per-cell values the line's totals / N.
     model = build_model(parse_spec_text(ladder(stages)))
     n = 4 * stages
     assert model.n == n and model.m == 1 and model.p == 1
-    H = np.diag([1e-2] * n)                                  # L = C = 1e-2
+    assert model.spec.parameters == {"E": 10.0, "L": 1e-2 / stages, "C": 1e-2 / stages, "r": 0.2 / stages, "G_c": 0.02 / stages}
+    H = np.diag([1e-2 / stages] * n)                         # L = C = 1e-2 / N
     for u in (0.0, 0.37, 1.0):
         A = np.array(model.substitute(model.f.jacobian(model.x).xreplace({model.u[0]: u})), dtype=float)
         HA = H @ A
-        assert np.allclose(HA + HA.T, -2 * np.diag([0.2 if j % 2 == 0 else 0.02 for j in range(n)]))
+        assert np.allclose(HA + HA.T, -2 * np.diag([0.2 / stages if j % 2 == 0 else 0.02 / stages for j in range(n)]))
     assert str(model.h[0]) == f"v{n}"
+    # The decay rate 2 min(r/L, G_c/C) = 4 does not depend on N; the spec asks for half of it.
+    assert model.spec.stabilisability.decay_rate == 2.0
+
+
+@functools.lru_cache(maxsize=None)
+def ladder_model(stages: int):
+    return build_model(parse_spec_text(ladder(stages)))
+
+
+def dc_output(stages: int, u: float) -> float:
+    """The equilibrium output v_4N at duty cycle u, from the spec's own expressions (not from examples.py's helper):
+    f(x, u) = A x + b read off row by row (each row couples at most three states)."""
+    model = ladder_model(stages)
+    f = model.valued["f_bar"] + model.valued["g"] * sp.Matrix([u])
+    column = {s: j for j, s in enumerate(model.x)}
+    A, b = np.zeros((model.n, model.n)), np.zeros(model.n)
+    for i, e in enumerate(f):
+        for sym in e.free_symbols:
+            A[i, column[sym]] = float(e.diff(sym))
+        b[i] = float(e.xreplace({sym: 0 for sym in e.free_symbols}))
+    return float(np.linalg.solve(A, -b)[-1])
+
+
+@pytest.mark.parametrize("stages", [1, 16, 128])
+def test_ladder_output_range_is_of_the_order_of_the_source_at_any_size(stages):
+    # The totals of the line are fixed, so the DC output at a duty cycle barely depends on N: about E / (1 - u)
+    # less the line's loss.  With per-cell losses fixed it decayed like exp(-2 N sqrt(r G_c)) (0.006 V at N = 64).
+    E = TOTALS["E"]
+    (lo, hi), = ladder_model(stages).spec.concrete.output_set
+    assert lo == pytest.approx(dc_output(stages, 0.05), abs=1e-6) and hi == pytest.approx(dc_output(stages, 0.55), abs=1e-6)
+    assert E <= lo < hi <= E / (1 - 0.55)
+    assert lo == pytest.approx(E / 0.95, rel=0.02) and hi == pytest.approx(E / 0.45, rel=0.05)
+    # Refining the line changes the output by less than 4 % from N = 1 on.
+    assert abs(dc_output(stages, 0.3) - dc_output(1, 0.3)) < 0.04 * dc_output(1, 0.3)
+
+
+def test_ladder_per_cell_values_are_the_totals_over_N():
+    for stages in (1, 2, 7, 128):
+        p = parameters(stages)
+        assert p["E"] == TOTALS["E"]
+        assert all(p[k] * stages == pytest.approx(TOTALS[k], rel=1e-15) for k in ("L", "C", "r", "G_c"))
 
 
 def test_numeric_and_symbolic_paths_agree_on_a_mid_size_ladder(tmp_path):
@@ -32,10 +78,16 @@ def test_numeric_and_symbolic_paths_agree_on_a_mid_size_ladder(tmp_path):
     ashc("example", "ladder", "--stages", "3", "--output", str(spec), check=True)
     ashc("design", str(spec), "--out", str(tmp_path / "sym"), "--symbolic", check=True)
     ashc("design", str(spec), "--out", str(tmp_path / "num"), "--numeric", check=True)
-    sym = {s: read_artefact(tmp_path / "sym" / f"{s}.h5") for s in ("manifold", "inverse", "bound")}
-    num = {s: read_artefact(tmp_path / "num" / f"{s}.h5") for s in ("manifold", "inverse", "bound")}
+    sym = {s: read_artefact(tmp_path / "sym" / f"{s}.h5") for s in ("manifold", "kappa", "inverse", "bound")}
+    num = {s: read_artefact(tmp_path / "num" / f"{s}.h5") for s in ("manifold", "kappa", "inverse", "bound")}
     assert sym["manifold"].meta["method"].startswith("closed form")
     assert num["manifold"].meta["method"].startswith("Newton continuation")
+    # The numeric path keeps p, dp/dxi, kappa and dp/dxi delta as Chebyshev series; the symbolic one as formulas.
+    assert set(num["manifold"].series) == {"p", "dp_dxi"} and set(num["kappa"].series) == {"kappa", "dkappa_dxi"}
+    assert set(num["bound"].series) == {"dp_delta"} and not sym["manifold"].series
+    # Their formulas (what simulate and eval read) are the series up to round-off, and checked as such.
+    assert num["manifold"].values["p_formula_deviation"] < 1e-12 and num["kappa"].values["kappa_formula_deviation"] < 1e-12
+    assert "the Chebyshev series and its formula" in num["manifold"].checks["pde_residual"].description
     assert np.allclose(sym["manifold"].values["p_grid"], num["manifold"].values["p_grid"], rtol=1e-8, atol=1e-9)
     for key in ("alpha_h_sampled", "dbar_q0_sampled", "dbar_q0_identity"):
         assert num["bound"].values[key] == pytest.approx(sym["bound"].values[key], rel=1e-7), key
@@ -44,3 +96,29 @@ def test_numeric_and_symbolic_paths_agree_on_a_mid_size_ladder(tmp_path):
     for key in ("dbar_q0", "gain"):
         assert num["bound"].values[key] == pytest.approx(sym["bound"].values[key], rel=3e-6), key
     assert num["inverse"].values["left_inverse_residual"] < 1e-9
+    # A meaningful design at this size: kappa(V) of the order of E = 10 V, covering Y.
+    (k_lo, k_hi), = num["kappa"].values["kappa_range"]
+    (y_lo, y_hi), = num["inverse"].values["Y"]
+    assert 5.0 < k_lo <= y_lo < y_hi <= k_hi < 30.0
+    # The series' formulas are proved the way the closed forms are (the PDE residual is an identity for the
+    # closed form only, and m is an interpolant on the numeric path, so conditions (i), (ii) stay sampled there).
+    for stage in ("kappa", "bound"):
+        for name, chk in sym[stage].checks.items():
+            assert num[stage].checks[name].evidence == chk.evidence == "proved", (stage, name)
+    assert num["manifold"].checks["l_in_U"].evidence == "proved"
+    assert all(num["inverse"].checks[name].evidence == "proved" for name in ("kappa_monotone", "V_covers_Y", "m_real_on_Y"))
+
+
+def test_scaled_reactances_leave_the_numeric_manifold_unchanged(tmp_path):
+    # The equilibria do not depend on L and C, which only scale the terms of f (by 1/L, 1/C): the fit must reach
+    # pde_tolerance at the same degree, its residual being judged against the size of those terms.  (Judged
+    # against 1, the fit of the 512-state ladder, whose terms reach 1e5, never met the tolerance.)
+    from ashc_cli.pipeline import run
+
+    text = ladder(3)
+    small = text.replace("L: 0.0033333333333333335", "L: 3.3333333333333335e-07").replace("C: 0.0033333333333333335", "C: 3.3333333333333335e-07")
+    assert small != text
+    arts = [run(parse_spec_text(t), tmp_path / name, ["manifold"], numeric=True)["manifold"] for t, name in ((text, "a"), (small, "b"))]
+    assert arts[0].meta["method"].split(" (")[0] == arts[1].meta["method"].split(" (")[0]
+    assert arts[1].values["residual_scale"] > 1e3 * arts[0].values["residual_scale"]
+    assert np.allclose(arts[0].values["p_grid"], arts[1].values["p_grid"], rtol=1e-9, atol=1e-9)

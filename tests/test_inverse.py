@@ -71,7 +71,7 @@ def run_inverse_with(*pairs):
 
 
 def test_V_not_covering_Y_is_refused():
-    with pytest.raises(DesignError, match=r"does not cover Y.*SimuLocalRequire"):
+    with pytest.raises(DesignError, match=r"does not cover Y.*\(eq\. \(10\)\)"):
         run_inverse_with(("domain: [[0, 0.95]]", "domain: [[0, 0.9]]"))
 
 
@@ -304,7 +304,7 @@ def test_explicit_m_that_fails_condition_ii_is_refused(tmp_path):
     spec.write_text(_with_m(PSEUDO_INVERSE_M))
     design = ashc("design", str(spec), "--out", str(tmp_path / "out"))
     assert design.returncode == 3
-    assert "error: abstract.m: the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches 2.92 on X_y" in design.stderr
+    assert "error: abstract.m: the given m fails condition (ii) of Theorem 6: |h(x - p(m(x)))| reaches 2.92 on X_y" in design.stderr
     check = ashc("check", str(spec), "--out", str(tmp_path / "out"))
     assert check.returncode == 3
     row = next(line for line in check.stdout.splitlines() if "condition (ii)" in line)
@@ -329,3 +329,20 @@ def test_explicit_nonlinear_m_the_papers_eq_egm(tmp_path):
     with pytest.raises(DesignError, match="not a left inverse of p on V"):
         # the other branch of the quadratic (eq. mEquation)
         _design_inverse(text.replace("+ sqrt(E**2", "- sqrt(E**2"), tmp_path / "other")
+
+
+def test_a_series_p_is_affine_exactly_when_its_formula_is():
+    from ashc_cli import chebyshev
+    from ashc_cli.artefacts import Artefact
+
+    xi = sp.Symbol("xi", real=True)
+    box = np.array([[0.0, 0.6]])
+    for tail, affine in ((0.0, True), (1e-3, False)):
+        coeffs = np.zeros((2, 7))
+        coeffs[:, :2] = [[2.0, 3.0], [-1.0, 0.5]]
+        coeffs[1, 2] = tail                      # a T_2 term makes p quadratic
+        man = Artefact(stage="manifold")
+        p = chebyshev.Series.column(coeffs, box)
+        man.set_series("dp_dxi", p.jacobian(), [xi])
+        assert p.horner and inverse.p_is_affine(man, None) is affine
+        assert (not man.expr("dp_dxi").free_symbols) is affine

@@ -37,7 +37,7 @@ def test_unfitted_pde_reports_its_best_residual():
     # The Cuk plant with phi_bar = -xi: the polynomial solver tries degrees 1..3 and says how far it got.
     text = CUK.read_text().replace('phi_bar: ["0"]', 'phi_bar: ["-xi"]').replace("delta: \"", "pde_max_degree: 3\n  delta: \"")
     model = build_model(parse_spec_text(text))
-    with pytest.raises(DesignError, match=r"no polynomial of degree <= 3 solves eq. SimuDesignCond1 on V to 1e-08: the best relative residual is \d"):
+    with pytest.raises(DesignError, match=r"no polynomial of degree <= 3 solves eq\. \(14a\) on V to 1e-08: the best relative residual is \d"):
         manifold.run(model, {})
 
 
@@ -91,3 +91,40 @@ abstract:
   delta: identity
   pde_tolerance: 1.0e-12
 """
+
+
+def test_sparse_newton_terms_match_the_dense_jacobians():
+    import numpy as np
+
+    from ashc_cli.examples import ladder
+    from ashc_cli.model import sparse_jacobian
+
+    model = build_model(parse_spec_text(ladder(2)))
+    terms = manifold.field_terms(model)
+    F = manifold._manifold_field(model)
+    rng = np.random.default_rng(3)
+    x, at = rng.normal(size=model.n), np.array([0.37])
+    value, Fx, Fxi = terms(x, at)
+    point = dict(zip(list(model.x) + list(model.xi), [*x, *at]))
+    dense = lambda m: np.array(model.substitute(m).xreplace(point), dtype=float)   # noqa: E731
+    assert np.allclose(value, dense(F).ravel(), rtol=1e-13)
+    assert np.allclose(Fx.toarray(), dense(sparse_jacobian(F, model.x)), rtol=1e-13)
+    assert np.allclose(Fxi, dense(sparse_jacobian(F, model.xi)), rtol=1e-13)
+    assert Fx.nnz < model.n**2 / 2      # only the couplings are stored
+
+
+def test_singular_jacobians_are_refused_by_the_condition_estimate():
+    import numpy as np
+    import scipy.sparse as sps
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    lu = manifold._factor(sps.csc_matrix(A))
+    assert lu is not None and np.allclose(A @ lu.solve(np.ones(6)), 1.0)
+    # Hager's estimate is a lower bound of ||A^-1||_1 and, on small matrices, usually equal to it.
+    true = np.linalg.norm(np.linalg.inv(A), 1)
+    assert true * 0.3 <= manifold._inverse_norm1(lu, 6) <= true * (1 + 1e-12)
+    B = A.copy()
+    B[:, 5] = B[:, 4] * (1 + 1e-15)                      # singular to working precision
+    assert manifold._factor(sps.csc_matrix(B)) is None
+    assert manifold._factor(sps.csc_matrix(np.diag([1.0, 0.0]))) is None   # exactly singular

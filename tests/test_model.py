@@ -40,3 +40,14 @@ def test_lambdify_broadcasts_and_marks_non_real():
     assert out.shape == (2, 2, 3)
     assert np.allclose(out[0, 1], 1.0)
     assert np.allclose(out[1, 0, :2], [1.0, 2.0]) and np.isnan(out[1, 0, 2])
+
+
+def test_cse_skipped_only_for_long_lists_of_small_expressions():
+    from ashc_cli.model import _worth_cse, compile_flat
+
+    x = sp.symbols("x0:100", real=True)
+    small = [x[i] - 2 * x[i + 1] for i in range(99)]
+    assert not _worth_cse(small) and _worth_cse(small[:10])
+    assert _worth_cse(small + [sp.Add(*[sp.sin(s) ** 2 for s in x[:20]])])
+    f = compile_flat(small, x)
+    assert np.allclose(f(*np.arange(100.0)), [i - 2 * (i + 1) for i in range(99)])

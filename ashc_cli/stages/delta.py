@@ -25,6 +25,8 @@ from ..errors import DesignError, NumericalError
 from ..grids import sample_states_with_output
 from ..model import Model, tidy
 from .inverse import sample_box
+from .bound import sqrt_M_times
+from .manifold import dp_function
 
 NAME = "delta"
 UPSTREAM = ("stabilise", "manifold", "inverse")
@@ -96,8 +98,8 @@ def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp
     M = np.asarray(stab.value("M"), dtype=float)
     L = np.linalg.cholesky(M)
     dp = man.expr("dp_dxi")
-    dp_grid = np.broadcast_to(model.numeric(dp, list(model.xi))(*grid), dp.shape + (grid.shape[1],))
-    J = np.einsum("ij,jkN->Nik", L.T, dp_grid)
+    dp_grid = np.broadcast_to(dp_function(man, model)(*grid), dp.shape + (grid.shape[1],))
+    J = sqrt_M_times(L, np.ascontiguousarray(dp_grid))
     c = float(np.linalg.svd(J, compute_uv=False).min())
     if not c > 0:
         raise DesignError("abstract.delta", "'flatten' needs dp/dxi of full column rank on V (p an immersion)", "a p whose derivative has full rank on V", check="rank_delta")

@@ -54,7 +54,8 @@ from ..artefacts import Artefact, Check
 from ..errors import ArtefactError, DesignError
 from .. import chebyshev
 from ..grids import domain_grid, sample_states_with_output
-from ..model import Model, tidy
+from ..model import Model, sparse_jacobian, tidy
+from .manifold import p_function
 
 NAME = "inverse"
 UPSTREAM = ("manifold", "kappa")
@@ -183,36 +184,49 @@ def x_y_samples(model: Model, p_grid: np.ndarray) -> np.ndarray:
     return sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
 
 
-def condition_ii_measure(model: Model, p: sp.Matrix, m: sp.Matrix, samples: np.ndarray) -> float:
-    """max |h(x) - h(p(m(x)))| / |Y| over the samples of X_y (inf without samples, NaN where m is not real)."""
+def condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray) -> float:
+    """max |h(x) - h(p(m(x)))| / |Y| over the samples of X_y (inf without samples, NaN where m is not real).
+
+    ``p_num`` is p for numpy (:func:`ashc_cli.stages.manifold.p_function`).
+    """
     if not samples.size:
         return np.inf
     h_num = model.numeric(model.h, list(model.x))
     m_val = np.broadcast_to(model.numeric(m, list(model.x))(*samples)[:, 0, :], (model.n_hat, samples.shape[1]))
-    x_proj = np.broadcast_to(model.numeric(p, list(model.xi))(*m_val)[:, 0, :], samples.shape)
+    x_proj = np.broadcast_to(p_num(*m_val)[:, 0, :], samples.shape)
     # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
     return float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
 
 
-def _checks_common(art: Artefact, model: Model, p: sp.Matrix, m: sp.Matrix, p_grid: np.ndarray,
+def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.ndarray,
                    failure: tuple[str, str] | None = None) -> None:
     """Conditions (i) and (ii) of Theorem mCondi, measured the same way on every path.
 
-    ``failure`` (what, expected) replaces the generic explanation when condition (ii) fails (the affine path
-    knows why: no left inverse of P satisfies C (I - P K) = 0).
+    ``p_num`` is p for numpy (:func:`ashc_cli.stages.manifold.p_function`).  ``failure`` (what, expected)
+    replaces the generic explanation when condition (ii) fails (the affine path knows why: no left inverse of
+    P satisfies C (I - P K) = 0).
     """
     m_num = model.numeric(m, list(model.x))
-    p_num = model.numeric(p, list(model.xi))
     m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
     p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
     cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
-    cond_ii = condition_ii_measure(model, p, m, x_y_samples(model, p_grid))
+    cond_ii = condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
     if not cond_ii <= CONDITION_II_RTOL:   # NaN (m not real at a sample) fails too
         what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
         raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
     art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
     art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+
+
+def p_is_affine(man: Artefact, model: Model) -> bool:
+    """Whether p is affine in xi: dp/dxi free of xi (for a series, of degree 0 in its chopped power basis, as
+    its formula reads)."""
+    if "dp_dxi" in man.series:
+        coeffs = man.series["dp_dxi"].coeffs
+        power = np.abs(chebyshev.power_coefficients(coeffs)).reshape(len(coeffs), -1)   # column 0: the constant term
+        return bool(np.all(power[:, 1:].max(axis=1, initial=0.0) <= chebyshev.CHOP_RTOL * power.max(axis=1)))
+    return not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi"))
 
 
 def affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[np.ndarray, np.ndarray]:
@@ -308,7 +322,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art = Artefact(stage=NAME, meta={"method": method, "construction": choice["construction"], "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL,
                                       "condition_ii_matrix_rtol": CONDITION_II_MATRIX_RTOL})
-    art.exprs.update({"m": m, "dm_dx": m.jacobian(model.x)})
+    art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
     symbolic_ii = bool(C is not None and np.abs(C @ (np.eye(model.n) - P @ K_m)).max() < 1e-12)
     art.values.update({
         "V": model.V, "Y": model.Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
@@ -321,7 +335,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     if least_norm:
         samples = x_y_samples(model, p_grid)
         pinv_m = sp.Matrix(np.linalg.pinv(P).tolist()) * (model.x - sp.Matrix(p0.tolist()))
-        art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p, pinv_m, samples)
+        art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p_function(man, model), pinv_m, samples)
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["V_covers_Y"] = Check(float(len(missing)), covers, "eq. SimuLocalRequire: vertices of Y not reached from V (0)")
     art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
@@ -339,7 +353,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
                    f"least-squares residual of K P = I, C P K = C: {choice['system_residual']:.3g})",
                    "an abstraction whose kappa = C P has full row rank (at least as many abstract states as independent outputs), "
                    "or C^T in the range of P: change abstract.states, phi_bar or l, or the outputs h")
-    _checks_common(art, model, p, m, p_grid, failure)
+    _checks_common(art, model, p_function(man, model), m, p_grid, failure)
     return art
 
 
@@ -420,7 +434,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     Checks as the scalar path: m(p(xi)) = xi on V; m finite on a grid of Y with kappa(m(y)) = y and m(y) in V
     there (so kappa(V) covers Y, eq. SimuLocalRequire); conditions (i) and (ii) of Theorem mCondi.
     """
-    p, kappa = man.expr("p"), kap.expr("kappa")
+    kappa = kap.expr("kappa")
     ys = [sp.Symbol(f"_y{k}", real=True) for k in range(model.p)]
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     h_num = model.numeric(model.h, list(model.x))
@@ -445,7 +459,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): kappa^-1(Y) leaves V by {excursion:.4g}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
     art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
-    art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": m.jacobian(model.x)})
+    art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": sparse_jacobian(m, model.x)})
     dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
     smin = float(np.linalg.svd(dkappa, compute_uv=False).min())
     # Without radicands m is real for every y (proved); with them, only checked on a grid of Y: no interval to
@@ -460,7 +474,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art.checks["V_covers_Y"] = Check(excursion, covers, "eq. SimuLocalRequire: largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
     _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
-    _checks_common(art, model, p, m, p_grid)
+    _checks_common(art, model, p_function(man, model), m, p_grid)
     return art
 
 
@@ -527,7 +541,7 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     # Condition (ii): h(p(m(x))) = h(x), symbolically when sympy can; sampled in _checks_common.
     composed = model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h
     symbolic_ii = proofs.symbolic_zero(list(composed))
-    cond_ii = condition_ii_measure(model, p, m, samples)
+    cond_ii = condition_ii_measure(model, p_function(man, model), m, samples)
     if not cond_ii <= CONDITION_II_RTOL:
         raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
                           "x - p(m(x)) in Ker(h) for x in X_y (Corollary mRelateGeo): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
@@ -559,7 +573,7 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
     art = Artefact(stage=NAME, meta={"method": "explicit m from the spec (abstract.m), checked", "construction": EXPLICIT, "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
-    art.exprs.update({"m": m, "dm_dx": m.jacobian(model.x)})
+    art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
     art.values.update({
         "V": V, "Y": Y, "kappa_range": k_range,
         # A polynomial m is real everywhere; otherwise it is only checked real and finite on samples (NaN ends).
@@ -583,7 +597,7 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
                  "so m(x) lies in V (where the abstraction is certified) exactly when h(x) lies in kappa(V)")
     else:
         _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
-    _checks_common(art, model, p, m, p_grid)
+    _checks_common(art, model, p_function(man, model), m, p_grid)
     if proved_left:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
         _relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
     if proved_ii:
@@ -608,10 +622,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         a left inverse of p on V or fails condition (ii).
     """
     man, kap = upstream["manifold"], upstream["kappa"]
-    p, kappa = man.expr("p"), kap.expr("kappa")
+    kappa = kap.expr("kappa")
     if model.m_given is not None:
         return run_explicit(model, man, kap)
-    if not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi")):
+    if p_is_affine(man, model):
         return run_linear(model, man, kap)
     if model.n_hat != model.p:
         raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
@@ -669,7 +683,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method, "construction": KAPPA_INVERSE,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
-    art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": m.jacobian(model.x)})
+    art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": sparse_jacobian(m, model.x)})
     if method.startswith("Chebyshev"):
         # The interpolant is a polynomial, real for every y, but it stands for kappa^-1 only on kappa(V), the
         # interval it was fitted on; beyond it, it extrapolates (and kappa^-1 need not exist).
@@ -693,7 +707,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
     _certify(art, model, *certified)
-    _checks_common(art, model, p, m, p_grid)
+    _checks_common(art, model, p_function(man, model), m, p_grid)
     proof = prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii)
     art.meta["proof"] = proof["how"]
     _mark_proved(art, proof)

@@ -4,7 +4,11 @@
 
 With phi_bar = 0 (Remark solvePDE) the PDE is the algebraic equation f(p(xi), l(xi)) = 0: p(xi) is the
 equilibrium of the concrete system under the constant input l(xi).  It is solved symbolically with the
-parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.
+parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.  Without a closed form (or above
+``model.NUMERIC_THRESHOLD`` states) the equilibria are found by Newton continuation on Chebyshev nodes (sparse
+Jacobians, sparse LU) and fitted by a Chebyshev series, which the artefact keeps numeric
+(:class:`~ashc_cli.chebyshev.Series`: the later stages evaluate it with numpy; its formula, Horner's scheme,
+is built only for the readers that need one, and the residual check covers both).
 
 With phi_bar != 0 on a linear plant (f_bar(x) = A x + a, g = B constant) and affine phi_bar(xi) = S xi + s,
 l(xi) = Q xi + q0, p(xi) = P xi + p0 where P solves the Sylvester equation A P + B Q = P S (Girard & Pappas
@@ -21,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 import scipy.optimize as sopt
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
 import sympy as sp
 
 from .. import chebyshev
@@ -120,8 +126,11 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
 
 
-def _manifold_field(model: Model) -> sp.Matrix:
-    """F(x, xi) = f_bar(x) + g(x) l(xi): the right side of eq. SimuDesignCond1 before x = p(xi)."""
+def _manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
+    """F(x, xi) = f_bar(x) + g(x) l(xi): the right side of eq. SimuDesignCond1 before x = p(xi) (with the
+    parameter values put in if ``valued``, for numbers)."""
+    if valued:
+        return model.valued["f_bar"] + model.valued["g"] * model.valued["l"]
     return model.f_bar + model.g * model.l
 
 
@@ -132,12 +141,34 @@ def _residual_function(model: Model, jacobian: bool = False):
     return (model.numeric(F, args), model.numeric(sparse_jacobian(F, model.x), args)) if jacobian else model.numeric(F, args)
 
 
-def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, F, phi: np.ndarray) -> float:
-    """max |dp/dxi phi_bar - F(p, xi)| on z (phi = phi_bar on z), relative to max(1, |dp/dxi phi_bar|, |F|)."""
+class _Plant:
+    """f_bar(x), g(x) and l(xi) compiled once for numpy (broadcasting), for the residuals of fits and of p."""
+
+    def __init__(self, model: Model):
+        x, xi = list(model.x), list(model.xi)
+        self.fbar = model.numeric(model.valued["f_bar"], x)
+        self.g = model.numeric(model.valued["g"], x)
+        self.l = model.numeric(model.valued["l"], xi)
+
+    def sides(self, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """f_bar(P) and g(P) l(z) at the points P (n, N) and z (n_hat, N), each (n, N)."""
+        return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), self.l(*z)[:, 0, :])
+
+
+def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, plant: _Plant, phi: np.ndarray) -> float:
+    """max |dp/dxi phi_bar - f_bar(p) - g(p) l| on z (phi = phi_bar on z), relative to the size of its terms,
+    max(1, |dp/dxi phi_bar|, |f_bar(p)|, |g(p) l|, |f_bar(p) + g(p) l|).
+
+    The terms, not their sum: with phi_bar = 0 the sum is the residual itself, and a plant whose terms are
+    large (the ladder's v / L, 1e5 at n = 512) could never meet an absolute tolerance.  ``run`` judges the
+    stored p against the same scale.
+    """
     P = chebyshev.evaluate(coeffs, box, z)
     lhs = sum(chebyshev.evaluate(chebyshev.derivative(coeffs, box, k), box, z) * phi[k] for k in range(model.n_hat))
-    rhs = F(*P, *z)[:, 0, :]
-    return float(np.abs(lhs - rhs).max() / max(1.0, np.abs(lhs).max(), np.abs(rhs).max()))
+    fbar, gl = plant.sides(P, z)
+    rhs = fbar + gl
+    scale = max(1.0, np.abs(lhs).max(), np.abs(rhs).max(), np.abs(fbar).max(), np.abs(gl).max())
+    return float(np.abs(lhs - rhs).max() / scale)
 
 
 def _check_grid(box: np.ndarray) -> np.ndarray:
@@ -163,7 +194,7 @@ def stalled(history: list[float]) -> bool:
     return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
 
 
-def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
+def solve_collocation(model: Model, plant: _Plant | None = None) -> tuple[sp.Matrix, int, float]:
     """Tensor Chebyshev collocation for eq. SimuDesignCond1 (phi_bar != 0), any number of abstract states.
 
     The coefficients minimise the PDE residual at 2 (degree + 1) Chebyshev nodes per axis (Gauss-Newton with
@@ -189,6 +220,7 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box, n, nh = model.V, model.n, model.n_hat
     F, F_x = _residual_function(model, jacobian=True)
+    plant = plant or _Plant(model)
     phi_num = model.numeric(model.phi_bar, list(model.xi))
     check = _check_grid(box)
     phi_check = phi_num(*check)[:, 0, :]
@@ -218,7 +250,7 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
 
         fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
         coeffs = fit.x.reshape(grown.shape)
-        best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
+        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
         history.append(best)
         if best <= tol:
             return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
@@ -228,8 +260,82 @@ def solve_collocation(model: Model) -> tuple[sp.Matrix, int, float]:
 
 #: Newton's method at a node has converged when |F(x, xi)| is below this, relative to max(1, |f_bar|, |g l|).
 NEWTON_RTOL = 1e-13
-#: The Jacobian dF/dx must have a reciprocal condition number above this (an isolated equilibrium).
+#: The Jacobian dF/dx must have a reciprocal condition number above this (an isolated equilibrium), estimated in
+#: the 1-norm from the sparse LU factors Newton's step uses anyway (an SVD per step cost 0.2 s at n = 512).
 SINGULAR_RCOND = 1e-12
+
+
+def field_terms(model: Model):
+    """F(x, xi) = f_bar(x) + g(x) l(xi), dF/dx and dF/dxi at one point, from one compiled function.
+
+    Only the non-zero entries of the Jacobians are compiled (with their positions): a plant's states are
+    coupled sparsely, and compiling all n^2 entries of the ladder's dF/dx took most of this stage at n = 256.
+
+    Returns
+    -------
+    callable
+        ``terms(x, xi)`` -> (F (n,), dF/dx (n x n, scipy.sparse CSC), dF/dxi (n, n_hat) dense).
+    """
+    n, nh = model.n, model.n_hat
+    F = _manifold_field(model, valued=True)
+    column = {s: j for j, s in enumerate(model.x)}
+    column.update({s: n + k for k, s in enumerate(model.xi)})
+    where, entries = [], []
+    for i, e in enumerate(F):
+        for sym in sorted(e.free_symbols & set(column), key=column.get):
+            d = e.diff(sym)
+            if d != 0:
+                where.append((i, column[sym]))
+                entries.append(d)
+    positions = np.array(where, dtype=int).reshape(-1, 2)
+    in_x = positions[:, 1] < n
+    # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
+    flat = compile_flat(list(F) + entries, list(model.x) + list(model.xi), model.values)
+
+    def terms(x: np.ndarray, at: np.ndarray):
+        values = np.array(flat(*x, *at), dtype=float)
+        jac = values[n:]
+        Fx = sps.csc_matrix((jac[in_x], (positions[in_x, 0], positions[in_x, 1])), shape=(n, n))
+        Fxi = np.zeros((n, nh))
+        Fxi[positions[~in_x, 0], positions[~in_x, 1] - n] = jac[~in_x]
+        return values[:n], Fx, Fxi
+
+    return terms
+
+
+def _factor(Fx):
+    """The sparse LU factors of dF/dx (scipy.sparse.linalg.splu), or None where it is singular to working
+    precision: its reciprocal condition number in the 1-norm, estimated as LAPACK's gecon does (Hager's
+    method, :func:`_inverse_norm1`), below ``SINGULAR_RCOND``."""
+    try:
+        lu = spla.splu(sps.csc_matrix(Fx))
+    except RuntimeError:   # exactly singular
+        return None
+    norm = float(abs(Fx).sum(axis=0).max())
+    inverse_norm = _inverse_norm1(lu, Fx.shape[0])
+    return lu if np.isfinite(inverse_norm) and norm * inverse_norm * SINGULAR_RCOND < 1 else None
+
+
+def _inverse_norm1(lu, n: int, steps: int = 5) -> float:
+    """A lower estimate of ||A^-1||_1 from the LU factors of A (Hager 1984, Higham's LAPACK xLACON, deterministic):
+    a few solves with A and A^T instead of the inverse."""
+    x = np.full(n, 1.0 / n)
+    estimate = 0.0
+    for _ in range(steps):
+        y = lu.solve(x)
+        value = float(np.abs(y).sum())
+        if not np.isfinite(value):
+            return np.inf
+        if value <= estimate:
+            break
+        estimate = value
+        z = lu.solve(np.where(y >= 0, 1.0, -1.0), trans="T")
+        j = int(np.argmax(np.abs(z)))
+        if abs(z[j]) <= z @ x:
+            break
+        x = np.zeros(n)
+        x[j] = 1.0
+    return estimate
 
 
 def continuation(model: Model, z: np.ndarray) -> np.ndarray:
@@ -250,15 +356,7 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
     """
     n, N = model.n, z.shape[1]
-    F_sym = _manifold_field(model)
-    args = list(model.x) + list(model.xi)
-    # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
-    flat = compile_flat(list(F_sym) + list(sparse_jacobian(F_sym, model.x)) + list(sparse_jacobian(F_sym, model.xi)), args, model.values)
-
-    def terms(x: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        values = np.array(flat(*x, *at), dtype=float)
-        return values[:n], values[n:n + n * n].reshape(n, n), values[n + n * n:].reshape(n, model.n_hat)
-
+    terms = field_terms(model)
     centre = model.V.mean(axis=1)
     first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
 
@@ -266,15 +364,18 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         x = guess.astype(float).copy()
         for _ in range(50):
             value, Fx, _ = terms(x, at)
-            if not (np.all(np.isfinite(Fx)) and np.all(np.isfinite(value))) or np.linalg.cond(Fx) * SINGULAR_RCOND > 1:
+            if not (np.all(np.isfinite(Fx.data)) and np.all(np.isfinite(value))):
+                return None
+            lu = _factor(Fx)
+            if lu is None:
                 return None
             # |F| is judged against the size of its terms, |dF/dx| |x|: round-off, not 1, is the floor.
-            scale = max(1.0, float(np.abs(Fx).max() * np.abs(x).max()))
+            scale = max(1.0, float(abs(Fx).max() * np.abs(x).max()))
             if np.abs(value).max() <= NEWTON_RTOL * scale:
                 return x
-            x = x + np.linalg.solve(Fx, -value)
+            x = x + lu.solve(-value)
         value, Fx, _ = terms(x, at)
-        return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(np.abs(Fx).max() * np.abs(x).max())) else None
+        return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(abs(Fx).max() * np.abs(x).max())) else None
 
     starts = []
     if model.spec.abstract.manifold_guess is not None:
@@ -296,8 +397,8 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         k = int(np.argmin(np.where(solved, np.inf, distance)))
         j = nearest[k]
         _, Fx, Fxi = terms(X[:, j], z[:, j])
-        tangent = -np.linalg.solve(Fx, Fxi)
-        x = newton(X[:, j] + tangent @ (z[:, k] - z[:, j]), z[:, k])
+        lu = _factor(Fx)
+        x = None if lu is None else newton(X[:, j] - lu.solve(Fxi) @ (z[:, k] - z[:, j]), z[:, k])
         if x is None:
             raise DesignError("abstract.domain", f"the equilibrium branch is lost at xi = {np.round(z[:, k], 6).tolist()} (dF/dx singular or Newton diverges): p is not defined on all of V",
                               "a smaller domain V, on which f_bar(x) + g(x) l(xi) = 0 has an isolated solution", check="pde_residual")
@@ -308,21 +409,23 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
     return X
 
 
-def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
+def solve_numeric_equilibria(model: Model, plant: _Plant | None = None) -> tuple[chebyshev.Series, int, float]:
     """p for phi_bar = 0 without a closed form: Newton continuation on Chebyshev nodes, then a Chebyshev fit.
 
     The equilibria are found at Chebyshev nodes (31 first, twice as many whenever the degree outgrows
     them); the fitted degree is raised until the relative residual of f(p(xi), l(xi)) = 0 on an independent
-    grid is below ``pde_tolerance``, or the fit stops improving (:func:`stalled`), or the safety cap
-    ``pde_max_degree`` is reached.
+    grid (:func:`_relative_residual`) is below ``pde_tolerance``, or the fit stops improving
+    (:func:`stalled`), or the safety cap ``pde_max_degree`` is reached.
 
     Returns
     -------
-    p, degree, residual : as :func:`solve_collocation`
+    p : Series
+        The fitted series (n x 1), kept numeric.
+    degree, residual : as :func:`solve_collocation`
     """
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box = model.V
-    F = _residual_function(model)
+    plant = plant or _Plant(model)
     check = _check_grid(box)
     phi_check = np.zeros((model.n_hat, check.shape[1]))   # phi_bar = 0 here
     best, history = np.inf, []
@@ -338,10 +441,10 @@ def solve_numeric_equilibria(model: Model) -> tuple[sp.Matrix, int, float]:
             z = chebyshev.nodes(box, nodes_degree + 1)
             X = continuation(model, z)
         coeffs = chebyshev.fit(X, box, z, degree)
-        best = min(best, _relative_residual(model, coeffs, box, check, F, phi_check))
+        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
         history.append(best)
         if best <= tol:
-            return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
+            return chebyshev.Series.column(coeffs, box), degree, best
         if stalled(history):
             raise DesignError("abstract.domain", f"the Chebyshev fit of the numeric equilibrium manifold stopped improving at degree {degree} "
                               f"(relative residual {best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial",
@@ -452,6 +555,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     # A closed form must solve the PDE to round-off; a fitted p to the spec's pde_tolerance.
     tolerance, fitted_tolerance = RESIDUAL_RTOL, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
+    plant = _Plant(model)
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
         p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
         if not (model.use_numeric and model.V is not None):
@@ -464,7 +568,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                 closed_form_failure = exc.what
         if p is None:
             try:
-                p, degree, fit_residual = solve_numeric_equilibria(model)
+                p, degree, fit_residual = solve_numeric_equilibria(model, plant)
             except DesignError as numeric_failure:
                 raise DesignError(numeric_failure.where, f"{closed_form_failure}; numerically: {numeric_failure.what}", numeric_failure.expected,
                                   check=numeric_failure.check) from None
@@ -477,24 +581,38 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             if model.V is None:
                 raise DesignError("abstract.domain", "'auto' needs a p defined independently of V (phi_bar = 0 with a closed form, or a linear plant)",
                                   "a box [[lo, hi], ...] per abstract state for the PDE solver")
-            p, degree, fit_residual = solve_collocation(model)
+            p, degree, fit_residual = solve_collocation(model, plant)
             tolerance = fitted_tolerance
             method = f"Chebyshev collocation, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
+    series = None
+    if isinstance(p, chebyshev.Series):
+        if p.horner:
+            series = p
+        else:   # a low degree: the expanded, chopped polynomial (an exact solution reads as one) is p
+            p = p.to_sympy(list(model.xi))
     V = model.V if model.V is not None else auto_domain(model, p)
-    dp = p.jacobian(model.xi)
 
     grid = domain_grid(V, GRID_POINTS)
     xi_args = list(model.xi)
-    p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                       # (n, N)
-    dp_grid = model.numeric(dp, xi_args)(*grid)                              # (n, n_hat, N)
     phi_grid = model.numeric(model.phi_bar, xi_args)(*grid)[:, 0, :]         # (n_hat, N)
     l_grid = model.numeric(model.l, xi_args)(*grid)[:, 0, :]                 # (m, N)
-    fbar = model.numeric(model.f_bar, list(model.x))(*p_grid)[:, 0, :]
-    g = model.numeric(model.g, list(model.x))(*p_grid)                       # (n, m, N)
-    rhs = fbar + np.einsum("ijk,jk->ik", g, l_grid)
-    lhs = np.einsum("ijk,jk->ik", dp_grid, phi_grid)
-    residual = float(np.abs(lhs - rhs).max())
-    scale = float(max(1.0, np.abs(fbar).max(), np.abs(np.einsum("ijk,jk->ik", g, l_grid)).max()))
+    if series is not None:
+        # Kept numeric (Chebyshev series, evaluated by numpy): no sympy Jacobian or compiled formula of p.
+        dp_series = series.jacobian()
+        p_grid, dp_grid = series.at(grid)[:, 0, :], dp_series.at(grid)      # (n, N), (n, n_hat, N)
+    else:
+        dp = p.jacobian(model.xi)
+        p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                   # (n, N)
+        dp_grid = model.numeric(dp, xi_args)(*grid)                          # (n, n_hat, N)
+    residual, scale = _grid_residual(plant, p_grid, dp_grid, phi_grid, l_grid)
+    deviation = 0.0
+    if series is not None:
+        # Readers of the artefact get p's formula (Horner on power coefficients), which differs from the series
+        # by the round-off of that conversion: it must solve the PDE too, and the check covers both.
+        p_formula = series.formula_at(grid)[:, 0, :]
+        deviation = float(np.abs(p_formula - p_grid).max())
+        formula_residual, formula_scale = _grid_residual(plant, p_formula, dp_series.formula_at(grid), phi_grid, l_grid)
+        residual, scale = max(residual, formula_residual), max(scale, formula_scale)
     if not np.isfinite(residual) or residual > tolerance * scale:
         raise NumericalError(NAME, f"residual of eq. SimuDesignCond1 on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
 
@@ -508,19 +626,44 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
                                       "grid_points": int(grid.shape[1]), "residual_rtol": tolerance,
                                       "domain": "auto" if model.V is None else "spec"})
-    art.exprs.update({"p": p, "dp_dxi": dp})
+    if series is not None:
+        art.set_series("p", series, model.xi)
+        art.set_series("dp_dxi", dp_series, model.xi)
+        art.values["p_formula_deviation"] = deviation
+    else:
+        art.exprs.update({"p": p, "dp_dxi": dp})
     art.values.update({"V": V, "xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
                        "l_range": np.c_[l_lo, l_hi]})
     if method.startswith("closed form") and proofs.symbolic_zero(list(pde_residual_expr(model, p))):
         art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. SimuDesignCond1 exactly", proofs.PROVED)
     else:
-        art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1)")
+        which = " (the Chebyshev series and its formula; they differ by {:.2g})".format(deviation) if series is not None else ""
+        art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1){which}")
     excursion, l_proved = prove_l_in_U(model, V)
     if l_proved:
         art.checks["l_in_U"] = Check(excursion, True, "largest excursion of the ball-arithmetic enclosure of l(V) outside U (<= 0: l maps V into U)", proofs.PROVED)
     else:
         art.checks["l_in_U"] = Check(float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]])), l_inside, f"largest excursion of l(V) outside U on a {grid.shape[1]}-point grid (<= 0: l maps V into U)")
     return art
+
+
+def _grid_residual(plant: _Plant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
+    """max |dp/dxi phi_bar - f_bar(p) - g(p) l| over a grid, and the size of its terms max(1, |f_bar(p)|, |g(p) l|)."""
+    fbar = plant.fbar(*p_grid)[:, 0, :]
+    gl = np.einsum("ijk,jk->ik", plant.g(*p_grid), l_grid)
+    residual = float(np.abs(np.einsum("ijk,jk->ik", dp_grid, phi_grid) - (fbar + gl)).max())
+    return residual, float(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
+
+
+def p_function(man: Artefact, model: Model):
+    """p(xi) for numpy, like :func:`ashc_cli.model.lambdify` (one array per abstract state, values (n, 1, ...)):
+    the stored series when p was kept numeric, else p's formula compiled."""
+    return man.series["p"] if "p" in man.series else model.numeric(man.expr("p"), list(model.xi))
+
+
+def dp_function(man: Artefact, model: Model):
+    """dp/dxi(xi) for numpy (values (n, n_hat, ...)), as :func:`p_function`."""
+    return man.series["dp_dxi"] if "dp_dxi" in man.series else model.numeric(man.expr("dp_dxi"), list(model.xi))
 
 
 def pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
