@@ -346,3 +346,16 @@ def test_a_series_p_is_affine_exactly_when_its_formula_is():
         man.set_series("dp_dxi", p.jacobian(), [xi])
         assert p.horner and inverse.p_is_affine(man, None) is affine
         assert (not man.expr("dp_dxi").free_symbols) is affine
+
+
+def test_output_set_beyond_m_says_what_kappa_reaches(tmp_path):
+    """Issue 14: the message says what kappa(V) reaches and what to change, with no Python values in it."""
+    from .conftest import CUK, ashc, edited
+
+    spec = edited(CUK, tmp_path, ("output_set: [[-120, 0]]", "output_set: [[-200, 0]]"))
+    proc = ashc("design", str(spec), "--out", str(tmp_path / "o"))
+    assert proc.returncode == 3
+    line = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")][0]
+    assert "kappa(V) = [-126.188, 0]" in line and "m is real only for y in [-126.915, 126.915]" in line
+    assert "expected an output_set inside [-126.188, 0]" in line
+    assert not any(token in line for token in ("True", "False", "[[", "np."))

@@ -667,8 +667,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     m_on_Y = model.numeric([m_of_y], [y])(np.linspace(Y[0, 0], Y[0, 1], 20001))[0, 0]
     finite_on_Y = bool(np.all(np.isfinite(m_on_Y)))
     if not (real_covers_Y and finite_on_Y):
-        raise DesignError("concrete.output_set", f"m is real only for outputs in [{real_lo:.6g}, {real_hi:.6g}] and finite on Y: {finite_on_Y}",
-                          f"Y = {Y.tolist()} inside the region where m is real and finite", check="m_real_on_Y")
+        k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
+        reach = f"kappa(V) = {format_box(np.array([[k_lo, k_hi]]))} on V = {format_box(model.V)}"
+        if not real_covers_Y:
+            what = (f"Y = {format_box(Y)} reaches outputs where m is not real (m is real only for y in "
+                    f"{format_box(np.array([[real_lo, real_hi]]))}); {reach}")
+        else:
+            bad = np.linspace(Y[0, 0], Y[0, 1], 20001)[~np.isfinite(m_on_Y)]
+            what = f"m is not finite at y = {bad[0]:.6g} in Y = {format_box(Y)}; {reach}"
+        raise DesignError("concrete.output_set", what,
+                          f"an output_set inside {format_box(np.array([[max(real_lo, k_lo), min(real_hi, k_hi)]]))} "
+                          "(where m is real and kappa reaches), or a larger domain V if kappa(V) is the limit", check="m_real_on_Y")
 
     # eq. SimuLocalRequire: kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
     k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
