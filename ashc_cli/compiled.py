@@ -141,10 +141,12 @@ _KERNEL_SIGNATURES = {"eval_xi": "types.void(F1, F1, F2, F1, F2, F1, F1)", "eval
                       "eval_link": "types.void(F1, F1, F2, F1)", "eval_u": "types.void(F1, F1)"}
 
 
-def _emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: Sequence[tuple[str, sp.MatrixBase, bool]], values) -> str:
+def _emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: Sequence[tuple[str, sp.MatrixBase, bool]], values,
+                 signature: str | None = None) -> str:
     """The numba function ``name(state, *outputs)`` filling its output arrays from the matrices.
 
     ``outputs``: (array name, matrix, as_vector); a column written to a 1-D array when ``as_vector``.
+    ``signature``: the numba signature (text); by default the one :data:`_KERNEL_SIGNATURES` gives ``name``.
     """
     subs = {k: sp.Float(v) for k, v in (values or {}).items()}
     local = {s: sp.Symbol(f"_{state}{i}", real=True) for i, s in enumerate(symbols)}
@@ -167,7 +169,7 @@ def _emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: S
     except Exception as exc:  # a function numba cannot run (sympy's PrintMethodNotImplementedError and kin)
         raise Unsupported(f"{name}: {exc}") from exc
     args = ", ".join([state] + [a for a, _, _ in outputs])
-    head = f"@njit({_KERNEL_SIGNATURES[name]}, cache=True, error_model='numpy')\ndef {name}({args}):\n"
+    head = f"@njit({signature or _KERNEL_SIGNATURES[name]}, cache=True, error_model='numpy')\ndef {name}({args}):\n"
     return head + "\n".join(lines) + "\n"
 
 
