@@ -305,6 +305,25 @@ def _pinv(a):
     return np.linalg.pinv(a)
 
 
+@njit(**OPTIONS)
+def _design_at(eval_xi, eval_x, dims, z):
+    """The kernels at z = [xi, x, ...], in fresh arrays: (phi_bar, delta, l, dp/dxi delta, kappa, p) of xi and
+    (f_bar, g, h) of x."""
+    NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
+    phi = np.empty(NH)
+    delta = np.empty((NH, MH))
+    l = np.empty(M)
+    dpd = np.empty((N, MH))
+    kap = np.empty(P)
+    pm = np.empty(N)
+    eval_xi(z[:NH].copy(), phi, delta, l, dpd, kap, pm)
+    fb = np.empty(N)
+    g = np.empty((N, M))
+    h = np.empty(P)
+    eval_x(z[NH:NH + N].copy(), fb, g, h)
+    return phi, delta, l, dpd, kap, pm, fb, g, h
+
+
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
 def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
     """simulate.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
@@ -316,17 +335,7 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    phi = np.empty(NH)
-    delta = np.empty((NH, MH))
-    l = np.empty(M)
-    dpd = np.empty((N, MH))
-    kap = np.empty(P)
-    pm = np.empty(N)
-    eval_xi(xi, phi, delta, l, dpd, kap, pm)
-    fb = np.empty(N)
-    g = np.empty((N, M))
-    h = np.empty(P)
-    eval_x(x, fb, g, h)
+    phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
     # v = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max)
     dplus = _pinv(delta)
     for a in range(MH):
@@ -427,19 +436,8 @@ def link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz):
     tt = np.empty(1)
     tt[0] = t
     eval_u(tt, u)
-    xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    phi = np.empty(NH)
-    delta = np.empty((NH, MH))
-    l = np.empty(M)
-    dpd = np.empty((N, MH))
-    kap = np.empty(P)
-    pm = np.empty(N)
-    eval_xi(xi, phi, delta, l, dpd, kap, pm)
-    fb = np.empty(N)
-    g = np.empty((N, M))
-    h = np.empty(P)
-    eval_x(x, fb, g, h)
+    phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
     b = np.empty(MH)
     c = np.empty((MH, M))
     mx = np.empty(NH)
@@ -825,20 +823,10 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
     u = np.empty(M)
-    phi = np.empty(NH)
-    delta = np.empty((NH, MH))
-    l = np.empty(M)
-    dpd = np.empty((N, MH))
-    kap = np.empty(P)
-    pm = np.empty(N)
-    fb = np.empty(N)
-    g = np.empty((N, M))
-    h = np.empty(P)
     for k in range(Z.shape[0]):
         z = Z[k]
         closed_loop(eval_xi, eval_x, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
-        eval_xi(z[:NH].copy(), phi, delta, l, dpd, kap, pm)
-        eval_x(z[NH:NH + N].copy(), fb, g, h)
+        phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
         # element by element, as in integrate
         for a in range(MH):
             V[k, a] = v[a]
@@ -856,24 +844,14 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
     dz = np.empty(NH + N)
     v = np.empty(MH)
     u = np.empty(M)
-    phi = np.empty(NH)
-    delta = np.empty((NH, MH))
-    l = np.empty(M)
-    dpd = np.empty((N, MH))
-    kap = np.empty(P)
-    pm = np.empty(N)
-    fb = np.empty(N)
-    g = np.empty((N, M))
-    h = np.empty(P)
     b = np.empty(MH)
     c = np.empty((MH, M))
     mx = np.empty(NH)
     for k in range(Z.shape[0]):
         z = Z[k]
         link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t[k], z, v, u, dz)
-        eval_xi(z[:NH].copy(), phi, delta, l, dpd, kap, pm)
+        phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
         x = z[NH:NH + N].copy()
-        eval_x(x, fb, g, h)
         eval_link(x, b, c, mx)
         for a in range(MH):
             V[k, a] = v[a]

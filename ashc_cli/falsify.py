@@ -356,14 +356,11 @@ def _integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: C
     Returns what :func:`_simulate` returns; the compiled runs without ``vused`` (see :func:`_replay`)."""
     if st.loop is None:
         return _simulate(st, b, tol, record, progress)
-    report = None if progress is None else (lambda done, total, seconds: progress(done / max(total, 1)))
-    if st.on_runs is not None:
-        inner = report
-
-        def report(done, total, seconds):
+    def report(done: int, total: int, seconds: float) -> None:
+        if st.on_runs is not None:
             st.on_runs(done, total, seconds)
-            if inner is not None:
-                inner(done, total, seconds)
+        if progress is not None:
+            progress(done / max(total, 1))
     return st.loop.run(st, b, tol, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD, record, report,
                        keep_inputs=False)
 
@@ -1156,7 +1153,7 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
     with np.errstate(all="ignore"):
         st = _setup(model, arts, t_final)
         if on_runs is not None:
-            tally = {"before": 0, "seconds": 0.0, "last": 0.0}
+            tally = {"before": 0, "seconds": 0.0}
 
             def count(done: int, total: int, seconds: float) -> None:
                 so_far = tally["before"] + done
