@@ -118,3 +118,19 @@ def test_a_run_alone_is_the_run_in_its_batch(tmp_path):
         alone = _compiled(st, batch.take([i]), record=False)
         np.testing.assert_array_equal(alone["vused"][0], res["vused"][i])
         assert alone["ratio"][0] == res["ratio"][i]
+
+
+def test_compiled_search_breaks_a_planted_bound_on_the_manifold(tmp_path):
+    """A fresh counter-example for the compiled engine: on the quarter car (ill-conditioned M, where the search
+    on the manifold reaches 0.45 of the certified gain) a gain of 0.4 G is unsound, and the search must say so
+    with W0 = 0, where only G ||v|| counts."""
+    import dataclasses
+
+    spec = load_spec(SPECS / "quarter_car.yaml")
+    arts = run(spec, tmp_path, DESIGN)
+    bound = arts["bound"]
+    planted = dataclasses.replace(bound, values={**bound.values, "gain": 0.4 * bound.values["gain"]})
+    art = F.falsify(design_model(spec, arts), {**arts, "bound": planted}, runs=60, seed=0, t_final=2.0)
+    assert art.meta["engine"].startswith("compiled")
+    assert art.values["max_ratio_w0_zero"] > 1.0
+    assert not art.checks["falsify_ratio"].passed
