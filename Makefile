@@ -8,12 +8,16 @@ BIN    := $(VENV)/bin
 SPEC   ?= specs/cuk_converter.yaml
 OUT    ?= outputs/cuk_converter
 
-.PHONY: install demo test bench fuzz docs clean
+.PHONY: install demo test bench fuzz docs lock clean
 
-$(BIN)/ashc: pyproject.toml
+# The pinned set (constraints.txt: pip, the build tools and every package make test installs). pyproject.toml
+# keeps ranges; `make lock` refreshes the pins from the registry's newest releases, on purpose.
+CONSTRAINTS := constraints.txt
+
+$(BIN)/ashc: pyproject.toml $(CONSTRAINTS)
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e ".[test]"
+	$(BIN)/pip install --quiet --upgrade -c $(CONSTRAINTS) pip
+	$(BIN)/pip install --quiet -c $(CONSTRAINTS) --build-constraint $(CONSTRAINTS) -e ".[test]"
 	touch $@
 
 install: $(BIN)/ashc
@@ -47,6 +51,22 @@ fuzz: install
 docs: install
 	$(BIN)/python -m tests.bad_inputs docs/bad-inputs.md
 	$(BIN)/python docs/generate_cli.py docs/cli.md
+
+# Refresh constraints.txt: a fresh venv with the newest releases pyproject.toml's ranges admit, frozen; then
+# run `make test` on the new pins before committing them (README, "Pinned dependencies").
+LOCK_VENV := .venv-lock
+lock:
+	rm -rf $(LOCK_VENV)
+	$(PYTHON) -m venv $(LOCK_VENV)
+	$(LOCK_VENV)/bin/pip install --quiet --upgrade pip setuptools wheel
+	$(LOCK_VENV)/bin/pip install --quiet -e ".[test]"
+	{ sed -n '1,/^# Build tools/p' $(CONSTRAINTS); \
+	  $(LOCK_VENV)/bin/pip freeze --all | grep -E '^(pip|setuptools|wheel)=='; \
+	  echo "# Runtime and test dependencies (pip freeze of the venv):"; \
+	  $(LOCK_VENV)/bin/pip freeze --exclude-editable | grep -vE '^(pip|setuptools|wheel)=='; } > $(CONSTRAINTS).new
+	mv $(CONSTRAINTS).new $(CONSTRAINTS)
+	rm -rf $(LOCK_VENV)
+	@echo "constraints.txt refreshed; now: rm -rf $(VENV) && make test, then commit constraints.txt"
 
 clean:
 	rm -rf outputs/*/ .pytest_cache
