@@ -44,7 +44,7 @@ from .expr import from_srepr
 __all__ = ["SCHEMA_VERSION", "Artefact", "Check", "write_artefact", "read_artefact", "file_sha256", "package_versions"]
 
 #: Bumped whenever the layout or the meaning of a stored value changes; older artefacts are stale.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 _PACKAGES = ("numpy", "scipy", "sympy", "cvxpy", "clarabel", "h5py", "pydantic", "python-flint", "numba")
 _STR = h5py.string_dtype()

@@ -34,7 +34,7 @@ from .paper import cite
 from .query import EVALUABLE, evaluate, no_negative_zero, number_text, parse_point, summary
 from .spec import load_spec
 from .verdict import verdict
-from .stages.bound import region_text
+from .stages.bound import gain_text, region_text
 
 app = typer.Typer(
     name="ashc",
@@ -342,41 +342,55 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
         _emit_json(summary({name: arts[name] for name in DESIGN}))
     else:
         b = arts["bound"].values
-        proved = sum(c.evidence == "proved" for c in checks)
-        typer.echo(plain_text(f"design '{spec_obj.name}' in {folder.path}: {len(checks) - len(failed)}/{len(checks)} checks passed "
-                              f"({proved} proved, {len(checks) - proved} sampled); "
-                              f"|psi - y| <= {number_text(b['gain'], '.5g')} ||v||_inf {region_text(b)}"))
+        result = verdict(arts)
+        typer.echo(plain_text(f"design '{spec_obj.name}' in {folder.path}: {result.counts()}; "
+                              f"|psi - y| <= {gain_text(b)} ||v||_inf {region_text(b)}"))
     if failed:
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
         raise typer.Exit(3)
+
+
+
+class Require(str, Enum):
+    solved = "solved"
+    proved = "proved"
+
+
+RequireOpt = Annotated[Require, typer.Option("--require", case_sensitive=False, help=(
+    "What exit 0 needs: 'solved' (every condition passes, proved or on samples only) or 'proved' (every condition "
+    "that enters Problem 1, G and the certified region is proved; for CI pipelines: a verdict on samples exits 3)."))]
 
 
 @app.command(short_help=SHORT_HELP["check"])
 @_guard
 def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False,
           frozen: _frozen_opt("Recompute nothing: the verdict on the stored design; fail (exit 5, naming the stage) "
-                              "if a stage is stale.") = False) -> None:
-    """The verdict on Problem 1: one row per condition of the paper with its measured number.
+                              "if a stage is stale.") = False, require: RequireOpt = Require.solved) -> None:
+    """The verdict on Problem 1: one row per condition of the paper with its measured number and evidence.
 
     Runs the design stages that are stale, stopping at the first design condition that fails; prints each
-    condition (Assumption 1, the LMI certificate, the PDE residual, SimuLocalRequire, conditions (i) and
-    (ii), the rank of delta, condition (B), ...) with pass/fail, then "Problem 1 solved: yes/no".
-    Exit status 0 only for yes, 3 for no.
+    condition (Assumption 1, the LMI certificate, the PDE residual, eq. (10), conditions (i) and (ii), the rank
+    of delta, condition (B), the certified region, ...) with pass/fail and how it was established (proved: on
+    the whole set, by interval arithmetic or a sympy identity; sampled: on a grid or random points only), then
+    one of three verdicts: "Problem 1 solved: proved", "Problem 1 solved: holds on samples only (sampled: ...)"
+    naming the rows that were only sampled, or "Problem 1 solved: no".
+    Exit status 0 for proved and for samples only (3 for samples only with --require proved), 3 for no.
     """
     _exclusive(force, frozen, "check")
     spec_obj, path = _load(spec, out)
     folder = Folder(path)
     with Progress() as progress:
         arts, stopped = run_for_verdict(spec_obj, folder, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
-    solved, rows = verdict(arts, stopped)
+    result = verdict(arts, stopped)
     sim = None if force else _current(spec_obj, folder, "simulate")
     simulated = [] if sim is None else [{"check": name, "status": "pass" if c.passed else "fail", "value": c.value if np.isfinite(c.value) else None,
                                          "detail": c.description, "evidence": c.evidence} for name, c in sim.checks.items()]
     if as_json:
-        _emit_json({"spec": spec_obj.name, "solved": solved, "rows": [r.as_dict() for r in rows], "simulated": simulated})
+        _emit_json({"spec": spec_obj.name, "solved": result.solved, "verdict": result.kind, "sampled": result.sampled_rows,
+                    "rows": [r.as_dict() for r in result.rows], "simulated": simulated})
     else:
         typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
-        for r in rows:
+        for r in result.rows:
             value = "" if r.value is None else number_text(r.value, ".4g")
             typer.echo(f"  {r.status:<11} {r.evidence:<9} {r.condition:<42} {value:>11}   {r.reference}")
             if r.status == "fail":
@@ -388,8 +402,11 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
                 typer.echo(f"  {r['status']:<11} {r['evidence']:<9} {r['check']:<42} {value:>11}")
                 if r["status"] == "fail":
                     typer.echo(plain_text(f"              {r['detail']}"))
-        typer.echo(f"Problem 1 solved: {'yes' if solved else 'no'}")
-    if not solved:
+        typer.echo(result.line())
+    if not result.solved:
+        raise typer.Exit(3)
+    if require == Require.proved and not result.proved:
+        typer.echo("error: check: --require proved: the verdict holds on samples only (" + ", ".join(result.sampled_rows) + ")", err=True)
         raise typer.Exit(3)
 
 
@@ -607,7 +624,7 @@ def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: 
     seen = Folder(path)  # one view of the folder for the design, simulate and falsify runs below
     with Progress() as progress:
         arts, stopped = run_for_verdict(spec_obj, seen, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
-        solved, rows = verdict(arts, stopped)
+        result = verdict(arts, stopped)
         violated = False
         if stopped is None:
             arts.update(run(spec_obj, seen, ["simulate"], force=force, frozen=needed(["simulate"]) if frozen else False,
@@ -618,12 +635,12 @@ def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: 
             progress.line(f"note: --runs, --seed and --t-final not used: the design stopped at {stopped[0]}, so falsify does not run")
         progress.start("report: drawing the figures")
         figures = plots.write_all(spec_obj, arts, path / "plots")
-    page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, solved, rows, figures)
+    page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, result, figures)
     target = path / "report.html"
     tmp = target.with_suffix(".html.tmp")
     tmp.write_text(page, encoding="utf-8")
     tmp.replace(target)
-    typer.echo(f"{target} ({len(page) // 1024} KiB): Problem 1 solved: {'yes' if solved else 'no'}")
+    typer.echo(f"{target} ({len(page) // 1024} KiB): {result.line()}")
     if violated:
         typer.echo("error: report: the falsification run violates the bound (see the report)", err=True)
         raise typer.Exit(3)

@@ -87,9 +87,9 @@ def compare(key: str, new, golden: dict) -> str | None:
 def collect(spec: Spec, out: Path) -> dict:
     """Design one spec (stage by stage, so a failing design still has a verdict) and return its summary."""
     arts, stopped = run_for_verdict(spec, out / spec.name)
-    solved, _ = verdict(arts, stopped)
+    found = verdict(arts, stopped)
     result = summary({k: arts[k] for k in DESIGN if k in arts})
-    result["verdict"] = {"solved": solved}
+    result["verdict"] = {"solved": found.solved, "kind": found.kind}
     return result
 
 

@@ -40,7 +40,11 @@ code { overflow-wrap: anywhere; }
 figure { display: inline-block; margin: 0.5rem; max-width: 100%; vertical-align: top; }
 figure img { max-width: 100%; height: auto; } figcaption { font-size: 0.8rem; color: #555; max-width: 26rem; }
 .verdict { font-size: 1.2rem; padding: 0.5rem; border: 2px solid; display: inline-block; }
+.sampled { color: #8a5a00; font-weight: bold; } .note { color: #555; }
 """
+
+#: The CSS class of each verdict's banner (proved green, on samples only amber, no red).
+VERDICT_CLASS = {"proved": "pass", "sampled": "sampled", "fails": "fail"}
 
 CAPTIONS = {
     "kappa_xi.png": "κ(ξ) over V, output region Y shaded (Fig. kappa_xi).",
@@ -131,7 +135,7 @@ def _figure_html(path: Path) -> str:
             f"<figcaption>{html.escape(cap)}</figcaption></figure>")
 
 
-def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bool, rows: list, figures: list[Path]) -> str:
+def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path]) -> str:
     """The HTML page.
 
     Parameters
@@ -142,10 +146,8 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bo
         Its name.
     arts : dict
         The artefacts (design stages, simulate and falsify where present).
-    solved : bool
-        The Problem 1 verdict.
-    rows : list of verdict rows
-        From :func:`ashc_cli.verdict.verdict`.
+    result : Verdict
+        The Problem 1 verdict and its rows (:func:`ashc_cli.verdict.verdict`).
     figures : list of Path
         PNG (or SVG) files to embed; other files are left out.
     """
@@ -154,10 +156,13 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], solved: bo
              f"<style>{CSS}</style></head><body>",
              f"<h1>ASHC design report: {html.escape(spec_name)}</h1>",
              f"<p>ashc {html.escape(__version__)}. The method of \"Approximate Simulation-based Hierarchical Control of Nonlinear Systems\".</p>",
-             f"<p class=\"verdict {'pass' if solved else 'fail'}\">Problem 1 solved: {'yes' if solved else 'no'}</p>"]
+             f"<p class=\"verdict {VERDICT_CLASS[result.kind]}\">{html.escape(result.line())}</p>"]
+    if result.kind == "sampled":
+        parts.append("<p class=\"note\">Every condition passes, but the rows marked <i>sampled</i> were checked on a grid or on "
+                     "random points only: the design is not certified until they are proved (or falsified).</p>")
 
     parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>evidence</th><th>measured</th><th>reference</th><th>detail</th></tr>")
-    for r in rows:
+    for r in result.rows:
         value = "" if r.value is None else f"{r.value:.4g}"
         parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, r.evidence, value, r.reference, r.detail or ""))
     parts.append("</table>")

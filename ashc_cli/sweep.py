@@ -68,7 +68,8 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
         spec = Spec.model_validate(data)
         folder = Folder(Path(out))  # the falsify run below reuses the artefacts the design read or wrote
         arts, stopped = run_for_verdict(spec, folder)
-        row["solved"] = bool(verdict(arts, stopped)[0])
+        found = verdict(arts, stopped)
+        row["solved"], row["verdict"] = found.solved, found.kind
         if "stabilise" in arts:
             row["lambda"] = float(arts["stabilise"].value("lambda"))
         if "bound" in arts:

@@ -7,6 +7,12 @@ Lemma mRelatePDE with Theorems mRelateDelta and mCondi, (2) holds when p is inje
 and (ii), m is real on Y, delta has full row rank and b, c solve eqs. mRelatSuffiDiff/In.  Each row reads
 a check a design stage stored; :func:`verdict` is a pure function of the artefacts (and of the error that
 stopped the design, if one did).
+
+The verdict has three values.  ``proved``: every row passes and every row is *proved* (interval arithmetic,
+sympy identities, ball-matrix Cholesky): each number that enters Problem 1, the gain G and the certified region
+holds on the whole set it is about.  ``sampled``: every row passes, but some only on samples (a grid, random
+points); the design is then not certified, and the line names those rows.  ``fails``: some row fails or was
+not reached.  A certification tool may say "I could not prove this"; it never says "proved" on samples.
 """
 
 from __future__ import annotations
@@ -19,7 +25,10 @@ from .artefacts import Artefact
 from .errors import AshcError
 from .paper import cite
 
-__all__ = ["Row", "ROWS", "verdict"]
+__all__ = ["Row", "ROWS", "Verdict", "verdict", "PROVED", "SAMPLED", "FAILS"]
+
+#: The three verdicts (``ashc check --json`` key ``verdict``).
+PROVED, SAMPLED, FAILS = "proved", "sampled", "fails"
 
 
 @dataclass(frozen=True)
@@ -58,7 +67,52 @@ ROWS = (
 )
 
 
-def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = None) -> tuple[bool, list[Row]]:
+@dataclass(frozen=True)
+class Verdict:
+    """Problem 1's verdict: ``kind`` is ``proved``, ``sampled`` or ``fails``, with the rows it rests on."""
+
+    kind: str
+    rows: tuple[Row, ...]
+
+    @property
+    def solved(self) -> bool:
+        """Whether every row passes (proved or on samples): ``check`` exits 0 (without ``--require proved``)."""
+        return self.kind != FAILS
+
+    @property
+    def proved(self) -> bool:
+        return self.kind == PROVED
+
+    @property
+    def sampled_rows(self) -> list[str]:
+        """The conditions that pass on samples only."""
+        return [r.condition for r in self.rows if r.status == "pass" and r.evidence != PROVED]
+
+    def counts(self) -> str:
+        """The verdict with its counts, for ``ashc design``'s last line: 'proved (15/15 conditions of Problem 1)',
+        'holds on samples only (12 of 15 conditions proved; sampled: a, b, c)' or 'no (13 of 15 conditions pass)'."""
+        n, passed = len(self.rows), sum(r.status == "pass" for r in self.rows)
+        proved = sum(r.status == "pass" and r.evidence == PROVED for r in self.rows)
+        if self.kind == PROVED:
+            return f"proved ({proved}/{n} conditions of Problem 1)"
+        if self.kind == SAMPLED:
+            return f"holds on samples only ({proved} of {n} conditions proved; sampled: {', '.join(self.sampled_rows)})"
+        return f"no ({passed} of {n} conditions pass)"
+
+    def text(self) -> str:
+        """The verdict in words: 'proved', 'holds on samples only (sampled: a, b)' or 'no'."""
+        if self.kind == PROVED:
+            return "proved"
+        if self.kind == SAMPLED:
+            return "holds on samples only (sampled: " + ", ".join(self.sampled_rows) + ")"
+        return "no"
+
+    def line(self) -> str:
+        """The last line of ``ashc check``."""
+        return f"Problem 1 solved: {self.text()}"
+
+
+def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = None) -> Verdict:
     """Problem 1's verdict from the design artefacts.
 
     Parameters
@@ -70,9 +124,9 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
 
     Returns
     -------
-    solved : bool
-        True only when every row passes.
-    rows : list of Row
+    Verdict
+        ``proved`` when every row passes with a proof, ``sampled`` when every row passes but some only on
+        samples, ``fails`` otherwise; and the rows.
     """
     rows = []
     for condition, label, requirement, stage, check in ROWS:
@@ -89,5 +143,10 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
             rows.append(Row(condition, reference, requirement, "not reached", None, reason))
     if stopped is not None and not any(r.status == "fail" for r in rows):
         rows.append(Row("design stage " + stopped[0], "-", "-", "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
-    solved = all(r.status == "pass" for r in rows)
-    return solved, rows
+    if not all(r.status == "pass" for r in rows):
+        kind = FAILS
+    elif all(r.evidence == PROVED for r in rows):
+        kind = PROVED
+    else:
+        kind = SAMPLED
+    return Verdict(kind, tuple(rows))

@@ -322,8 +322,11 @@ def test_maximise_reaches_the_ladders_known_rate(monkeypatch):
     art = stabilise.run(model, {})
     lam, M = art.values["lambda"], art.values["M"]
     assert lam_star * (1 - stabilise.BISECTION_RTOL) <= lam <= lam_star
-    # The bound is attained, so the first rate tried (the bound less half the tolerance) ends the search.
-    assert tried == [pytest.approx(lam_star * (1 - stabilise.BISECTION_RTOL / 2), rel=1e-12)]
+    # The bound is attained, so the first rate tried (the bound less half the tolerance) ends the search (the
+    # rates are tried on A / s, s the largest spectral radius, stored as meta lmi_scale).
+    scale = art.meta["lmi_scale"]
+    assert scale == pytest.approx(max(np.abs(np.linalg.eigvals(A)).max() for A in (A0, A1)), rel=1e-12)
+    assert [t * scale for t in tried] == [pytest.approx(lam_star * (1 - stabilise.BISECTION_RTOL / 2), rel=1e-12)]
     assert art.meta["structure"] == "full" and art.checks["lmi_margin"].evidence == "proved"
     for u in np.linspace(0, 1, 11):
         A = ladder_A(4, p, u)

@@ -57,6 +57,11 @@ UPSTREAM = ("stabilise", "manifold", "delta")
 
 GRID_POINTS = 20001
 
+#: The checks every number of the published bound rests on (lambda and M; p and l; L_h, alpha_h, dbar and the
+#: region): the bound is *proved* only when each of them is, and printed with "(sampled)" otherwise.
+BOUND_CHECKS = (("stabilise", "lmi_margin"), ("stabilise", "M_positive"), ("manifold", "pde_residual"), ("manifold", "l_in_U"),
+                ("bound", "h_lipschitz"), ("bound", "alpha_h"), ("bound", "condition_B"), ("bound", "certified_region"))
+
 
 def alpha_h_linear(M: np.ndarray, C: np.ndarray) -> float:
     """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4)."""
@@ -430,7 +435,31 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     # A linear h is Lipschitz with the constant ||C||_2 by definition: nothing is sampled.
     h_evidence = PROVED if C is not None or alpha_proof is not None else SAMPLED
     art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)", h_evidence)
+    # How each number that enters G and the region was established (proved or sampled), for `ashc summary`.
+    lmi = [upstream["stabilise"].checks[k].evidence for k in ("lmi_margin", "M_positive") if k in upstream["stabilise"].checks]
+    art.values.update({"evidence_lambda": PROVED if lmi and all(e == PROVED for e in lmi) else SAMPLED,
+                       "evidence_alpha_h": PROVED if alpha_evidence == PROVED and h_evidence == PROVED else SAMPLED,
+                       "evidence_dbar": dbar_evidence, "evidence_region": region_evidence})
+    sampled = bound_sampled({**upstream, NAME: art})
+    art.values["bound_evidence"] = PROVED if not sampled else SAMPLED
+    art.values["bound_sampled"] = ", ".join(sampled) if sampled else "none"
     return art
+
+
+def bound_sampled(arts: dict[str, Artefact]) -> list[str]:
+    """The checks of :data:`BOUND_CHECKS` that are not proved (``stage.check``; a missing one counts as not proved)."""
+    out = []
+    for stage, name in BOUND_CHECKS:
+        chk = arts[stage].checks.get(name) if stage in arts else None
+        if chk is None or chk.evidence != PROVED:
+            out.append(f"{stage}.{name}")
+    return out
+
+
+def gain_text(v: dict, fmt: str = ".5g") -> str:
+    """G as printed wherever the bound is published: with "(sampled)" when a number it rests on is only sampled."""
+    text = format(float(v["gain"]), fmt)
+    return text + (" (sampled)" if str(v.get("bound_evidence", SAMPLED)) != PROVED else "")
 
 
 def summarise(art: Artefact) -> dict:
@@ -443,6 +472,8 @@ def summarise(art: Artefact) -> dict:
         "dbar": float(v.get("dbar", v["dbar_q0"])), "dbar_how": v.get("dbar_how", ""),
         "w0_max_certified": float(v.get("w0_max_certified", np.inf)), "v_max_certified": float(v.get("v_max_certified", np.inf)),
         "region_limits": v.get("region_limits", ""),
+        "bound_evidence": str(v.get("bound_evidence", SAMPLED)), "bound_sampled": str(v.get("bound_sampled", "")),
+        "evidence": {k: str(v.get(f"evidence_{k}", SAMPLED)) for k in ("lambda", "alpha_h", "dbar", "region")},
         "dbar_argmax": {"q0": np.asarray(v["dbar_argmax"])[0].tolist(), "q0_identity": np.asarray(v["dbar_argmax"])[1].tolist(),
                         "ls": np.asarray(v["dbar_argmax"])[2].tolist()},
     }
@@ -451,7 +482,7 @@ def summarise(art: Artefact) -> dict:
 def headline(art: Artefact) -> str:
     """One progress line."""
     v = art.values
-    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {v['gain']:.5g} (|psi - y| <= G ||v||_inf {region_text(v)})"
+    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf {region_text(v)})"
 
 
 def region_text(v: dict) -> str:

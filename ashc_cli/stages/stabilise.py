@@ -49,7 +49,7 @@ UPSTREAM: tuple[str, ...] = ()
 #: Smallest eigenvalue imposed on M (with trace(M) = n) so that M > 0 strictly.
 M_MIN_EIG = 1e-3
 #: A margin t must be below -MARGIN_TOL for lambda to count as feasible.
-MARGIN_TOL = 1e-7
+MARGIN_TOL = 1e-8
 #: Relative width at which the bisection on lambda stops.
 BISECTION_RTOL = 1e-4
 SWEEP_POINTS = 201
@@ -63,7 +63,7 @@ FULL_MAX_STATES = 32
 FEEDBACK_MAX_RATE = 100.0
 #: The scale-free problem asks A^T M + M A + lambda M <= -SCALE_FREE_MARGIN kappa I with I <= M <= kappa I, so
 #: its margin relative to ||M|| is at least this (ten times MARGIN_TOL, room for the solver's tolerance).
-SCALE_FREE_MARGIN = 1e-6
+SCALE_FREE_MARGIN = 1e-7
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
@@ -100,6 +100,12 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
 #: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices).
 MAX_VARYING_ENTRIES = 12
 RANGE_SAMPLES = 40000
+#: Seconds the branch and bound may spend enclosing one end of one Jacobian entry's range (then the range is
+#: only sampled, and the LMI row says so).
+ENCLOSURE_TIME_BUDGET = 20.0
+#: Relative width at which that branch and bound stops (the enclosure is rigorous at any width; a tighter one
+#: only makes the LMI less conservative).
+ENCLOSURE_RTOL = 1e-6
 
 
 def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
@@ -108,8 +114,12 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
     For f not affine in x, V(x, z) = (x - z)^T M (x - z) decays at rate lambda along any pair of solutions
     that stay in the (convex) state box if J^T M + M J <= -lambda M for every J = df/dx(s, u) with s in the
     box (the mean-value form f(x, u) - f(z, u) = int_0^1 J(z + s (x - z), u) ds (x - z)).  Each entry of J
-    that varies is bounded over box x U (a grid, refined by bounded local searches, widened by 1e-9
-    relative), and the LMI is imposed at the 2^k vertices of the box of entry values, which contains J.
+    that varies is enclosed over box x U by ball arithmetic with branch and bound (:func:`proofs.range_on_box`:
+    rigorous at any width, so a steep term such as tanh(50000 x) whose derivative peaks in a band 1e-4 wide is
+    inside the range), and the LMI is imposed at the 2^k vertices of the box of entry ranges, which contains J.
+    Where ball arithmetic cannot enclose an entry (or the enclosure is not finite), its range comes from a
+    grid refined by bounded local searches, widened by 1e-9 relative: the LMI is then only *sampled*
+    (``meta["ranges_proved"]`` is False) and ``ashc check`` says so.
 
     Returns
     -------
@@ -120,7 +130,7 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
     ranges : ndarray, shape (k, 2)
         The range of each varying entry.
     meta : dict
-        Which entries vary.
+        Which entries vary, how their ranges were found (``ranges_proved``), and the sampled ranges beside them.
 
     Raises
     ------
@@ -140,17 +150,26 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
         raise DesignError("concrete", f"{len(varying)} Jacobian entries vary over the state box (at most {MAX_VARYING_ENTRIES}: the polytope has 2^k vertices)",
                           "fewer state-dependent terms, or f affine in x")
     pts = domain_grid(box, RANGE_SAMPLES)
-    ranges = []
+    ranges, sampled, how = [], [], []
     for i, j in varying:
+        name = f"df{i + 1}/d{model.x[j]}"
         fun = model.numeric([J[i, j]], args)
         vals = np.broadcast_to(fun(*pts)[0, 0], pts.shape[1])
         if not np.all(np.isfinite(vals)):
-            raise DesignError("concrete.state_box", f"df{i + 1}/d{model.x[j]} is not finite on the box", "a box on which f is C^1")
+            bad = pts[:, int(np.argmax(~np.isfinite(vals)))]
+            raise DesignError("concrete.state_box", f"{name} is not finite on the box (at {np.round(bad, 6).tolist()})", "a box on which f is C^1")
         hi, _ = maximise_on_box(pts, vals, lambda z, fun=fun: float(fun(*z)[0, 0]), box)
         neg_lo, _ = maximise_on_box(pts, -vals, lambda z, fun=fun: -float(fun(*z)[0, 0]), box)
         lo = -neg_lo
-        pad = 1e-9 * max(1.0, abs(lo), abs(hi))
-        ranges.append((lo - pad, hi + pad))
+        sampled.append((lo, hi))
+        enclosed = _enclose_entry(model, J[i, j], args, box)
+        if enclosed is not None:
+            ranges.append(enclosed)
+            how.append("enclosed")
+        else:
+            pad = 1e-9 * max(1.0, abs(lo), abs(hi))
+            ranges.append((lo - pad, hi + pad))
+            how.append("sampled")
     J0 = np.array(model.substitute(J.xreplace({a: 0 for a in args})), dtype=float)
     A_list = []
     for corner in itertools.product(*ranges):
@@ -158,18 +177,35 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
         for (i, j), value in zip(varying, corner):
             A[i, j] = value
         A_list.append(A)
+    proved = all(h == "enclosed" for h in how)
     meta = {"jacobian_entries": [f"df{i + 1}/d{model.x[j]}" for i, j in varying],
-            "state_box": model.state_box.tolist(), "range_method": f"grid of {pts.shape[1]} points of box x U, refined by L-BFGS-B, widened 1e-9"}
-    return J, A_list, np.array(ranges).reshape(-1, 2), meta
+            "state_box": model.state_box.tolist(), "ranges_proved": proved,
+            "range_method": ("ball-arithmetic enclosure over box x U by branch and bound (rigorous)" if proved else
+                             "enclosure where ball arithmetic reaches, else a grid of box x U refined by L-BFGS-B and widened 1e-9 (sampled): "
+                             + ", ".join(f"{n} {h}" for n, h in zip((f'df{i + 1}/d{model.x[j]}' for i, j in varying), how))),
+            "ranges_sampled": [list(r) for r in sampled]}
+    return J, A_list, np.array(ranges, dtype=float).reshape(-1, 2), meta
 
 
-def jacobian_samples(model: Model, J: sp.Matrix, count: int = 2000, seed: int = 2) -> list[np.ndarray]:
-    """df/dx at random points of state_box x U (the numpy re-check of the Jacobian LMI)."""
+def _enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) -> tuple[float, float] | None:
+    """Proved bounds lo <= entry <= hi over the box (ball arithmetic, branch and bound), or None where ball
+    arithmetic cannot enclose the entry or the enclosure is not finite."""
+    try:
+        fun = proofs.compile_claims(model, [entry], args)
+    except proofs.interval.UnsupportedExpression:
+        return None
+    lo, ok_lo = proofs.inf_on_box(fun, box, rtol=ENCLOSURE_RTOL, time_budget=ENCLOSURE_TIME_BUDGET)
+    hi, ok_hi, _ = proofs.sup_on_box(fun, box, rtol=ENCLOSURE_RTOL, time_budget=ENCLOSURE_TIME_BUDGET)
+    return (lo, hi) if ok_lo and ok_hi else None
+
+
+def jacobian_samples(model: Model, J: sp.Matrix, count: int = 2000, seed: int = 2) -> tuple[list[np.ndarray], np.ndarray]:
+    """df/dx at random points of state_box x U (the numpy re-check of the Jacobian LMI), and the points (rows of (x, u))."""
     rng = np.random.default_rng(seed)
     box = np.r_[model.state_box, model.U]
     pts = rng.uniform(box[:, 0:1], box[:, 1:2], size=(len(box), count))
     values = np.broadcast_to(model.numeric(J, list(model.x) + list(model.u))(*pts), J.shape + (count,))
-    return list(np.moveaxis(values, -1, 0))
+    return list(np.moveaxis(values, -1, 0)), pts.T
 
 
 def vertices(U: np.ndarray) -> np.ndarray:
@@ -182,6 +218,15 @@ def sweep(U: np.ndarray, points: int = SWEEP_POINTS) -> np.ndarray:
     per_axis = max(2, int(round(points ** (1.0 / len(U)))))
     axes = [np.linspace(lo, hi, per_axis) for lo, hi in U]
     return np.array(list(itertools.product(*axes)), dtype=float)
+
+
+def lmi_scale(A_list: list[np.ndarray]) -> float:
+    """The plant's rate scale: the largest spectral radius of the A_k (its fastest time constant, whatever the
+    units of the states), or the largest ||A_k||_2 where every eigenvalue is 0; 1 for an all-zero A."""
+    s = max(float(np.abs(np.linalg.eigvals(A)).max()) for A in A_list)
+    if not (np.isfinite(s) and s > 0):
+        s = max(float(np.linalg.norm(A, 2)) for A in A_list)
+    return s if np.isfinite(s) and s > 0 else 1.0
 
 
 def lmi_margins(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> np.ndarray:
@@ -427,31 +472,86 @@ def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full", 
     return None, t, status, failed
 
 
-def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full") -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
-    """Find M and K with (A + B K)^T M + M (A + B K) <= t M-congruent margin, for a fixed lambda.
+#: The feedback LMI is imposed at the rate lambda (1 + FEEDBACK_RATE_MARGIN) so that the numpy re-check at
+#: lambda sees a strictly negative margin (the problem minimises the gain, not the margin).
+FEEDBACK_RATE_MARGIN = 1e-3
+#: Condition numbers tried for X = M^-1 (I <= X <= kappa I), smallest first: the smallest gain over a set of
+#: well-conditioned M.  Without a cap the least gain is approached only as M degenerates (the uniform gain G,
+#: through dbar = sup ||sqrt(M) dp/dxi delta||, then grows without bound).
+FEEDBACK_CONDITION = (1e2, 1e4, 1e6)
 
-    Solved in X = M^-1, Y = K X: A X + X A^T + B Y + Y^T B^T + lambda X <= t I, X >= eps I, trace(X) = n
-    (X diagonal for ``structure = "diagonal"``, so M is diagonal too).
+
+def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full",
+                       weights: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
+    """M and the smallest gain K with (A + B K)^T M + M (A + B K) <= -lambda M at every vertex, for a fixed lambda.
+
+    In X = M^-1 and Y = K X the condition is the LMI A X + X A^T + B Y + Y^T B^T + lambda X <= 0 (imposed at
+    lambda (1 + FEEDBACK_RATE_MARGIN), so the re-check at lambda is strict).  Among the solutions with
+    I <= X <= kappa I the one with the smallest weighted gain is taken: minimise mu subject to
+    Z >= Y X^-1 Y^T = K X K^T (a Schur complement) and Z_ii <= mu w_i^2, w_i half the width of input i's range.
+    K X K^T is what the certified region of a saturating interface pays for (|K_i e| <= sqrt(c K_i X K_i^T) on
+    {W <= c}, :func:`bound.certified_region`), so the smallest gain certifies the largest region.  kappa runs
+    through :data:`FEEDBACK_CONDITION` until the LMI is feasible.  (A maximum-margin problem is unbounded when B
+    has full row rank, and with a rank-deficient B returns gains of order 10^3 that shrink the region to nothing.)
+
+    Parameters
+    ----------
+    A_list : list of ndarray
+        The vertex matrices.
+    B : ndarray (n, m)
+        The constant input matrix.
+    lam : float
+        The decay rate.
+    structure : {"full", "diagonal"}
+        The form of X (and M).
+    weights : ndarray (m,), optional
+        Half-widths of the input ranges (default 1).
 
     Returns
     -------
     M, K : ndarray or None
-    t : float
-        The optimal margin (< 0 when feasible).
+        None if no gain makes the LMI feasible.
+    mu : float
+        The optimal weighted gain max_i K_i X K_i^T / w_i^2 (inf without a solution).
     status : str
+        cvxpy's status string, with the condition cap used.
     """
+    status = "not solved"
+    for kappa in FEEDBACK_CONDITION:
+        M, K, mu, status = _min_gain(A_list, B, lam, structure, weights, kappa)
+        if M is not None:
+            return M, K, mu, f"{status} (I <= M^-1 <= {kappa:g} I)"
+    return None, None, np.inf, status
+
+
+def _min_gain(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str, weights: np.ndarray | None,
+              kappa: float) -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
+    """:func:`solve_lmi_feedback` for one condition cap kappa (a solver failure counts as no solution)."""
     n, m = B.shape
-    var, X, positive = _unknown(n, structure)
+    var, X, _ = _unknown(n, structure)
     Y = cp.Variable((m, n))
-    t = cp.Variable()
+    Z = cp.Variable((m, m), symmetric=True)
+    mu = cp.Variable()
+    w = np.ones(m) if weights is None else np.asarray(weights, dtype=float)
     eye = np.eye(n)
-    constraints = positive + [cp.trace(X) == n]
-    constraints += [A @ X + X @ A.T + B @ Y + Y.T @ B.T + lam * X << t * eye for A in A_list]
-    problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the feedback LMI at lambda = {lam:g} ({structure} M)")
-    if var.value is None or t.value is None:
+    probe = lam * (1.0 + FEEDBACK_RATE_MARGIN)
+    constraints = [X >> eye, X << kappa * eye, cp.bmat([[Z, Y], [Y.T, X]]) >> 0, cp.diag(Z) <= mu * w**2]
+    constraints += [A @ X + X @ A.T + B @ Y + Y.T @ B.T + probe * X << 0 for A in A_list]
+    try:
+        problem = _solve(cp.Problem(cp.Minimize(mu), constraints), f"the feedback LMI at lambda = {lam:g} ({structure} M)")
+    except NumericalError as exc:
+        return None, None, np.inf, exc.what
+    if var.value is None or mu.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
         return None, None, np.inf, str(problem.status)
-    M = np.linalg.inv(_matrix(var, structure))
-    return 0.5 * (M + M.T), Y.value @ M, float(t.value), str(problem.status)
+    Xv = _matrix(var, structure)
+    if not np.all(np.isfinite(Xv)) or np.linalg.eigvalsh(Xv).min() <= 0:
+        return None, None, np.inf, str(problem.status)
+    M = np.linalg.inv(Xv)
+    M = 0.5 * (M + M.T)
+    K = np.asarray(Y.value, dtype=float) @ M
+    if lmi_margins([A + B @ K for A in A_list], M, lam).max() >= 0:   # an inaccurate solve is not a certificate
+        return None, None, np.inf, f"{problem.status} (the re-check of its M, K fails)"
+    return M, K, float(mu.value), str(problem.status)
 
 
 def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, structure: str = "full",
@@ -481,7 +581,7 @@ def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, st
     of the final bracket (no rate above it was certified).
     """
     if B is not None:
-        return _largest_feedback_rate(A_list, B, structure)
+        return _largest_feedback_rate(A_list, B, structure)   # the gain-minimising path: _synthesise_feedback
     upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
     if upper <= 0:
         return 0.0, None
@@ -510,19 +610,28 @@ def largest_decay_rate(A_list: list[np.ndarray], B: np.ndarray | None = None, st
     return lo, best
 
 
-def _largest_feedback_rate(A_list: list[np.ndarray], B: np.ndarray, structure: str) -> tuple[float, tuple | None]:
+def _largest_feedback_rate(A_list: list[np.ndarray], B: np.ndarray, structure: str, weights: np.ndarray | None = None) -> tuple[float, tuple | None]:
     """:func:`largest_decay_rate` with a synthesised gain K: bisection on lambda up to FEEDBACK_MAX_RATE (any rate
-    may be reachable with feedback), each M, K found raising the lower end to the rate it certifies."""
+    may be reachable with feedback), each M, K found raising the lower end to the rate it certifies; the K
+    returned is the smallest gain (:func:`solve_lmi_feedback`) at the rate found."""
     upper = FEEDBACK_MAX_RATE
     lo, hi, best = 0.0, upper, None
     while hi - lo > BISECTION_RTOL * upper:
         mid = 0.5 * (lo + hi)
-        M, K, t, _ = solve_lmi_feedback(A_list, B, mid, structure)
-        if M is not None and t < -MARGIN_TOL:
+        try:
+            M, K, _, _ = solve_lmi_feedback(A_list, B, mid, structure, weights)
+        except NumericalError:
+            M = K = None        # an inaccurate or failed solve: not certified at this rate
+        if M is not None:
             closed_loop = [A + B @ K for A in A_list]
             lo, best = max(mid, min(hi, (1.0 - CERTIFIED_BACKOFF) * largest_decay_rate_for(closed_loop, M))), (M, K)
         else:
             hi = mid
+    if best is not None:
+        # The gain minimised at the rate reported (the bisection's M, K may hold a larger gain).
+        M, K, _, _ = solve_lmi_feedback(A_list, B, lo, structure, weights)
+        if M is not None:
+            best = (M, K)
     return lo, best
 
 
@@ -540,14 +649,16 @@ def _ball_lmi(A: list[list], M: np.ndarray, lam: float) -> list[list]:
     return [[-(MA[j][i] + MA[i][j] + arb(lam) * Mb[i][j]) for j in range(n)] for i in range(n)]
 
 
-def prove_lmi(model: Model, A_sym: sp.Matrix, verts: np.ndarray, affine: bool, K: np.ndarray, M: np.ndarray, lam: float) -> tuple[float, str]:
+def prove_lmi(model: Model, A_sym: sp.Matrix, verts: np.ndarray, affine: bool, K: np.ndarray, M: np.ndarray, lam: float,
+              ranges_proved: bool = False) -> tuple[float, str]:
     """A proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M over U (or state_box x U).
 
     The vertex argument: the LMI is affine in A_cl, so it holds on the convex hull of the vertex matrices
     once it holds at each of them.  For f affine in x with A(u) affine in u the vertices are A(u_k) at the
-    vertices of U; for the Jacobian polytope they are the corners of the box of entry ranges, which must
-    contain the ranges enclosed by ball arithmetic over state_box x U.  Each vertex matrix is formed in
-    ball arithmetic from the formulas (parameters exact as doubles) and its LMI proved by an arb Cholesky.
+    vertices of U; for the Jacobian polytope they are the corners of the box of entry ranges, enclosed by ball
+    arithmetic over state_box x U in :func:`jacobian_polytope` (``ranges_proved``; sampled ranges prove
+    nothing).  Each vertex matrix is formed in ball arithmetic from the formulas (parameters exact as doubles)
+    and its LMI proved by an arb Cholesky.
 
     Returns
     -------
@@ -561,6 +672,8 @@ def prove_lmi(model: Model, A_sym: sp.Matrix, verts: np.ndarray, affine: bool, K
     args = list(model.u) if affine else list(model.x) + list(model.u)
     if affine and not proofs.affine_in(A_sym, model.u):
         return np.inf, "A(u) is not affine in u, so its vertices do not bound it"
+    if not affine and not ranges_proved:
+        return np.inf, "the ranges of the Jacobian entries over state_box x U were only sampled (ball arithmetic could not enclose them)"
     try:
         fA = proofs.BoxFunction(model, {"A": A_sym}, args)
         BK = None
@@ -575,11 +688,6 @@ def prove_lmi(model: Model, A_sym: sp.Matrix, verts: np.ndarray, affine: bool, K
             box = np.r_[model.state_box, model.U]
             A_any = fA(proofs.ball_box(box))["A"]            # constant entries are thin balls
             varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(A_sym, dtype=object)) if e.free_symbols & set(args)]
-            for (i, j), (lo, hi) in zip(varying, verts):
-                entry = proofs.compile_claims(model, [A_sym[i, j]], args)
-                bottom, top, ok = proofs.range_on_box(entry, box, rtol=1e-12)
-                if not (ok and lo <= bottom and top <= hi):
-                    return np.inf, f"the enclosure of df{i + 1}/d{model.x[j]} over state_box x U, [{bottom:.6g}, {top:.6g}], is not inside the LMI's range [{lo:.6g}, {hi:.6g}]"
             corners = []
             for corner in itertools.product(*[tuple(r) for r in verts]):
                 A = [row[:] for row in A_any]
@@ -637,9 +745,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         verts = ranges
         meta.update(jmeta, condition="J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (Jacobian polytope)")
     K = np.zeros((model.m, model.n))
+    # The LMI is solved on A / s, s the largest spectral radius (rates divided by s too; M and K are unchanged), so that
+    # its tolerances are relative to the plant's own time scale: a plant in nanoseconds or in days is solved
+    # as one in seconds.
+    scale = lmi_scale(A_vertices)
+    scaled = [A / scale for A in A_vertices]
+    meta["lmi_scale"] = scale
+    if not affine:
+        meta["_ranges"] = ranges
 
     if st.feedback == "linear_gain":
-        M, K, lam, meta = _synthesise_feedback(model, st, A_vertices, meta)
+        M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, scale)
     elif st.method == "given":
         M = np.array(st.M, dtype=float)
         if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
@@ -655,8 +771,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                     margin_tol=MARGIN_TOL,
                     fallback=f"when that does not certify lambda: minimise kappa subject to I <= M <= kappa I and A(u_k)^T M + M A(u_k) + lambda M "
                              f"<= -{SCALE_FREE_MARGIN:g} kappa I, accepted when the numpy margin over ||M|| is below -{MARGIN_TOL:g}; M scaled to trace(M) = n")
-        M, lam, meta = _search(A_vertices, st, structures(st.structure, model.n), meta)
+        M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, scale)
 
+    meta.pop("_ranges", None)
     B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
     vertex_margins = lmi_margins([A + B_K for A in A_vertices], M, lam)
     if affine:
@@ -665,7 +782,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         sweep_margins = lmi_margins([A_sweep[:, :, k] + B_K for k in range(len(sweep_u))], M, lam)
     else:
         sweep_u = np.zeros((0, model.m))
-        sweep_margins = lmi_margins(jacobian_samples(model, A_sym), M, lam)
+        samples, where = jacobian_samples(model, A_sym)
+        sweep_margins = lmi_margins(samples, M, lam)
+        if sweep_margins.max() > 0:
+            # A point of the box whose Jacobian breaks the LMI: the (sampled) ranges missed it, and no M found on
+            # them certifies the plant. A counter-example, not a solver failure.
+            k = int(np.argmax(sweep_margins))
+            x_at, u_at = where[k, :model.n], where[k, model.n:]
+            raise DesignError("stabilisability", f"eq. egLMI fails at x = {np.round(x_at, 6).tolist()}, u = {np.round(u_at, 6).tolist()} "
+                              f"(margin {sweep_margins[k]:.3g} > 0 at lambda = {lam:.6g}): its Jacobian lies outside the sampled ranges "
+                              f"({meta.get('range_method', '')})", "Jacobian ranges that ball arithmetic can enclose, or a smaller state_box",
+                              check="lmi_margin")
     margin = float(max(vertex_margins.max(), sweep_margins.max()))
     eig_M = np.linalg.eigvalsh(M)
     meta.update(M_condition_number=float(eig_M.max() / eig_M.min()) if eig_M.min() > 0 else None)
@@ -675,7 +802,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
                           f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies", check="lmi_margin")
 
-    proved_margin, proof = prove_lmi(model, A_sym, verts, affine, K, M, lam)
+    proved_margin, proof = prove_lmi(model, A_sym, verts, affine, K, M, lam, ranges_proved=bool(meta.get("ranges_proved", False)))
     margin_evidence = proofs.PROVED if proved_margin <= 0 else proofs.SAMPLED
     M_lower = proofs.lambda_min_lower(M) if model.n <= proofs.MAX_PROOF_STATES else -np.inf
     meta.update(lmi_proof=proof if proved_margin <= 0 else f"not proved: {proof} (bound {proved_margin:.3g})")
@@ -708,9 +835,10 @@ def structures(choice: str, n: int) -> list[str]:
     return ["full"] if n <= FULL_MAX_STATES else ["diagonal", "full"]
 
 
-def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> tuple[np.ndarray, float, dict]:
+def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, scale: float = 1.0) -> tuple[np.ndarray, float, dict]:
     """M and lambda of eq. egLMI (identity feedback), trying each structure of M in turn.
 
+    ``A_vertices`` are divided by ``scale`` (so are the rates inside; the lambda returned is in the plant's units).
     A later structure is tried only when the earlier one finds no M (at the requested rate, or with any
     positive rate for ``maximise``); ``meta["structure"]`` records the one used and ``meta["tried"]`` all.
     """
@@ -722,21 +850,25 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict) -> t
             lam, M = largest_decay_rate(A_vertices, structure=structure, info=how)
             if M is not None:
                 meta.update(structure=structure, tried=tried, bisection_rtol=BISECTION_RTOL,
-                            bisection_bracket=[lam, float(how["upper_bound"])], **_formulation_meta(how))
-                return M, lam, meta
+                            bisection_bracket=[lam * scale, float(how["upper_bound"]) * scale], **_formulation_meta(how))
+                return M, lam * scale, meta
             continue
         lam = float(st.decay_rate)
-        M, t, status, info = certify_rate(A_vertices, lam, structure)
+        M, t, status, info = certify_rate(A_vertices, lam / scale, structure)
         if M is not None:
-            meta.update(structure=structure, tried=tried, status=status, optimal_margin=t, **_formulation_meta(info))
+            meta.update(structure=structure, tried=tried, status=status, optimal_margin=t * scale, **_formulation_meta(info))
             return M, lam, meta
+    worst = _worst_vertex_text(model, A_vertices, meta, scale)
+    other = ("feedback: linear_gain (g constant, f affine in x) to synthesise a stabilising K" if "jacobian_entries" not in meta
+             else "a smaller concrete.state_box (the Jacobian ranges are taken over all of it)")
     if st.decay_rate == "maximise":
-        raise DesignError("stabilisability", "no decay rate lambda > 0 makes eq. egLMI feasible (A(u) is not Hurwitz at some vertex of U)",
-                          "an incrementally stable plant, or a stabilising feedback (issue: linear_gain)")
+        raise DesignError("stabilisability", f"no decay rate lambda > 0 makes eq. egLMI feasible{worst}",
+                          f"a plant that is incrementally stable on the set, or {other}", check="lmi_margin")
     best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
-    hint = (f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'" if best > 0
-            else "a plant with A(u) Hurwitz at every vertex of U, or feedback: linear_gain (g constant)")
-    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t:.3g}{'' if tried == ['full'] else ', M ' + ' or '.join(tried)})",
+    hint = (f"decay_rate below {best * scale:.6g} (the largest feasible), or 'maximise'" if best > 0
+            else f"a plant that is incrementally stable on the set, or {other}")
+    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t * scale:.3g}"
+                      f"{'' if tried == ['full'] else ', M ' + ' or '.join(tried)}){worst if best <= 0 else ''}",
                       hint, check="lmi_margin")
 
 
@@ -751,33 +883,58 @@ def _formulation_meta(info: dict) -> dict:
     return out
 
 
-def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict):
-    """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X."""
+def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict, scale: float = 1.0):
+    """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X with the smallest
+    gain (:func:`solve_lmi_feedback`).  ``A_vertices`` are divided by ``scale`` (rates too; K is unchanged)."""
     if st.method != "polytopic_lmi":
         raise SpecError("stabilisability.method", f"'{st.method}' with feedback linear_gain", "method polytopic_lmi (K is synthesised)")
     if any(e.free_symbols & set(model.x) for e in model.g):
         raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g", "g independent of x, or feedback identity")
-    B = np.array(model.substitute(model.g), dtype=float)
+    B = np.array(model.substitute(model.g), dtype=float) / scale
+    weights = np.maximum(0.5 * (model.U[:, 1] - model.U[:, 0]), 1e-300)
     structure = "diagonal" if st.structure == "diagonal" else "full"   # auto: the feedback LMI is searched in full
-    meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M^-1) = n, M^-1 >= {M_MIN_EIG} I",
-                objective="minimise t subject to A X + X A^T + B Y + Y^T B^T + lambda X <= t I at every vertex; K = Y X^-1, M = X^-1",
+    meta.update(solver="CLARABEL via cvxpy",
+                normalisation="I <= M^-1 <= kappa I, kappa the first of %s that is feasible" % list(FEEDBACK_CONDITION),
+                objective="minimise mu subject to A X + X A^T + B Y + Y^T B^T + lambda (1 + %g) X <= 0 at every vertex and "
+                          "K_i X K_i^T <= mu w_i^2 (w_i: half the width of U_i); K = Y X^-1, M = X^-1: the smallest gain, "
+                          "the largest region where no input clips" % FEEDBACK_RATE_MARGIN,
                 structure=structure)
     if st.decay_rate == "maximise":
-        lam, found = largest_decay_rate(A_vertices, B, structure)
+        lam, found = _largest_feedback_rate(A_vertices, B, structure, weights)
         if found is None:
-            raise DesignError("stabilisability", "no feedback gain K makes (A + B K) incrementally stable with a positive decay rate",
-                              "a stabilisable pair (A, B)", check="lmi_margin")
+            raise DesignError("stabilisability", "no feedback gain K makes A(u) + B K incrementally stable with a positive decay rate "
+                              f"at every vertex{_worst_vertex_text(model, A_vertices, meta, scale)}",
+                              "a stabilisable pair (A(u), B) at every vertex of U", check="lmi_margin")
         M, K = found
-        meta.update(bisection_rtol=BISECTION_RTOL, rate_cap=FEEDBACK_MAX_RATE)
+        lam *= scale
+        meta.update(bisection_rtol=BISECTION_RTOL, rate_cap=FEEDBACK_MAX_RATE * scale)
     else:
         lam = float(st.decay_rate)
-        M, K, t, status = solve_lmi_feedback(A_vertices, B, lam, structure)
-        meta.update(status=status, optimal_margin=t)
-        if M is None or t >= -MARGIN_TOL:
-            best, _ = largest_decay_rate(A_vertices, B, structure)
-            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g} (best margin {t:.3g})",
-                              f"decay_rate below {best:.6g} (the largest feasible), or 'maximise'", check="lmi_margin")
+        M, K, mu, status = solve_lmi_feedback(A_vertices, B, lam / scale, structure, weights)
+        meta.update(status=status, weighted_gain=mu)
+        if M is None:
+            best, _ = _largest_feedback_rate(A_vertices, B, structure, weights)
+            hint = (f"decay_rate below {best * scale:.6g} (the largest feasible with feedback), or 'maximise'" if best > 0 else
+                    f"a stabilisable pair (A(u), B) at every vertex of U{_worst_vertex_text(model, A_vertices, meta, scale)}")
+            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g}", hint, check="lmi_margin")
     return M, np.asarray(K, dtype=float), lam, meta
+
+
+def _worst_vertex_text(model: Model, A_vertices: list[np.ndarray], meta: dict, scale: float = 1.0) -> str:
+    """'; at u = [..] A has an eigenvalue with real part 0.5' (or at the corner of the Jacobian ranges df2/dx1 = ..):
+    the vertex whose A is least stable, which bounds every rate from above (lambda <= -2 Re eig(A))."""
+    k = int(np.argmax([np.linalg.eigvals(A).real.max() for A in A_vertices]))
+    re = float(np.linalg.eigvals(A_vertices[k]).real.max()) * scale
+    if "jacobian_entries" in meta:
+        ranges = meta.get("_ranges")
+        names = meta["jacobian_entries"]
+        corner = list(itertools.product(*[tuple(r) for r in ranges]))[k] if ranges is not None else ()
+        where = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, corner))
+        ranges_text = "; ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, (lo, hi) in zip(names, ranges)) if ranges is not None else ""
+        return (f"; at the corner {where} of the Jacobian ranges over state_box x U ({ranges_text}) df/dx has an eigenvalue "
+                f"with real part {re:.4g}")
+    verts = vertices(model.U)
+    return f"; at the vertex u = {np.round(verts[k], 6).tolist()} of U, A(u) has an eigenvalue with real part {re:.4g}"
 
 
 def summarise(art: Artefact) -> dict:
