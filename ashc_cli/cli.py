@@ -497,8 +497,11 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     the bound is global); and a refinement of the best runs by an evolution strategy. Every run keeps
     W0 <= w0_max_certified and ||v|| <= min(v_max, v_max_certified), and xi in V. Reports the largest ratio
     of |psi - y| to sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup|v| over all runs (max_ratio) and over
-    the runs started on the manifold (max_ratio_w0_zero, where only G ||v|| counts). Writes falsify.h5
-    either way; exit 3 if a ratio exceeds 1 (a violation).
+    the runs started on the manifold (max_ratio_w0_zero, where only G ||v|| counts). Rows of the design that
+    were only sampled are attacked where they could fail: the LMI of eq. (28) between its samples (local searches
+    from many starts, seeded by branch and bound), a second equilibrium of the frozen-input plant, and L_h; each
+    counter-example is printed with its coordinates. Writes falsify.h5 either way; exit 3 if a ratio exceeds 1
+    (a violation) or a counter-example is found.
     """
     _positive_t_final(t_final)
     spec_obj, folder = _load(spec, out)
@@ -519,9 +522,15 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
                    f"(run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, t = {number_text(entry['worst_time'], '.4g')} s); "
                    f"started on the manifold (W0 = 0): {number_text(entry.get('max_ratio_w0_zero', float('nan')), '.6g')} "
                    f"({entry.get('strategy_of_worst_w0_zero', '-')}); {entry['runs_leaving_V']} left V")
+    for text in entry.get("counterexamples", []):
+        typer.echo(f"counter-example to a sampled row: {text}")
     if entry["max_ratio"] > 1.0:
         typer.echo(f"error: falsify: the bound is violated by a factor {entry['max_ratio']:.4g} in run {entry['worst_run']} at "
                    f"t = {entry['worst_time']:.4g} s; the run is saved in {folder / 'falsify.h5'}", err=True)
+        raise typer.Exit(3)
+    if entry.get("certificate_counterexamples", 0):
+        typer.echo(f"error: falsify: {entry['certificate_counterexamples']} counter-example(s) to rows the design only sampled "
+                   f"(the verdict 'holds on samples only' is false); saved in {folder / 'falsify.h5'}", err=True)
         raise typer.Exit(3)
 
 

@@ -59,6 +59,7 @@ import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
 from .errors import NumericalError
+from .model import almost_everywhere
 
 __all__ = ["Unsupported", "TrackingLoop", "TrackingRun", "tracking_loop", "MRelationLoop", "MRelationRun", "m_relation_loop", "cache_dir",
            "available", "kernel_source", "kernel_key", "link_source", "link_key", "load_source", "CORE_SOURCE", "SIGNAL_HELPERS"]
@@ -157,7 +158,7 @@ def _emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: S
         for i in range(rows):
             for j in range(cols):
                 targets.append(f"{arr}[{i}]" if as_vector else f"{arr}[{i}, {j}]")
-                exprs.append(sp.sympify(matrix[i, j]).xreplace(subs).xreplace(local))
+                exprs.append(almost_everywhere(sp.sympify(matrix[i, j]).xreplace(subs).xreplace(local)))
     free = set().union(*(e.free_symbols for e in exprs)) - set(local.values())
     if free:
         raise Unsupported(f"{name}: the expressions depend on {sorted(map(str, free))}, which are not states")

@@ -71,7 +71,8 @@ from .compiled import Unsupported
 from .errors import DesignError
 from .falsify_loop import falsify_loop
 from .grids import domain_grid
-from .model import Model, apply_saturation, compile_flat
+from .attack import attack
+from .model import Model, apply_saturation, compile_flat, sparse_jacobian
 from .proofs import SIMULATED
 
 NAME = "falsify"
@@ -126,7 +127,7 @@ class BatchPlant:
         xi_terms = {"phi": model.phi_bar, "delta": arts["delta"].expr("delta"), "l": model.l,
                     "dpd": arts["bound"].expr("dp_delta"), "p": arts["manifold"].expr("p"), "kappa": arts["kappa"].expr("kappa"),
                     "dp": arts["manifold"].expr("dp_dxi")}
-        x_terms = {"f_bar": model.f_bar, "g": model.g, "h": model.h, "dh": model.h.jacobian(model.x)}
+        x_terms = {"f_bar": model.f_bar, "g": model.g, "h": model.h, "dh": sparse_jacobian(model.h, model.x)}
         self._xi = self._named(xi_terms, list(model.xi), model)
         self._x = self._named(x_terms, list(model.x), model)
         self.M = np.asarray(arts["stabilise"].value("M"), dtype=float)
@@ -1175,8 +1176,41 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
             batch = first
         report(17)
         verified, series = _verify(st, batch, res)
+        # What the design only sampled is attacked where it could fail (attack.py): the LMI between its samples,
+        # a second equilibrium, L_h; a counter-example there breaks the certificate whatever the runs show.
+        found = attack(model, arts, seed)
         report(SEGMENTS)
-    return _artefact(st, batch, res, verified, series, runs, seed, counts, disc)
+    art = _artefact(st, batch, res, verified, series, runs, seed, counts, disc)
+    _store_counterexamples(art, found)
+    return art
+
+
+def _store_counterexamples(art: Artefact, found: list[dict]) -> None:
+    """The certificate attack's counter-examples in the falsify artefact (values and a check)."""
+    texts = [counterexample_text(c) for c in found]
+    art.values["certificate_counterexamples"] = len(found)
+    art.values["counterexamples"] = texts if texts else ["none"]
+    for c in found:
+        if c["kind"] == "lmi" and "lmi_counterexample_x" not in art.values:
+            art.values.update({"lmi_counterexample_x": np.asarray(c["x"]), "lmi_counterexample_u": np.asarray(c["u"]),
+                               "lmi_counterexample_margin": float(c["margin"])})
+        if c["kind"] == "second_equilibrium" and "second_equilibrium_u" not in art.values:
+            art.values.update({"second_equilibrium_u": np.asarray(c["u"]), "second_equilibrium_x": np.asarray(c["x"]),
+                               "second_equilibrium_x_other": np.asarray(c["x_other"])})
+    art.checks["certificate_attack"] = Check(float(len(found)), not found,
+                                             "counter-examples found to the rows the design only sampled (0): " + ("; ".join(texts) if texts else "none"),
+                                             SIMULATED)
+
+
+def counterexample_text(c: dict) -> str:
+    """One line for a counter-example of :mod:`ashc_cli.attack`."""
+    if c["kind"] == "lmi":
+        return (f"eq. (28) fails at x = {np.round(c['x'], 6).tolist()}, u = {np.round(c['u'], 6).tolist()}: "
+                f"lambda_max(J^T M + M J + lambda M) = {c['margin']:.4g} > 0 at lambda = {c['lambda']:.6g}")
+    if c["kind"] == "second_equilibrium":
+        return (f"two equilibria for u = {np.round(c['u'], 6).tolist()}: x = {np.round(c['x'], 6).tolist()} and "
+                f"{np.round(c['x_other'], 6).tolist()} (no contraction on the box allows two)")
+    return f"||dh/dx|| = {c['norm']:.6g} > L_h = {c['L_h']:.6g} at x = {np.round(c['x'], 6).tolist()}"
 
 
 def _verify(st: Setup, batch: Batch, res: dict) -> tuple[np.ndarray, dict]:
@@ -1284,6 +1318,8 @@ def summarise(art: Artefact) -> dict:
     out = {"runs": int(art.meta["runs"]), "seed": int(art.meta["seed"]), "max_ratio": float(v["max_ratio"]),
            "worst_run": int(v["worst_run"]), "worst_time": float(v["worst_time"]), "runs_leaving_V": int(v["runs_leaving_V"]),
            "max_error": float(v["max_error"])}
+    out["certificate_counterexamples"] = int(v.get("certificate_counterexamples", 0))
+    out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
     if "max_ratio_w0_zero" in v:
         out.update({
             "max_ratio_w0_zero": float(v["max_ratio_w0_zero"]), "worst_w0_zero_run": int(v["worst_w0_zero_run"]),

@@ -33,6 +33,7 @@ import numpy as np
 import sympy as sp
 
 from .compiled import Unsupported, _emit_kernel, available, load_source
+from .model import sparse_jacobian
 
 __all__ = ["FalsifyLoop", "falsify_loop", "CORE_SOURCE", "threads"]
 
@@ -551,7 +552,7 @@ def _matrices(model, arts):
     xi_terms = [("phi", model.phi_bar), ("delta", arts["delta"].expr("delta")), ("l", model.l),
                 ("dpd", arts["bound"].expr("dp_delta")), ("kap", arts["kappa"].expr("kappa")),
                 ("pm", arts["manifold"].expr("p")), ("dp", arts["manifold"].expr("dp_dxi"))]
-    x_terms = [("fb", model.f_bar), ("g", model.g), ("h", model.h), ("dh", model.h.jacobian(model.x))]
+    x_terms = [("fb", model.f_bar), ("g", model.g), ("h", model.h), ("dh", sparse_jacobian(model.h, model.x))]
     nh, n, m, mh, p = model.n_hat, model.n, model.m, model.m_hat, model.p
     expected = {"phi": (nh, 1), "delta": (nh, mh), "l": (m, 1), "dpd": (n, mh), "kap": (p, 1), "pm": (n, 1), "dp": (n, nh),
                 "fb": (n, 1), "g": (n, m), "h": (p, 1), "dh": (p, n)}

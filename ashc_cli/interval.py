@@ -1045,6 +1045,10 @@ def compile_interval(
             e = sp.Float(e, precision=53) if math.isfinite(e) else sp.nan  # the exact double
         elif not isinstance(e, sp.Basic):
             raise ValueError(f"compile_interval: {type(e).__name__} is not a sympy expression")
+        if e.has(sp.DiracDelta, sp.Heaviside):   # sympy's derivatives of sign, min and max, as functions
+            from .model import almost_everywhere
+
+            e = almost_everywhere(e)
         flat.append(e)
     try:
         outs = [comp.expr(e) for e in flat]

@@ -75,12 +75,43 @@ def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode:
 
 def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Matrix:
     """d exprs / d symbols, differentiating only where the symbol occurs (the same matrix as sympy's
-    ``jacobian``, 15 times faster on the sparse ladder at n = 128: 0.05 s against 0.8 s)."""
+    ``jacobian``, 15 times faster on the sparse ladder at n = 128: 0.05 s against 0.8 s), with the derivatives
+    of sign, abs, min and max written as functions (:func:`almost_everywhere`)."""
     entries = []
     for e in exprs:
         free = e.free_symbols
-        entries.extend(e.diff(s) if s in free else sp.S.Zero for s in symbols)
+        entries.extend(almost_everywhere(e.diff(s)) if s in free else sp.S.Zero for s in symbols)
     return sp.Matrix(len(exprs), len(symbols), entries)
+
+
+def almost_everywhere(e: sp.Expr) -> sp.Expr:
+    """A derivative with sympy's distributions replaced by functions every evaluator knows.
+
+    d sign(z) = 2 DiracDelta(z) is 0 wherever it is defined (z != 0), so DiracDelta becomes 0; d max(z, 0) =
+    Heaviside(z) becomes (1 + sign(z)) / 2, which is 1/2 at the kink, inside Clarke's generalised derivative
+    [0, 1] (abs, min and max are Lipschitz: a mean-value argument holds with that derivative).  That sign
+    jumps is not lost: :func:`jumps` finds the discontinuous functions of an expression, and the stages that
+    need f or h Lipschitz on a set refuse one whose jump lies inside it.
+    """
+    e = sp.sympify(e)
+    if e.has(sp.DiracDelta):
+        e = e.replace(lambda a: isinstance(a, sp.DiracDelta), lambda a: sp.S.Zero)
+    if e.has(sp.Heaviside):
+        e = e.replace(lambda a: isinstance(a, sp.Heaviside), lambda a: (1 + sp.sign(a.args[0])) / 2)
+    return e
+
+
+def jumps(exprs, symbols: Sequence[sp.Symbol]) -> list[sp.Expr]:
+    """The discontinuous functions (sign, square, step) in the expressions whose argument depends on ``symbols``."""
+    from .expr import square, step
+
+    syms = set(symbols)
+    found = []
+    for e in (exprs if isinstance(exprs, (list, tuple)) else list(sp.Matrix(exprs))):
+        for a in sp.sympify(e).atoms(sp.sign, square, step, sp.Heaviside):
+            if a.free_symbols & syms and a not in found:
+                found.append(a)
+    return found
 
 
 def compile_flat(
@@ -95,7 +126,7 @@ def compile_flat(
     first, except in long lists of small expressions (:func:`_worth_cse`).
     """
     subs = {k: sp.Float(v) for k, v in (values or {}).items()}
-    flat = [sp.sympify(e).xreplace(subs) for e in exprs]
+    flat = [almost_everywhere(sp.sympify(e).xreplace(subs)) for e in exprs]
     return sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=_worth_cse(flat))
 
 
@@ -267,7 +298,7 @@ class Model:
     @cached_property
     def C(self) -> np.ndarray | None:
         """The matrix C of a linear output map h(x) = C x, or None if h is not linear in x."""
-        jac = self.h.jacobian(self.x)
+        jac = sparse_jacobian(self.h, self.x)
         if any(e.free_symbols & set(self.x) for e in jac) or any(sp.simplify(e) != 0 for e in self.h - jac * self.x):
             return None
         return np.array(jac.xreplace({k: sp.Float(v) for k, v in self.values.items()}), dtype=float)
@@ -299,7 +330,7 @@ class Model:
         if self.state_box is None:
             raise SpecError("concrete.state_box", "missing: h is not linear, so its Lipschitz constant L_h (Assumption 1) is computed over a box of states",
                             "one pair [lo, hi] per state")
-        jac = self.numeric(self.h.jacobian(self.x), list(self.x))
+        jac = self.numeric(sparse_jacobian(self.h, self.x), list(self.x))
         pts = domain_grid(self.state_box, 20000)
         norms = np.linalg.norm(np.moveaxis(jac(*pts), -1, 0), ord=2, axis=(1, 2))
         return maximise_on_box(pts, norms, lambda x: float(np.linalg.norm(jac(*x), 2)), self.state_box, starts=5)

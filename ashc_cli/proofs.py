@@ -28,7 +28,7 @@ from .model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
            "inf_on_box", "range_on_box", "norm_expr", "ball", "ball_box", "upper", "lower", "psd_lower_bound_balls",
-           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M"]
+           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M", "exact", "exact_number", "jump_inside"]
 
 PROVED, SAMPLED, SIMULATED = "proved", "sampled", "simulated"
 
@@ -213,7 +213,9 @@ def quadratic_form_terms(M: np.ndarray, A: Sequence[Sequence[arb]]) -> list[list
 
 
 def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
-    """||sqrt(M) A||_2 enclosed from above (exact for one column; Gershgorin on A^T M A for several)."""
+    """||sqrt(M) A||_2 enclosed from above: exact for one column; for several, sqrt of an upper bound of the largest
+    eigenvalue of the Gram matrix A^T M A, the smaller of Gershgorin's and Weyl's around the midpoint's (an arb
+    Cholesky of lambda I - mid; tight when the balls are narrow, Gershgorin when they are wide)."""
     G = quadratic_form_terms(M, A)
     if len(G) == 1:
         g = G[0][0]
@@ -222,4 +224,53 @@ def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
             return g
         return g.sqrt() if g.lower() >= 0 else ball(0.0, upper(g)).nonnegative_part().sqrt()
     top = float(interval.lambda_max_upper(G))
-    return arb(top).sqrt() if np.isfinite(top) else arb("nan")
+    if np.isfinite(top):
+        weyl = -psd_lower_bound_balls([[-g for g in row] for row in G])
+        top = min(top, weyl) if np.isfinite(weyl) else top
+    return arb(max(top, 0.0)).sqrt() if np.isfinite(top) else arb("nan")
+
+
+# --- exact rational arithmetic ------------------------------------------------------------------------------
+
+
+def exact_number(x: float) -> sp.Rational:
+    """The number a double stands for, as an exact rational: the shortest decimal that reads back as the same double
+    (Python's repr), so 0.1 is 1/10, as the spec wrote it; an integer-valued double is that integer."""
+    x = float(x)
+    if not np.isfinite(x):
+        raise ValueError(f"exact_number: {x} is not finite")
+    return sp.Rational(repr(x))
+
+
+def exact(model: Model, expr) -> sp.Matrix:
+    """An expression with the parameters and every Float replaced by exact rationals (:func:`exact_number`).
+
+    Exact decisions (an identity such as the PDE residual simplifying to 0, a matrix rank, whether the end of one
+    set lies inside another) read the spec's numbers as the decimals written, so that l(V) = U at an end or
+    kappa(V) = Y at a vertex is decided as equal rather than by the rounding of 0.3 - 0.1 in doubles.  Ball
+    arithmetic (:mod:`ashc_cli.interval`) takes each number as its double; the two readings differ by the last
+    bit of the parameters, far below any margin a certificate relies on.
+    """
+    e = sp.Matrix(sp.sympify(expr)) if not isinstance(expr, sp.MatrixBase) else sp.Matrix(expr)
+    e = e.xreplace({k: exact_number(v) for k, v in model.values.items()})
+    return e.xreplace({f: exact_number(float(f)) for f in e.atoms(sp.Float)})
+
+
+def jump_inside(model: Model, fun: sp.Expr, args: Sequence[sp.Symbol], box: np.ndarray) -> tuple[bool, str]:
+    """Whether a discontinuous function (sign(z), square(z), step(z)) can jump inside the box: its argument's
+    enclosure over the box reaches its jump points (0 for sign and step; the zeros of sin for square).
+
+    Returns (True, where) when it can, or when ball arithmetic cannot tell; (False, "") when z keeps off them.
+    """
+    from .expr import square
+
+    z = fun.args[0]
+    if isinstance(fun, square):
+        z = sp.sin(z)
+    try:
+        lo, hi, ok = range_on_box(compile_claims(model, [z], list(args)), np.asarray(box, dtype=float))
+    except interval.UnsupportedExpression:
+        return True, f"{fun}: its argument cannot be enclosed"
+    if not ok or lo <= 0 <= hi:
+        return True, f"{fun} jumps where {z} = 0, and {z} ranges over [{lo:.6g}, {hi:.6g}] on the box"
+    return False, ""

@@ -130,10 +130,14 @@ def _contract(group) -> list[str]:
         "with the spec's own variable names (a scalar prints as a one-element list). `m`, `b` and `c` are evaluated only "
         "at states whose output lies in the set where m is certified (`inverse.m_domain`); elsewhere the error names the set (exit 2).",
         "",
-        "**`ashc check SPEC --json`** prints `{spec, solved, rows, simulated}`; each row is "
+        "**`ashc check SPEC --json`** prints `{spec, solved, verdict, sampled, rows, simulated}`: `verdict` is `proved` "
+        "(every row that enters Problem 1, G and the certified region is proved), `sampled` (every row passes, some only "
+        "on samples: `sampled` names them) or `fails`; `solved` is true for the first two. Each row is "
         "`{" + ", ".join(row_keys) + "}` with `status` `pass`, `fail` or `not reached` and `evidence` `proved`, "
         "`sampled` or `simulated` (`-` when not reached). `simulated` lists the checks of the last `simulate` run on "
-        "this spec (`{check, status, value, detail, evidence}`; empty with `--force`), outside the verdict.",
+        "this spec (`{check, status, value, detail, evidence}`; empty with `--force`), outside the verdict. "
+        "`ashc check` exits 0 for `proved` and `sampled`, 3 for `fails`; with `--require proved` a verdict on samples "
+        "exits 3 too.",
         "",
         "**Errors** are one line on stderr, `error: <where>: <what>; expected <what>`, where `<where>` is the spec "
         "field (`concrete.f_bar[1]`) or the stage. No traceback unless `--debug`.",
@@ -142,7 +146,8 @@ def _contract(group) -> list[str]:
         "",
         *_exit_codes(),
         "",
-        "Code 3 also covers `check` answering no, `falsify` finding a violation and `regress` finding a difference. "
+        "Code 3 also covers `check` answering no (or holding on samples only with `--require proved`), `falsify` finding a "
+        "violation or a counter-example to a sampled row, and `regress` finding a difference. "
         "`simulate` exits 0 when a scenario check fails: it prints `FAILED (simulated)` and `check` lists it.",
     ]
     if missing or eval_missing:

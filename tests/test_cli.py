@@ -35,7 +35,7 @@ def test_design_progress_lines(cli_run):
     assert stages == list(SUMMARY_KEYS)
     assert all(" s  " in line for line in err[:6])
     out = cli_run["design"].stdout.splitlines()
-    assert len(out) == 1 and "checks passed" in out[0]
+    assert len(out) == 1 and ": proved (15/15 conditions of Problem 1); |psi - y| <= 23.836 ||v||_inf" in out[0]
 
 
 def test_design_skips_up_to_date_stages(cli_run):
@@ -220,7 +220,7 @@ def test_progress_without_a_terminal_prints_lines_only(capsys):
 def test_frozen_on_every_command_that_runs_stages(cli_run, tmp_path):
     out = _copy(cli_run, tmp_path)
     ok = invoke("design", CUK, "--out", out, "--frozen")
-    assert ok.exit_code == 0 and "checks passed" in ok.stdout
+    assert ok.exit_code == 0 and "proved (15/15 conditions of Problem 1)" in ok.stdout
     assert all("up to date" in line for line in ok.stderr.splitlines())
     (out / "delta.h5").unlink()
     for command in ("design", "check", "plot", "falsify", "report", "simulate", "bound"):

@@ -127,7 +127,8 @@ def test_finds_violation_2_feedback_that_saturates(tmp_path):
     # while the claimed sqrt(W0 exp(-(lambda - eps) t) / alpha_h) decays.
     spec, arts = _designed(SPECS / "unstable_linear.yaml", tmp_path)
     old = _old_bound(arts)
-    art = falsify.falsify(design_model(spec, old), old, 16, t_final=3.0)
+    # (with the smallest-gain K of issue 19 the saturation starts at larger W0: 64 runs of 6 s find it, 16 of 3 s did not)
+    art = falsify.falsify(design_model(spec, old), old, 64, t_final=6.0)
     v = art.values
     assert v["max_ratio"] > 10.0
     assert v["W0"][v["worst_run"]] > 0

@@ -359,3 +359,80 @@ def test_output_set_beyond_m_says_what_kappa_reaches(tmp_path):
     assert "kappa(V) = [-126.188, 0]" in line and "m is real only for y in [-126.915, 126.915]" in line
     assert "expected an output_set inside [-126.188, 0]" in line
     assert not any(token in line for token in ("True", "False", "[[", "np."))
+
+
+# --- issue 19: an affine p with a nonlinear h; exact decisions of eq. (10) -----------------------------------
+
+CUBIC_OUTPUT = """
+name: cubic_output
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["-x1 + x2", "-x2"]
+  g: [["0"], ["1"]]
+  h: ["x1 + 0.3*x1**3"]
+  input_bounds: [[-3, 3]]
+  output_set: [[-0.5, 0.5]]
+  state_box: [[-2, 2], [-2, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: 0.5}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-1, 1]]
+"""
+
+
+def test_affine_p_with_a_nonlinear_h_gets_a_left_inverse_reading_the_output_state(tmp_path):
+    # p(xi) = (xi, xi): P^+ = (x1 + x2) / 2 would break condition (ii) for h = x1 + 0.3 x1^3; m = x1 keeps it exactly.
+    from ashc_cli.pipeline import DESIGN, run
+
+    arts = run(parse_spec_text(CUBIC_OUTPUT), tmp_path, DESIGN)
+    inv = arts["inverse"]
+    x1, x2 = sp.symbols("x1 x2", real=True)
+    assert sp.simplify(inv.expr("m")[0] - x1) == 0
+    for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y"):
+        assert inv.checks[name].passed and inv.checks[name].evidence == "proved", name
+    assert inv.checks["V_covers_Y"].passed
+
+
+def test_a_gap_below_the_linear_programs_tolerance_is_found_exactly(tmp_path):
+    # kappa(V) = [0, 0.3] against Y = [0, 0.30000000000000004]: the floating-point LP accepts the vertex; the exact
+    # decision (in rationals) does not, and says by how much.
+    from ashc_cli.pipeline import DESIGN, run
+
+    text = """
+name: gap
+concrete:
+  states: [x]
+  inputs: [u]
+  f_bar: ["-x"]
+  g: [["1"]]
+  h: ["x"]
+  input_bounds: [[-3, 3]]
+  output_set: [[0, 0.30000000000000004]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[0, 0.3]]
+"""
+    with pytest.raises(DesignError, match=r"kappa\(V\) = \[0\.0, 0\.3\] \(exactly, in rationals\) misses Y = \[0\.0, 0\.30000000000000004\] by 4e-17 \(at the level of rounding"):
+        run(parse_spec_text(text), tmp_path / "a", DESIGN)
+    arts = run(parse_spec_text(text.replace("[[0, 0.30000000000000004]]", "[[0, 0.3]]")), tmp_path / "b", DESIGN)
+    assert arts["inverse"].checks["V_covers_Y"].evidence == "proved"
+
+
+def test_a_closed_form_inverse_of_two_outputs_is_proved(tmp_path):
+    from ashc_cli.pipeline import DESIGN, run
+    from ashc_cli.spec import load_spec
+
+    from .conftest import SPECS
+
+    arts = run(load_spec(SPECS / "bilinear_two_input.yaml"), tmp_path, DESIGN)
+    inv = arts["inverse"]
+    for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y", "V_covers_Y"):
+        assert inv.checks[name].evidence == "proved", name

@@ -128,3 +128,69 @@ def test_singular_jacobians_are_refused_by_the_condition_estimate():
     B[:, 5] = B[:, 4] * (1 + 1e-15)                      # singular to working precision
     assert manifold._factor(sps.csc_matrix(B)) is None
     assert manifold._factor(sps.csc_matrix(np.diag([1.0, 0.0]))) is None   # exactly singular
+
+
+# --- issue 19: exact solutions where they exist; l(V) in U decided exactly ----------------------------------
+
+def test_the_sylvester_solution_is_exact_and_proved(tmp_path):
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+
+    from .conftest import SPECS
+
+    arts = run(load_spec(SPECS / "linear_double.yaml"), tmp_path, ["manifold"])
+    p = arts["manifold"].expr("p")
+    xi1, xi2 = sp.symbols("xi1 xi2", real=True)
+    assert not p.atoms(sp.Float) and sp.simplify(p - sp.Matrix([xi1, xi2, 0, 0])) == sp.zeros(4, 1)
+    assert arts["manifold"].checks["pde_residual"].evidence == "proved"
+
+
+def test_a_fitted_polynomial_that_is_exact_is_recognised(tmp_path):
+    # nonlinear_cascade: the collocation finds p = [xi, xi^2] up to round-off; its coefficients are rationals that
+    # solve eq. (14a) exactly, so the PDE row is proved.
+    from ashc_cli.pipeline import run
+    from ashc_cli.spec import load_spec
+
+    from .conftest import SPECS
+
+    arts = run(load_spec(SPECS / "nonlinear_cascade.yaml"), tmp_path, ["manifold"])
+    xi = sp.Symbol("xi", real=True)
+    assert sp.simplify(arts["manifold"].expr("p") - sp.Matrix([xi, xi**2])) == sp.zeros(2, 1)
+    assert arts["manifold"].checks["pde_residual"].evidence == "proved"
+    assert "recognised as rationals" in arts["manifold"].meta["method"]
+
+
+def test_recognise_exact_never_changes_a_p_that_is_only_close():
+    model = build_model(parse_spec_text(CUK.read_text()))
+    xi = model.xi[0]
+    assert manifold.recognise_exact(model, sp.Matrix([1.0000001 * xi, xi, xi, xi])) is None
+
+
+L_EDGE = """
+name: l_edge
+concrete:
+  states: [x]
+  inputs: [u]
+  f_bar: ["-x"]
+  g: [["1"]]
+  h: ["x"]
+  input_bounds: [[0, 3]]
+  output_set: [[0.5, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["0.1*xi"]
+  domain: [[0, 30]]
+"""
+
+
+def test_l_meeting_the_end_of_U_is_decided_exactly():
+    # l(30) = 0.1 * 30 = 3 exactly (the spec's decimals), although 0.1 * 30 = 3.0000000000000004 in doubles.
+    art = manifold.run(build_model(parse_spec_text(L_EDGE)), {})
+    chk = art.checks["l_in_U"]
+    assert chk.passed and chk.evidence == "proved" and chk.value == 0.0
+    # and 4e-16 beyond it is outside, decided exactly, with what to change
+    with pytest.raises(DesignError, match=r"leaves U by 4e-16 \(decided exactly\) \(at the level of rounding"):
+        manifold.run(build_model(parse_spec_text(L_EDGE.replace("[[0, 30]]", "[[0, 30.000000000000004]]"))), {})

@@ -294,7 +294,7 @@ def test_falsify_figure_is_log_scale_by_strategy_with_the_best_run_highlighted(t
 def test_report_is_one_self_contained_page(reported):
     out, proc = reported
     page = (out / "report.html").read_text()
-    assert "Problem 1 solved: yes" in page and "Problem 1 solved: yes" in proc.stdout
+    assert "Problem 1 solved: proved" in page and "Problem 1 solved: proved" in proc.stdout
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
     assert len(images) == len(FIGURES)
     assert all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in images)

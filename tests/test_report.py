@@ -19,6 +19,7 @@ from ashc_cli.pipeline import load_all
 from ashc_cli.query import summary
 from ashc_cli.report import CSS, _figure_html, render
 from ashc_cli.spec import load_spec
+from ashc_cli.verdict import verdict
 
 from .conftest import CUK, SPECS, ashc
 
@@ -32,7 +33,7 @@ def cuk_page(cli_run, tmp_path_factory):
     out = cli_run["out"]
     arts = load_all(out)
     figures = plots.write_all(load_spec(CUK), arts, tmp_path_factory.mktemp("cuk_plots"))
-    page = render(CUK.read_text(encoding="utf-8"), "cuk_converter", arts, True, [], figures)
+    page = render(CUK.read_text(encoding="utf-8"), "cuk_converter", arts, verdict(arts), figures)
     path = tmp_path_factory.mktemp("cuk_page") / "report.html"
     path.write_text(page, encoding="utf-8")
     return page, arts, path
@@ -140,7 +141,7 @@ def test_the_page_renders_in_chromium_without_broken_images_or_sideways_scrollin
     assert got["broken"] == 0
     assert got["scrollWidth"] <= got["clientWidth"], got               # no horizontal scrolling at 1366 px
     assert got["rightmost"] <= got["clientWidth"] + 1, got["rightmost"]  # nothing drawn past the right edge
-    assert "..." not in got["text"] and "Problem 1 solved: yes" in got["text"]
+    assert "..." not in got["text"] and "Problem 1 solved: proved" in got["text"]
     # and a screenshot, for a person to look at: the page's width, not blank
     shot = tmp_path / "page.png"
     proc = _browser(exe, tmp_path, f"--window-size={LAPTOP},2400", f"--screenshot={shot}", path.as_uri())

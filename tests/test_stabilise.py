@@ -414,3 +414,165 @@ def test_maximise_survives_a_solver_failure_at_one_rate(monkeypatch):
     monkeypatch.setattr(stabilise, "_solve", failing)
     with pytest.raises(NumericalError, match="test"):
         stabilise.largest_decay_rate([A])
+
+
+# --- issue 19: enclosed Jacobian ranges, jumps, the plant's own time scale, bounded feedback gains ------------
+
+def _two_state(f2, *, box="[[-1.5, 1.5], [-1.5, 1.5]]", rate="1.0", U="[[-3, 3]]", feedback="identity", f1="-x1 + x2", g2="1", extra=""):
+    return build_model(parse_spec_text(f"""
+name: two_state
+{extra}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["{f1}", "{f2}"]
+  g: [["0"], ["{g2}"]]
+  h: ["x1"]
+  input_bounds: {U}
+  output_set: [[0.1, 0.5]]
+  {'state_box: ' + box if box else ''}
+stabilisability: {{method: polytopic_lmi, decay_rate: {rate}, feedback: {feedback}}}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[0, 2]]
+"""))
+
+
+STEEP_F2 = "-0.5*x1 - 2*x2 + 0.04*tanh(50000*(x1 + 0.0517))"
+
+
+def test_a_steep_band_is_inside_the_enclosed_range_and_the_lmi_is_refused():
+    # df2/dx1 = -0.5 + 2000 sech^2(50000 (x1 + 0.0517)) reaches 1999.5 in a band 1e-4 wide that a grid misses:
+    # the enclosure has it, and no M certifies lambda = 1 (a honest "no" instead of a sampled "yes").
+    model = _two_state(STEEP_F2)
+    _, A_list, ranges, meta = stabilise.jacobian_polytope(model)
+    assert meta["ranges_proved"]
+    assert ranges[0, 0] <= -0.5 and 1999.5 <= ranges[0, 1] <= 1999.5 * (1 + 1e-5)
+    assert meta["ranges_sampled"][0][1] < 1.0                   # what the grid saw
+    with pytest.raises(DesignError, match=r"infeasible at lambda = 1 .*corner df2/dx1 = 1999\.5\d* of the Jacobian ranges"):
+        stabilise.run(model, {})
+
+
+def test_enclosed_ranges_prove_the_lmi_of_a_smooth_plant():
+    art = stabilise.run(_two_state("-0.5*x1 - 2*x2 + 0.04*tanh(5*(x1 + 0.0517))"), {})
+    assert art.meta["ranges_proved"] and art.checks["lmi_margin"].evidence == "proved"
+
+
+def test_sampled_ranges_say_sampled(monkeypatch):
+    monkeypatch.setattr(stabilise, "_enclose_entry", lambda *a, **k: None)
+    art = stabilise.run(_two_state("-0.5*x1 - 2*x2 + 0.04*tanh(5*(x1 + 0.0517))"), {})
+    assert not art.meta["ranges_proved"] and art.checks["lmi_margin"].evidence == "sampled"
+    assert "only sampled" in art.meta["lmi_proof"]
+
+
+@pytest.mark.parametrize("f2, box, ok", [
+    ("-0.5*x1 - 2*x2 - 0.1*sign(x1)", "[[-1.5, 1.5], [-1.5, 1.5]]", False),     # the jump at x1 = 0 is in the box
+    ("-0.5*x1 - 2*x2 - 0.1*sign(x1)", "[[0.2, 1.5], [-1.5, 1.5]]", True),       # sign is constant on the box
+    ("-0.5*x1 - 2*x2 - 0.1*abs(x1)", "[[-1.5, 1.5], [-1.5, 1.5]]", True),       # abs is Lipschitz
+    ("-0.5*x1 - 2*x2 - 0.1*max(x1, 0)", "[[-1.5, 1.5], [-1.5, 1.5]]", True),
+])
+def test_jumps_are_refused_where_they_lie_in_the_box(f2, box, ok):
+    model = _two_state(f2, box=box)
+    if ok:
+        art = stabilise.run(model, {})
+        assert art.checks["lmi_margin"].passed and art.checks["lmi_margin"].evidence == "proved"
+    else:
+        with pytest.raises(DesignError, match=r"concrete\.f_bar\[1\]: sign\(x1\) jumps where x1 = 0.*not Lipschitz"):
+            stabilise.run(model, {})
+
+
+def test_a_jump_without_a_state_box_is_not_affine():
+    with pytest.raises(DesignError, match="not affine in x"):
+        stabilise.run(_two_state("-0.5*x1 - 2*x2 - 0.1*sign(x1)", box=None), {})
+
+
+def test_the_lmi_is_solved_on_the_plants_own_time_scale():
+    # x' = (A x + B u) / tau with A a Jordan block at -1: the certified rate scales as 1 / tau, the same rate at
+    # every time scale (sup 2 / tau, not attained). A fixed absolute tolerance refused the slow plant (margin -5e-9
+    # against 1e-7).
+    def plant(tau, rate):
+        return _two_state("-x2/tau", f1="(-x1 + x2)/tau", g2="1/tau", box=None, rate=rate, extra=f"parameters: {{tau: {tau!r}}}")
+
+    rates = []
+    for tau in (1e-8, 1.0, 1e8):
+        art = stabilise.run(plant(tau, "maximise"), {})
+        rates.append(art.values["lambda"] * tau)
+        assert art.checks["lmi_margin"].evidence == "proved" and art.values["lmi_margin"] < 0
+        assert stabilise.run(plant(tau, repr(1.5 / tau)), {}).checks["lmi_margin"].passed
+        with pytest.raises(DesignError, match="infeasible"):
+            stabilise.run(plant(tau, repr(2.01 / tau)), {})
+    assert 1.98 <= min(rates) and max(rates) <= 2.0
+    assert max(rates) - min(rates) <= 1e-6 * max(rates)
+
+
+def test_feedback_with_a_full_rank_B_is_bounded_and_small():
+    # B = I: the maximum-margin LMI was unbounded ("decay_rate below 0"); K = -B^+ (A + 2 I) would do, and the
+    # smallest gain the rate allows is what the certified region needs.
+    model = build_model(parse_spec_text("""
+name: full_rank_B
+concrete:
+  states: [x1, x2]
+  inputs: [u1, u2]
+  f_bar: ["x1 + x2", "x2"]
+  g: [["1", "0"], ["0", "1"]]
+  h: ["x1"]
+  input_bounds: [[-10, 10], [-10, 10]]
+  output_set: [[-1, 1]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0, feedback: linear_gain}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["-xi", "0"]
+  domain: [[-1.5, 1.5]]
+"""))
+    art = stabilise.run(model, {})
+    K, M = np.asarray(art.values["K"]), np.asarray(art.values["M"])
+    A = np.array([[1.0, 1.0], [0.0, 1.0]])
+    Acl = A + K
+    assert np.linalg.eigvalsh(Acl.T @ M + M @ Acl + 1.0 * M).max() < 0
+    assert np.abs(K).max() < 10          # K = -(A + 2 I) has entries of 3; nothing near the unbounded solution
+
+
+def test_feedback_gain_on_the_unstable_linear_spec_is_small():
+    # x1' = x2, x2' = x1 + u at lambda = 2: the maximum-margin LMI returned K = [-1168, -484]; the smallest-gain
+    # one a gain of order 1, which certifies a region of output radius about 100 times larger (test_bound).
+    from .conftest import SPECS
+
+    art = stabilise.run(build_model(load_spec(SPECS / "unstable_linear.yaml")), {})
+    K = np.asarray(art.values["K"]).ravel()
+    assert np.abs(K).max() < 10
+    Acl = np.array([[0.0, 1.0], [1.0 + K[0], K[1]]])
+    M = np.asarray(art.values["M"])
+    assert np.linalg.eigvalsh(Acl.T @ M + M @ Acl + 2.0 * M).max() < 0
+
+
+def test_maximise_on_a_motor_with_tanh_friction_returns_a_certified_rate():
+    # A DC motor with friction c tanh(k w): lambda = 1 and 3 are feasible; maximise exited 4 ("numpy re-check finds
+    # margin 1.1 > 0") when the sampled ranges missed the friction's steepest slope.
+    model = build_model(parse_spec_text("""
+name: dc_motor
+parameters: {J: 0.01, b: 0.1, K: 0.01, R: 1.0, L: 0.5, c: 0.02, k: 20.0}
+concrete:
+  states: [w, i]
+  inputs: [u]
+  f_bar: ["(-b*w + K*i - c*tanh(k*w))/J", "(-K*w - R*i)/L"]
+  g: [["0"], ["1/L"]]
+  h: ["w"]
+  input_bounds: [[-12, 12]]
+  output_set: [[-1, 1]]
+  state_box: [[-20, 20], [-20, 20]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-2, 2]]
+"""))
+    art = stabilise.run(model, {})
+    assert art.values["lambda"] >= 3.0
+    assert art.checks["lmi_margin"].evidence == "proved" and art.checks["lmi_margin"].passed

@@ -77,8 +77,8 @@ def test_check_cli_proved_and_no(tmp_path):
 
 
 def test_check_cli_on_samples_only_exits_0_unless_proved_is_required(tmp_path):
-    # nonlinear_cascade: p is a closed form on a 1-D V whose inverse rows are checked on samples only.
-    spec = SPECS / "nonlinear_cascade.yaml"
+    # saturating_spring: p and m are Chebyshev fits, so the PDE residual and the inverse rows are sampled.
+    spec = SPECS / "saturating_spring.yaml"
     proc = ashc("check", str(spec), "--out", str(tmp_path / "d"), "--json")
     assert proc.returncode == 0, proc.stderr
     data = json.loads(proc.stdout)

@@ -46,7 +46,7 @@ from ..artefacts import Artefact, Check
 from ..proofs import PROVED, SAMPLED
 from ..errors import DesignError
 from ..grids import domain_grid
-from ..model import Model, sparse_jacobian
+from ..model import Model, jumps, sparse_jacobian
 from .manifold import dp_function, p_function
 
 #: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
@@ -186,6 +186,130 @@ def interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: f
     return max(dbar, dbar_q0), f"sup over V and the 2^{model.m} per-channel clipping patterns of ||sqrt(M)(dp/dxi delta - g diag(s) q)|| (grid)"
 
 
+def _balls(A) -> "arb_mat":
+    """A float matrix (or a nested list of arb balls) as an arb_mat."""
+    from flint import arb_mat
+
+    return arb_mat([[proofs.arb(v) if not isinstance(v, proofs.arb) else v for v in row] for row in (A.tolist() if isinstance(A, np.ndarray) else A)])
+
+
+def constant_dp_delta(model: Model, dp_delta: sp.Matrix | None) -> list[list] | None:
+    """dp/dxi delta as a ball matrix when it does not depend on xi (an affine p with a constant delta), else None."""
+    if dp_delta is None or dp_delta.free_symbols & set(model.xi):
+        return None
+    try:
+        return proofs.BoxFunction(model, {"w": dp_delta}, list(model.xi))([proofs.arb(0)] * model.n_hat)["w"]
+    except proofs.interval.UnsupportedExpression:
+        return None
+
+
+def least_squares_q_balls(M: np.ndarray, g: np.ndarray, w: list[list]):
+    """q = (g^T M g)^-1 g^T M w (eq. egqLS, g of full column rank) as an arb_mat (m x m_hat), or None."""
+    Mb, gb, wb = _balls(M), _balls(g), _balls(w)
+    G = gb.transpose() * Mb * gb
+    try:
+        return G.inv() * (gb.transpose() * Mb * wb)
+    except ZeroDivisionError:
+        return None
+
+
+def prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp.Matrix | None) -> float:
+    """A proved upper bound of max over the 2^m clipping patterns S of ||sqrt(M) (dp/dxi delta - g S q)|| for a
+    constant dp/dxi delta and a constant g (then theta does not depend on xi), or inf where not proved.
+
+    q is the exact least-squares correction, enclosed in ball arithmetic; the norm of each pattern's theta is
+    bounded by :func:`proofs.norm_sqrt_M` (exact for one abstract input, Gershgorin on the Gram matrix else).
+    """
+    w = constant_dp_delta(model, dp_delta)
+    if w is None or model.n > proofs.MAX_PROOF_STATES:
+        return np.inf
+    q = least_squares_q_balls(M, g, w)
+    if q is None:
+        return np.inf
+    gb, wb = _balls(g), _balls(w)
+    worst = 0.0
+    for k in range(2 ** model.m):
+        S = _balls(np.diag([(k >> i) & 1 for i in range(model.m)]).astype(float))
+        theta = wb - gb * S * q
+        bound = proofs.upper(proofs.norm_sqrt_M(M, [[theta[i, j] for j in range(theta.ncols())] for i in range(theta.nrows())]))
+        worst = max(worst, bound)
+    return float(worst)
+
+
+def prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dbar: float, eta_eps: float,
+                 p_expr: sp.Matrix | None, dp_delta: sp.Matrix | None) -> tuple[float, float] | None:
+    """Proved lower bounds of the certified region's c and v_c (:func:`certified_region`), or None where not proved.
+
+    Each limit of :func:`certified_region` is bounded in ball arithmetic over V: the room of l_i in U_i by
+    branch and bound (inf over V of l_i - lo_i and hi_i - l_i), K_i M^-1 K_i^T with M^-1 enclosed (arb), the
+    least-squares q for a constant dp/dxi delta and g (or q = 0); the distance of p(xi) to the state box by
+    branch and bound on p's formula, and (M^-1)_jj enclosed.  c is the smallest of those lower bounds and
+    v_c = sqrt(c eps (lambda - eps)) / dbar is rounded down.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return None
+    stab = upstream["stabilise"]
+    K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
+    try:
+        Minv = _balls(M).inv()
+    except ZeroDivisionError:
+        return None
+    bounds = []
+    try:
+        if model.spec.interface.saturate is not False and model.spec.stabilisability.feedback == "linear_gain":
+            Kb = _balls(K)
+            KMK = Kb * Minv * Kb.transpose()
+            g = constant_g(model)
+            qn = [proofs.arb(0)] * model.m
+            if model.spec.interface.q == "least_squares" and g is not None:
+                w = constant_dp_delta(model, dp_delta)
+                q = least_squares_q_balls(M, g, w) if w is not None else None
+                if q is None:
+                    return None
+                qn = [sum((q[i, j] ** 2 for j in range(q.ncols())), proofs.arb(0)).sqrt() for i in range(model.m)]
+            lf = proofs.compile_claims(model, _rooms(model.l, model.U), list(model.xi))
+            factor = (proofs.arb(eta_eps).sqrt() / proofs.arb(dbar))
+            for i in range(model.m):
+                room_lo, ok_lo = proofs.inf_on_box(lf, model.V, index=2 * i)
+                room_hi, ok_hi = proofs.inf_on_box(lf, model.V, index=2 * i + 1)
+                if not (ok_lo and ok_hi):
+                    return None
+                room = max(0.0, min(room_lo, room_hi))
+                denom = KMK[i, i].sqrt() + qn[i] * factor
+                if not denom.is_finite():
+                    return None
+                if proofs.upper(denom) > 0:
+                    bounds.append(proofs.arb(room) / proofs.arb(proofs.upper(denom)))
+        box_used = "state_box" in stab.meta or model.C is None
+        if box_used and model.state_box is not None:
+            if p_expr is None:
+                return None
+            pf = proofs.compile_claims(model, _rooms(p_expr, model.state_box), list(model.xi))
+            for j in range(model.n):
+                d_lo, ok_lo = proofs.inf_on_box(pf, model.V, index=2 * j)
+                d_hi, ok_hi = proofs.inf_on_box(pf, model.V, index=2 * j + 1)
+                if not (ok_lo and ok_hi):
+                    return None
+                dist = max(0.0, min(d_lo, d_hi))
+                bounds.append(proofs.arb(dist) / Minv[j, j].sqrt())
+    except proofs.interval.UnsupportedExpression:
+        return None
+    if not bounds:
+        return np.inf, np.inf
+    root = min(proofs.lower(b) for b in bounds)            # sqrt(c) <= every bound
+    c_low = proofs.lower(proofs.arb(root) ** 2)
+    v_low = proofs.lower((proofs.arb(c_low) * proofs.arb(eta_eps)).sqrt() / proofs.arb(dbar))
+    return float(c_low), float(v_low)
+
+
+def _rooms(exprs, box: np.ndarray) -> list[sp.Expr]:
+    """[e_0 - lo_0, hi_0 - e_0, e_1 - lo_1, ...]: how far each expression is inside its interval (the ends exact doubles)."""
+    out = []
+    for e, (lo, hi) in zip(exprs, np.asarray(box, dtype=float)):
+        out += [e - sp.Float(float(lo)), sp.Float(float(hi)) - e]
+    return out
+
+
 def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray, dbar: float, eta_eps: float,
                      grid: np.ndarray, l_grid: np.ndarray, p_grid: np.ndarray, dpd_grid: np.ndarray) -> tuple[float, float, list[str]]:
     """The sublevel set {W <= c} on which the bound is certified, and the largest ||v|| that keeps it invariant.
@@ -248,8 +372,9 @@ def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, f
     Linear h = C x: alpha' = alpha_h (1 - 1e-9) with M - alpha' C^T C >= 0 proved by an arb Cholesky (C
     formed in ball arithmetic); when M is diagonal and every output reads one state (C^T C diagonal), the
     matrix is diagonal and its entries are checked one by one, at any n (the Cholesky is skipped above
-    ``proofs.MAX_PROOF_STATES`` states).  Nonlinear h with one output: L_h = a proved upper bound of
-    sup ||dh/dx||_2 over ``concrete.state_box`` and alpha' = (proved lower bound of lambda_min(M)) / L_h^2.
+    ``proofs.MAX_PROOF_STATES`` states).  Nonlinear h (any number of outputs): L_h = a proved upper bound of
+    sup ||dh/dx||_2 over ``concrete.state_box`` (:func:`jacobian_norm_expr`) and alpha' = (proved lower bound of
+    lambda_min(M)) / L_h^2.
     """
     diagonal = model.C is not None and not np.any(M - np.diag(np.diag(M))) and np.all(np.count_nonzero(model.C, axis=1) <= 1)
     if model.n > proofs.MAX_PROOF_STATES and not diagonal:
@@ -288,14 +413,30 @@ def _prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) 
         Mb = proofs.matrix_balls(M)
         S = [[Mb[i][j] - proofs.arb(a) * CtC[i][j] for j in range(model.n)] for i in range(model.n)]
         return (a, float(np.linalg.norm(model.C, 2)), "M - alpha_h C^T C >= 0 proved by an arb Cholesky") if proofs.psd_lower_bound_balls(S) >= 0 else None
-    if len(model.h) != 1 or model.state_box is None:
+    if model.state_box is None:
         return None
-    grad_norm = proofs.compile_claims(model, [sp.sqrt(sum(e**2 for e in jac))], list(model.x))
-    lip, ok, _ = proofs.sup_on_box(grad_norm, model.state_box)
+    norm, how = jacobian_norm_expr(jac)
+    lip, ok, _ = proofs.sup_on_box(proofs.compile_claims(model, [norm], list(model.x)), model.state_box)
     m_low = proofs.lambda_min_lower(M)
     if not ok or not m_low > 0:
         return None
-    return float(m_low / lip**2), float(lip), "lambda_min(M) and L_h bounded by ball arithmetic"
+    return float(m_low / lip**2), float(lip), f"lambda_min(M) and L_h = sup ||dh/dx||_2 ({how}) bounded by ball arithmetic"
+
+
+def jacobian_norm_expr(jac: sp.Matrix) -> tuple[sp.Expr, str]:
+    """An expression >= ||dh/dx||_2 everywhere, for any number of outputs, and what it is.
+
+    One output: the gradient's Euclidean norm (exact).  Two outputs or two states: sqrt of the largest
+    eigenvalue of the 2 x 2 Gram matrix in closed form (exact).  Otherwise the Frobenius norm, an upper bound
+    within a factor sqrt(min(p, n)).
+    """
+    p, n = jac.shape
+    if p == 1:
+        return sp.sqrt(sum(e**2 for e in jac)), "the gradient's norm"
+    if min(p, n) <= 2:
+        w = jac.T if p <= 2 else jac           # two columns: ||w||_2 = ||dh/dx||_2
+        return proofs.norm_expr(np.eye(w.shape[0]), w), "closed-form 2 x 2 Gram eigenvalue"
+    return sp.sqrt(sum(e**2 for e in jac)), "Frobenius norm, >= the 2-norm"
 
 
 def prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
@@ -339,6 +480,14 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     M = np.asarray(st.value("M"), dtype=float)
     lam = float(st.value("lambda"))
     C = model.C
+    if C is None and model.state_box is not None:
+        for i, e in enumerate(model.h):
+            for fun in jumps([e], model.x):
+                inside, where = proofs.jump_inside(model, fun, list(model.x), model.state_box)
+                if inside:
+                    raise DesignError(f"concrete.h[{i}]", f"{where}: h is not Lipschitz on concrete.state_box (Assumption 1), so alpha_h does not exist",
+                                      f"a continuous output map (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
+                                      check="h_lipschitz")
     lipschitz_h, lipschitz_at = model.h_jacobian_bound()
     alpha_h = alpha_h_linear(M, C) if C is not None else alpha_h_lipschitz(M, lipschitz_h)
     eps = lam / 2.0
@@ -388,14 +537,30 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
     dbar, dbar_how = interface_dbar(model, L, dpd_grid, dbar_q0)
     dbar_evidence = PROVED if np.isfinite(dbar_q0_proved) and dbar == dbar_q0 else SAMPLED
+    if np.isfinite(dbar) and dbar != dbar_q0 and np.isfinite(dbar_q0_proved):
+        # The clipping patterns of several inputs: proved where theta does not depend on xi (affine p, constant delta and g).
+        g_const = constant_g(model)
+        pattern_proved = prove_pattern_dbar(model, M, g_const, dp_delta) if g_const is not None else np.inf
+        if np.isfinite(pattern_proved):
+            dbar = max(dbar, pattern_proved, dbar_q0)
+            dbar_how = dbar_how.replace("(grid)", "(proved in ball arithmetic: theta is constant on V)")
+            dbar_evidence = PROVED
     if not np.isfinite(dbar):
         raise DesignError("interface.saturate", f"no uniform bound is certified: {dbar_how} (condition (B) fails for this interface)",
                           "interface.saturate: scale (one factor for the whole correction), q: zero, or a constant g", check="condition_B")
     gain = error_bound_gain(alpha_h, lam, eps, dbar)
     l_num = model.numeric(model.l, xi_args)
     w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_grid, dpd_grid)
-    # A global region rests on the structural argument of interface_dbar and on dbar itself.
+    # A global region rests on the structural argument of interface_dbar and on dbar itself; a local one on the
+    # proved lower bounds of its limits (then the region published is the proved one, a little smaller).
     region_evidence = dbar_evidence if not np.isfinite(w0_max) else SAMPLED
+    w0_max_sampled, v_max_sampled = w0_max, v_max
+    if np.isfinite(w0_max):
+        p_expr = man.exprs["p"] if "p" in man.exprs else (man.series["p"].to_sympy(xi_args) if "p" in man.series else None)
+        proved_region = prove_region(model, upstream, M, dbar, (lam - eps) * eps, p_expr, dp_delta)
+        if proved_region is not None and proved_region[0] > 0:
+            w0_max, v_max = min(w0_max, proved_region[0]), min(v_max, proved_region[1])
+            region_evidence = dbar_evidence
     art = Artefact(stage=NAME, meta={
         "grid_points": int(grid.shape[1]), "sup_method": "grid maximum refined by bounded scalar search",
         "sqrt_M": "Cholesky factor L of M, ||L^T w|| = ||sqrt(M) w|| (ERRATA item 8)",
@@ -414,6 +579,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         "dbar_argmax": np.array(at, dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
         "dbar": dbar, "dbar_how": dbar_how, "dbar_q0_sampled": dbar_q0_sampled, "dbar_q0_proved": dbar_q0_proved,
         "alpha_h_sampled": alpha_h_sampled, "lipschitz_h_sampled": lipschitz_h_sampled, "w0_max_certified": w0_max, "v_max_certified": v_max,
+        "w0_max_sampled": w0_max_sampled, "v_max_sampled": v_max_sampled,
         "region_limits": "; ".join(limits) if limits else "none: the bound holds on V x R^n for every v",
         "xi_grid": grid, "theta_norm_q0": norm_q0, "theta_norm_q0_identity": norm_q0_identity, "theta_norm_ls_manifold": norm_ls,
     })

@@ -292,6 +292,123 @@ def _cover_affine(model: Model, kap: Artefact) -> tuple[list, np.ndarray]:
     return missing, np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
 
 
+def output_states_map(model: Model) -> np.ndarray:
+    """T with rows e_j for the states x_j that h names: h(x) = H(T x) (every state if h names none)."""
+    named = [j for j, xj in enumerate(model.x) if any(xj in e.free_symbols for e in model.h)]
+    rows = named or list(range(model.n))
+    return np.eye(model.n)[rows]
+
+
+def _cover_nonlinear(model: Model, kap: Artefact) -> tuple[float, str, str, bool]:
+    """eq. SimuLocalRequire for a nonlinear kappa: kappa(V) is the interval of kappa's extremes on V for one
+    abstract state and one output (continuity), else a bounded search per point of a grid of Y.
+
+    Returns (value, description, failure text, covers)."""
+    Y = model.Y
+    k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+    if model.n_hat == 1 and model.p == 1:
+        value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
+        return (value, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)",
+                f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}", value <= 0)
+    value = _cover_by_search(model, kap)
+    return (value, f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)",
+            f"some outputs of Y are not kappa(xi) for any xi in V (residual {value:.3g})", value <= 1e-9)
+
+
+#: Exact (rational) proofs of the affine inverse are attempted up to this many unknowns n_hat x n of K.
+EXACT_MAX_UNKNOWNS = 64
+
+
+def prove_affine_inverse(model: Model, man: Artefact, kap: Artefact, T: np.ndarray, K: np.ndarray, kappa_affine: bool) -> dict:
+    """Prove the inverse stage's claims for an affine p(xi) = P xi + p0 in exact rational arithmetic.
+
+    P and p0 are p's stored formula with every parameter and number the exact rational of its double.  Then:
+
+    * p injective: rank P = n_hat (exact);
+    * a left inverse K_ex with K_ex P = I and T (I - P K_ex) = 0 exactly, found from the rationals (the
+      pseudo-inverse (P^T P)^-1 P^T, or the least-norm solution of both equations): m(x) = K_ex (x - p0) gives
+      m(p(xi)) = xi (the left-inverse row, and condition (i): p(m(p(xi))) = p(xi)) and, since h reads x only
+      through T x (T = C for a linear h), h(p(m(x))) = h(x) for every x (condition (ii));
+    * m is linear, hence real everywhere;
+    * eq. (10) for an affine kappa = C P xi + C p0: for one output the exact range of kappa over V's corners
+      contains Y; otherwise each vertex of Y is reached from V (an exact linear program, sympy's simplex).
+
+    Returns
+    -------
+    dict
+        ``K`` (the doubles nearest K_ex, or the given K if not proved), booleans ``injective``, ``left_inverse``,
+        ``condition_ii``, ``covers`` (None when not decided exactly), ``K_deviation`` (max |K - K_ex| of the
+        given K) and ``how``.
+    """
+    out = {"K": K, "injective": False, "left_inverse": False, "condition_ii": False, "covers": None, "K_deviation": np.nan, "how": "not proved"}
+    n, n_hat = model.n, model.n_hat
+    if n * n_hat > EXACT_MAX_UNKNOWNS:
+        out["how"] = f"not attempted: n_hat x n = {n * n_hat} unknowns (exact rational proofs up to {EXACT_MAX_UNKNOWNS})"
+        return out
+    p = man.expr("p")
+    P = proofs.exact(model, man.expr("dp_dxi"))
+    if P.free_symbols & set(model.xi):
+        out["how"] = "not proved: dp/dxi is not constant in exact arithmetic"
+        return out
+    p0 = proofs.exact(model, p.xreplace({s: 0 for s in model.xi}))
+    if P.rank() < n_hat:
+        out["how"] = "not proved: P has exact rank below n_hat"
+        return out
+    out["injective"] = True
+    Tq = sp.Matrix([[proofs.exact_number(t) for t in row] for row in np.asarray(T, dtype=float)])
+    I_n, I_hat = sp.eye(n), sp.eye(n_hat)
+    K_ex = (P.T * P).inv() * P.T
+    if Tq * (I_n - P * K_ex) != sp.zeros(*Tq.shape):
+        # The least-norm solution of K P = I, T P K = T in vec(K) (column-major), exactly.
+        unknowns = sp.symbols(f"k0:{n_hat * n}")
+        Ks = sp.Matrix(n_hat, n, lambda i, j: unknowns[i + j * n_hat])
+        eqs = list(Ks * P - I_hat) + list(Tq * P * Ks - Tq)
+        A, b = sp.linear_eq_to_matrix(eqs, unknowns)
+        try:
+            sol = A.pinv() * b
+        except (ValueError, ZeroDivisionError):
+            sol = None
+        if sol is None or A * sol != b:
+            out["how"] = "not proved: no left inverse K of P with T (I - P K) = 0 exists in exact arithmetic"
+            return out
+        K_ex = Ks.xreplace(dict(zip(unknowns, sol)))
+    assert K_ex * P == I_hat
+    out.update(left_inverse=True, condition_ii=True)
+    K_float = np.array(K_ex.evalf(17).tolist(), dtype=float)
+    out["K_deviation"] = float(np.abs(np.asarray(K, dtype=float) - K_float).max())
+    out["K"] = K_float
+    how = "exact rationals: rank P = n_hat, K_ex P = I and T (I - P K_ex) = 0 with m = K_ex (x - p0) rounded to doubles"
+    if kappa_affine:
+        Cq = proofs.exact(model, sparse_jacobian(model.h, model.x))
+        Kk, k0 = Cq * P, Cq * p0
+        if Kk.free_symbols or k0.free_symbols:
+            out["how"] = how
+            return out
+        corners = list(itertools.product(*[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]))
+        Yq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.Y]
+        if model.p == 1:
+            vals = [(Kk * sp.Matrix(c) + k0)[0] for c in corners]
+            out["covers"] = bool(min(vals) <= Yq[0][0] and max(vals) >= Yq[0][1])
+            gap = max(min(vals) - Yq[0][0], Yq[0][1] - max(vals))
+            out["covers_gap"] = float(gap)
+            out["kappa_V_exact"] = [float(min(vals)), float(max(vals))]
+        else:
+            from sympy.solvers.simplex import InfeasibleLPError, linprog
+
+            covers = True
+            for vertex in itertools.product(*Yq):
+                try:
+                    linprog(sp.zeros(1, n_hat), A_eq=Kk, b_eq=sp.Matrix(vertex) - k0,
+                            bounds=[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V])
+                except InfeasibleLPError:
+                    covers = False
+                    break
+            out["covers"] = covers
+        how += "; eq. (10) decided exactly (" + ("kappa's range at the corners of V" if model.p == 1 else "a rational linear program per vertex of Y") + ")"
+    out["how"] = how
+    return out
+
+
 def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """The left inverse m(x) = K (x - p0) of an affine p(xi) = P xi + p0 (K from :func:`choose_left_inverse`), and its checks."""
     p = man.expr("p")
@@ -301,19 +418,45 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         raise DesignError("abstract", f"p(xi) = P xi + p0 is not injective: P has rank {int(np.sum(sv > 1e-12 * sv.max()))} < n_hat = {model.n_hat}",
                           "P of full column rank (Thm. mCondi)", check="left_inverse")
     C = model.C
-    choice = choose_left_inverse(P, C)
-    K_m = choice["K"]
+    # A nonlinear h reads the states it names: h(x) = H(T x) with T the rows e_j of those states.  Condition (ii)
+    # h(x) = h(p(m(x))) then holds for every x when T (I - P K) = 0, the linear case with C replaced by T.
+    T = C if C is not None else output_states_map(model)
+    choice = choose_left_inverse(P, T)
+    kappa_affine = C is not None or proofs.affine_in(kap.expr("kappa"), list(model.xi))
+    proof = prove_affine_inverse(model, man, kap, T, choice["K"], kappa_affine)
+    K_m = proof["K"]             # the doubles nearest the exact left inverse where it is proved
     m = sp.Matrix(K_m.tolist()) * (model.x - sp.Matrix(p0.tolist()))
     grid = np.asarray(man.value("xi_grid"))
     p_grid = np.asarray(man.value("p_grid"))
     left_residual = float(np.abs(K_m @ (p_grid - p0[:, None]) - grid).max())
 
-    # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope).
-    missing, k_range = _cover_affine(model, kap)
-    K_kappa, _ = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
-    covers = not missing
+    # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope when
+    # kappa is affine; for a nonlinear h, kappa = h o p is not, and the cover is checked as for an explicit m).
+    if kappa_affine:
+        missing, k_range = _cover_affine(model, kap)
+        K_kappa, _ = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+        covers = not missing
+        cover_value, cover_text = float(len(missing)), "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
+        failure = f"no xi in V reaches the output(s) {missing}"
+        min_dkappa = float(np.linalg.svd(K_kappa, compute_uv=False).min())
+    else:
+        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+        cover_value, cover_text, failure, covers = _cover_nonlinear(model, kap)
+        grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*np.asarray(man.value("xi_grid"))),
+                                              (model.p, model.n_hat, grid.shape[1])), -1, 0)
+        min_dkappa = float(np.linalg.svd(grid_dk, compute_uv=False).min())
+    if proof["covers"] is False:
+        # Decided exactly (rationals): the linear program's tolerance may have let a small gap pass.
+        covers = False
+        if "kappa_V_exact" in proof:
+            lo, hi = proof["kappa_V_exact"]
+            y_text = "[" + ", ".join(repr(float(v)) for v in model.Y[0]) + "]"
+            failure = (f"kappa(V) = [{lo!r}, {hi!r}] (exactly, in rationals) misses Y = {y_text} by {proof['covers_gap']:.3g}"
+                       + (" (at the level of rounding: widen V or shrink Y by that much)" if proof["covers_gap"] <= 1e-12 * max(1.0, np.abs(model.Y).max()) else ""))
+        else:
+            failure = "an exact rational linear program finds a vertex of Y that no xi in V reaches (the gap is below the floating-point program's tolerance)"
     if not covers:
-        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): no xi in V reaches the output(s) {missing}",
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
 
     least_norm = choice["construction"] == LEAST_NORM
@@ -323,11 +466,11 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL,
                                       "condition_ii_matrix_rtol": CONDITION_II_MATRIX_RTOL})
     art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
-    symbolic_ii = bool(C is not None and np.abs(C @ (np.eye(model.n) - P @ K_m)).max() < 1e-12)
+    symbolic_ii = bool(np.abs(T @ (np.eye(model.n) - P @ K_m)).max() < 1e-12)
     art.values.update({
         "V": model.V, "Y": model.Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
         "left_inverse_residual": left_residual, "condition_ii_symbolic": symbolic_ii,
-        "min_abs_dkappa": float(np.linalg.svd(K_kappa, compute_uv=False).min()),
+        "min_abs_dkappa": min_dkappa,
         "left_inverse_matrix": K_m,
         # max |C (I - P K)| / max(1, max |C|) for P^+ and for the K used (NaN for a nonlinear h)
         "condition_ii_matrix_pinv": choice["residual_pinv"], "condition_ii_matrix": choice["residual"],
@@ -337,10 +480,10 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         pinv_m = sp.Matrix(np.linalg.pinv(P).tolist()) * (model.x - sp.Matrix(p0.tolist()))
         art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p_function(man, model), pinv_m, samples)
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
-    art.checks["V_covers_Y"] = Check(float(len(missing)), covers, "eq. SimuLocalRequire: vertices of Y not reached from V (0)")
+    art.checks["V_covers_Y"] = Check(cover_value, covers, cover_text)
     art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
     which = "m = K (x - p0)" if least_norm else "m = P^+ (x - p0)"
-    if model.n_hat == 1 and model.p == 1 and symbolic_ii:
+    if model.n_hat == 1 and model.p == 1 and symbolic_ii and kappa_affine:
         # kappa(m(x)) = h(x) for every x and kappa is a bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
         _certify(art, model, k_range, "kappa(V)", f"kappa(V): {which} is linear and real everywhere, and m(x) lies in V "
                  "(where the abstraction is certified) exactly when h(x) lies in kappa(V)")
@@ -354,6 +497,13 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
                    "an abstraction whose kappa = C P has full row rank (at least as many abstract states as independent outputs), "
                    "or C^T in the range of P: change abstract.states, phi_bar or l, or the outputs h")
     _checks_common(art, model, p_function(man, model), m, p_grid, failure)
+    art.meta["proof"] = proof["how"]
+    art.values["left_inverse_exact_deviation"] = proof["K_deviation"]
+    if proof["left_inverse"]:
+        for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y"):
+            _relabel_proved(art, name, proof["how"])
+    if proof["covers"]:
+        _relabel_proved(art, "V_covers_Y", proof["how"])
     return art
 
 
@@ -475,6 +625,9 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
     _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
     _checks_common(art, model, p_function(man, model), m, p_grid)
+    proof = prove_multi_inverse(model, kappa, m_of_y, ys)
+    art.meta["proof"] = proof["how"]
+    _mark_proved(art, proof)
     return art
 
 
@@ -772,6 +925,48 @@ def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: 
             out["left_inverse"] = bool(w_ok and (w_lo > 0 if sign > 0 else w_hi < 0))
     out["how"] = ("ball arithmetic: dkappa/dxi " + ("> 0" if sign > 0 else "< 0") + " on V, kappa at the ends of V, m enclosed over Y"
                   + ("; kappa(m(y)) = y symbolically and m(kappa(V)) inside an interval where kappa is monotone" if out["left_inverse"] else ""))
+    return out
+
+
+def prove_multi_inverse(model: Model, kappa: sp.Matrix, m_of_y: sp.Matrix, ys: list[sp.Symbol]) -> dict:
+    """Prove the inverse stage's claims for several abstract states and as many outputs (m = kappa^-1 in closed form).
+
+    * m real and finite on Y: each component's ball-arithmetic enclosure over the box Y is finite;
+    * eq. (10): those enclosures lie inside V, and kappa(m(y)) - y simplifies to 0 (sympy): every y in Y is
+      kappa(m(y)) with m(y) in V;
+    * condition (ii): h(p(m(x))) = kappa(m(h(x))) = h(x) for h(x) in Y, by the same identity;
+    * p injective on V with m as left inverse (and condition (i)): m(kappa(xi)) - xi simplifies to 0 and
+      m(kappa(xi)) is enclosed finite over V (so the identity holds at every xi of V).
+
+    Returns
+    -------
+    dict
+        Booleans covers, real_on_Y, left_inverse, condition_ii; covers_margin (proved); how (text).
+    """
+    V, Y = model.V, model.Y
+    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
+    try:
+        mf = proofs.compile_claims(model, list(m_of_y), ys)
+        composed = [e.xreplace(dict(zip(ys, kappa))) for e in m_of_y]
+        mk = proofs.compile_claims(model, composed, list(model.xi))
+    except proofs.interval.UnsupportedExpression as exc:
+        out["how"] = f"not proved: {exc}"
+        return out
+    margin, finite = -np.inf, True
+    for i in range(model.n_hat):
+        lo, hi, ok = proofs.range_on_box(mf, Y, index=i)
+        finite = finite and ok
+        margin = max(margin, V[i, 0] - lo, hi - V[i, 1]) if ok else np.inf
+    if not finite:
+        out["how"] = "not proved: the enclosure of m over Y is not finite"
+        return out
+    right = proofs.symbolic_zero(list(proofs.exact(model, kappa.xreplace(dict(zip(model.xi, m_of_y))) - sp.Matrix(ys))))
+    left = proofs.symbolic_zero(list(proofs.exact(model, sp.Matrix(composed) - model.xi)))
+    left_finite = all(proofs.range_on_box(mk, V, index=i)[2] for i in range(model.n_hat)) if left else False
+    out.update(real_on_Y=True, covers=bool(right and margin <= 0), covers_margin=float(margin), condition_ii=bool(right),
+               left_inverse=bool(left and left_finite))
+    out["how"] = ("ball arithmetic: m enclosed finite over Y" + (f" and inside V (margin {margin:.3g})" if margin <= 0 else "")
+                  + ("; kappa(m(y)) = y symbolically" if right else "") + ("; m(kappa(xi)) = xi symbolically, defined on all of V" if out["left_inverse"] else ""))
     return out
 
 

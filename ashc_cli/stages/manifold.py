@@ -22,6 +22,8 @@ evaluated on a grid of V and stored, together with the check that l maps V into 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.optimize as sopt
@@ -123,7 +125,65 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
         p0 = np.linalg.solve(A, P @ s0 - a - B @ q0)     # constant part: A p0 + a + B q0 = P s0
     except np.linalg.LinAlgError:
         raise DesignError("concrete.f_bar", "A is singular, so the offset p0 of p(xi) = P xi + p0 is not determined", "an invertible A, or offsets that vanish") from None
+    exact = solve_sylvester_exact(model)
+    if exact is not None:
+        return exact
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
+
+
+#: Coefficients of a fitted polynomial p within this (relative) distance of a simple rational are tried as it.
+RECOGNISE_RTOL = 1e-10
+
+
+def recognise_exact(model: Model, p: sp.Matrix) -> sp.Matrix | None:
+    """The fitted polynomial p with each coefficient replaced by the nearest simple rational (sympy's nsimplify,
+    RECOGNISE_RTOL), if that p solves eq. (14a) exactly (the residual, in exact rationals, simplifies to 0); else None.
+
+    A collocation that has found an exact polynomial solution (p = [xi, xi^2] of a bilinear cascade) then
+    carries it exactly, and the PDE row is proved instead of sampled; a p that is only close is never changed.
+    """
+    floats = set().union(*(e.atoms(sp.Float) for e in p))
+    if not floats:
+        return None
+    swap = {}
+    for f in floats:
+        value = float(f)
+        r = sp.nsimplify(value, rational=True, tolerance=RECOGNISE_RTOL * max(1.0, abs(value)))
+        if not isinstance(r, sp.Rational) or r.q > 10**6:
+            return None
+        swap[f] = r
+    candidate = sp.Matrix([sp.expand(e.xreplace(swap)) for e in p])
+    return candidate if proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, candidate)))) else None
+
+
+#: The Sylvester equation is solved in exact rationals up to this many unknowns n x n_hat.
+EXACT_SYLVESTER_UNKNOWNS = 64
+
+
+def solve_sylvester_exact(model: Model) -> sp.Matrix | None:
+    """p(xi) = P xi + p0 solving A P + B Q = P S and A p0 + a + B q0 = P s0 in exact rationals (every parameter
+    and number the exact rational of its double), or None above EXACT_SYLVESTER_UNKNOWNS unknowns.
+
+    Then p solves eq. (14a) exactly, and sympy proves it (the residual simplifies to 0), as for a closed form.
+    """
+    if model.n * model.n_hat > EXACT_SYLVESTER_UNKNOWNS:
+        return None
+    unknowns = sp.symbols(f"_p0:{model.n * (model.n_hat + 1)}")
+    Pm = sp.Matrix(model.n, model.n_hat, unknowns[:model.n * model.n_hat])
+    p0 = sp.Matrix(unknowns[model.n * model.n_hat:])
+    p = Pm * model.xi + p0
+    residual = proofs.exact(model, pde_residual_expr(model, p))
+    equations = []
+    for r in residual:
+        poly = sp.Poly(sp.expand(r), *model.xi)
+        equations += poly.coeffs()
+    try:
+        solution = sp.solve(equations, unknowns, dict=True)
+    except (NotImplementedError, ValueError):
+        return None
+    if len(solution) != 1 or set(solution[0]) != set(unknowns):
+        return None
+    return p.xreplace(solution[0])
 
 
 def _manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
@@ -590,6 +650,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             series = p
         else:   # a low degree: the expanded, chopped polynomial (an exact solution reads as one) is p
             p = p.to_sympy(list(model.xi))
+    if series is None and p.atoms(sp.Float):
+        exact_p = recognise_exact(model, p)
+        if exact_p is not None:
+            p, tolerance = exact_p, RESIDUAL_RTOL
+            method += "; its coefficients recognised as rationals that solve eq. (14a) exactly (sympy)"
     V = model.V if model.V is not None else auto_domain(model, p)
 
     grid = domain_grid(V, GRID_POINTS)
@@ -618,9 +683,16 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     U = model.U
     l_lo, l_hi = l_grid.min(axis=1), l_grid.max(axis=1)
-    l_inside = bool(np.all(l_lo >= U[:, 0] - 1e-12) and np.all(l_hi <= U[:, 1] + 1e-12))
+    excursion, l_proved = prove_l_in_U(model, V)
+    # Proved inside, proved outside, or (no proof) inside on the grid with no slack.
+    grid_excursion = float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]]))
+    decided = l_proved or (np.isfinite(excursion) and proofs.affine_in(model.l, list(model.xi)))
+    l_inside = l_proved if decided else grid_excursion <= 0
     if not l_inside:
-        raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}",
+        by = excursion if decided else grid_excursion
+        tiny = " (at the level of rounding: shrink abstract.domain by that much)" if by <= 1e-12 * max(1.0, float(np.abs(U).max())) else ""
+        raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}: it leaves U by {by:.3g}"
+                          f"{' (decided exactly)' if decided else ' on a grid of V'}{tiny}",
                           "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l", check="l_in_U")
 
     art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
@@ -634,16 +706,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         art.exprs.update({"p": p, "dp_dxi": dp})
     art.values.update({"V": V, "xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
                        "l_range": np.c_[l_lo, l_hi]})
-    if method.startswith("closed form") and proofs.symbolic_zero(list(pde_residual_expr(model, p))):
+    if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, p)))):
         art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. SimuDesignCond1 exactly", proofs.PROVED)
     else:
         which = " (the Chebyshev series and its formula; they differ by {:.2g})".format(deviation) if series is not None else ""
         art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1){which}")
-    excursion, l_proved = prove_l_in_U(model, V)
     if l_proved:
-        art.checks["l_in_U"] = Check(excursion, True, "largest excursion of the ball-arithmetic enclosure of l(V) outside U (<= 0: l maps V into U)", proofs.PROVED)
+        how = ("l affine: its values at the corners of V, in exact rationals" if proofs.affine_in(model.l, list(model.xi))
+               else "the ball-arithmetic enclosure of l(V)")
+        art.checks["l_in_U"] = Check(excursion, True, f"largest excursion of l(V) outside U, {how} (<= 0: l maps V into U)", proofs.PROVED)
     else:
-        art.checks["l_in_U"] = Check(float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]])), l_inside, f"largest excursion of l(V) outside U on a {grid.shape[1]}-point grid (<= 0: l maps V into U)")
+        art.checks["l_in_U"] = Check(grid_excursion, l_inside, f"largest excursion of l(V) outside U on a {grid.shape[1]}-point grid (<= 0: l maps V into U)")
     return art
 
 
@@ -673,7 +746,18 @@ def pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
 
 
 def prove_l_in_U(model: Model, V: np.ndarray) -> tuple[float, bool]:
-    """The largest excursion of l(V) outside U, from proved bounds of each l_i over V; and whether l(V) is inside U."""
+    """The largest excursion of l(V) outside U, from proved bounds of each l_i over V; and whether l(V) is inside U.
+
+    An affine l is decided exactly: its extremes are at the corners of V, evaluated in rationals (the spec's
+    decimals, :func:`proofs.exact`), so an l that meets the end of U exactly is inside, and one that leaves it by
+    2e-16 is outside.  Otherwise each l_i is enclosed by branch and bound in ball arithmetic.
+    """
+    if proofs.affine_in(model.l, list(model.xi)):
+        l_exact = proofs.exact(model, model.l)
+        corners = itertools.product(*[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in V])
+        at = [l_exact.xreplace(dict(zip(model.xi, c))) for c in corners]
+        excursion = max(max(proofs.exact_number(model.U[i, 0]) - a[i], a[i] - proofs.exact_number(model.U[i, 1])) for a in at for i in range(model.m))
+        return float(excursion), bool(excursion <= 0)
     try:
         f = proofs.compile_claims(model, list(model.l), list(model.xi))
     except proofs.interval.UnsupportedExpression:

@@ -41,7 +41,7 @@ from .. import proofs
 from ..artefacts import Artefact, Check
 from ..errors import DesignError, NumericalError, SpecError
 from ..grids import domain_grid, maximise_on_box
-from ..model import Model, sparse_jacobian, tidy
+from ..model import Model, jumps, sparse_jacobian, tidy
 
 NAME = "stabilise"
 UPSTREAM: tuple[str, ...] = ()
@@ -94,7 +94,13 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
             if second != 0 and sp.simplify(second) != 0:   # simplify only what is not plainly zero
                 raise DesignError("concrete", f"A(u) is not affine in u: entry ({i + 1}, {j + 1}) = {e}",
                                   "A(u) affine in u so that the LMI at the vertices of U covers all of U")
-    return tidy(A), tidy(sp.expand(model.f - A * model.x))
+    b = tidy(sp.expand(model.f - A * model.x))
+    for i, e in enumerate(b):
+        if e.free_symbols & xs:
+            raise DesignError("concrete", f"f(x, u) is not affine in x: f{i + 1} - (A x){i + 1} = {e} depends on x (a jump such as sign(x) has a zero "
+                              "derivative almost everywhere but is not affine)",
+                              "f(x, u) = A(u) x + b(u), or a concrete.state_box on which f is Lipschitz and C^1 almost everywhere")
+    return tidy(A), b
 
 
 #: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices).
@@ -106,6 +112,28 @@ ENCLOSURE_TIME_BUDGET = 20.0
 #: Relative width at which that branch and bound stops (the enclosure is rigorous at any width; a tighter one
 #: only makes the LMI less conservative).
 ENCLOSURE_RTOL = 1e-6
+
+
+def refuse_jumps(model: Model) -> None:
+    """Refuse an f with a jump (sign, square, step of a state) inside state_box x U: the Jacobian LMI's mean-value
+    argument needs f Lipschitz there.  (abs, min and max are Lipschitz and handled by their generalised derivatives.)
+
+    Raises
+    ------
+    DesignError
+        Naming the field, the function and where its argument crosses the jump.
+    """
+    box = np.r_[model.state_box, model.U]
+    args = list(model.x) + list(model.u)
+    fields = [(f"concrete.f_bar[{i}]", e) for i, e in enumerate(model.f_bar)]
+    fields += [(f"concrete.g[{i}][{j}]", model.g[i, j]) for i in range(model.n) for j in range(model.m)]
+    for field, e in fields:
+        for fun in jumps([e], model.x):
+            inside, where = proofs.jump_inside(model, fun, args, box)
+            if inside:
+                raise DesignError(field, f"{where}: f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. egLMI) can certify it",
+                                  f"a smooth approximation of {fun.func.__name__} (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
+                                  check="lmi_margin")
 
 
 def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
@@ -731,7 +759,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     meta: dict = {"method": st.method, "feedback": st.feedback}
     # Without a state box a plant not affine in x is refused by affine_form, with its reason.
     J = sparse_jacobian(model.f, model.x)
-    affine = model.state_box is None or not any(e.free_symbols & set(model.x) for e in J)
+    # (a sign of a state has a Jacobian free of x almost everywhere, but f is not affine: its jump needs the box)
+    affine = model.state_box is None or not (any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x))
     if affine:
         A_sym, b_sym = affine_form(model, J)
         A_num = model.numeric(A_sym, list(model.u))
@@ -740,6 +769,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     else:
         if st.feedback == "linear_gain":
             raise SpecError("stabilisability.feedback", "'linear_gain' with f not affine in x", "feedback: identity (the Jacobian LMI certifies the plant itself)")
+        refuse_jumps(model)
         A_sym, A_vertices, ranges, jmeta = jacobian_polytope(model, J)
         b_sym = sp.zeros(model.n, 1)
         verts = ranges
