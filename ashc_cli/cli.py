@@ -599,14 +599,19 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
     values = tradeoff_mod.parse_tolerances(tolerances)
     spec_obj, folder = _load(spec, out)
     with Progress() as progress:
-        _, art, figure = tradeoff_mod.run_tradeoff(spec_obj, folder, values, on_stage=progress.on_stage, on_start=progress.on_start,
-                                                   frozen=frozen)
+        arts, art, figure = tradeoff_mod.run_tradeoff(spec_obj, folder, values, on_stage=progress.on_stage, on_start=progress.on_start,
+                                                      frozen=frozen)
     stored = artefact_path(folder, tradeoff_mod.NAME)
+    bound_values = arts["bound"].values if "bound" in arts else {}
+    sampled = str(bound_values.get("bound_evidence", "sampled")) != "proved"
     if as_json:
-        _emit_json({**tradeoff_mod.summarise(art), "artefact": str(stored), "figure": str(figure)})
+        _emit_json({**tradeoff_mod.summarise(art), "bound_evidence": "sampled" if sampled else "proved", "artefact": str(stored), "figure": str(figure)})
     else:
         for row in tradeoff_mod.table(art):
             typer.echo(row)
+        if sampled:
+            typer.echo(f"note: the tolerances are guaranteed only on samples: G = {gain_text(bound_values)} rests on "
+                       f"{bound_values.get('bound_sampled', 'sampled rows')}")
         typer.echo(f"tradeoff '{spec_obj.name}': {stored}, {figure}")
 
 

@@ -60,7 +60,7 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
     from .verdict import verdict
 
     start = time.perf_counter()
-    row = {"params": params, "solved": False, "lambda": np.nan, "dbar_q0": np.nan, "gain": np.nan,
+    row = {"params": params, "solved": False, "verdict": "fails", "lambda": np.nan, "dbar_q0": np.nan, "gain": np.nan,
            "falsify_ratio": np.nan, "error": ""}
     try:
         data = dict(spec_json)
@@ -147,6 +147,7 @@ def sweep(spec: Spec, axes: list[tuple[str, np.ndarray]], out: Path, scheduler: 
     art.values.update({
         "parameter_values": np.array([[r["params"][n] for n, _ in axes] for r in rows], dtype=float),
         "solved": np.array([r["solved"] for r in rows], dtype=bool),
+        "verdict": [r.get("verdict", "fails") for r in rows],
         "lambda": np.array([r["lambda"] for r in rows], dtype=float),
         "dbar_q0": np.array([r["dbar_q0"] for r in rows], dtype=float),
         "gain": np.array([r["gain"] for r in rows], dtype=float),

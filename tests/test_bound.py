@@ -261,7 +261,7 @@ def test_alpha_h_proved_entry_by_entry_for_a_diagonal_M_at_any_size(monkeypatch)
 
 # --- issue 19: L_h of several outputs proved, saturation patterns and local regions proved --------------------
 
-def _design(text, tmp_path):
+def _design_text(text, tmp_path):
     from ashc_cli.pipeline import DESIGN, run
     from ashc_cli.spec import parse_spec_text
 
@@ -292,7 +292,7 @@ interface: {saturate: scale}
 
 def test_L_h_of_two_outputs_is_proved_with_the_steep_band(tmp_path):
     # dh/dx = [[1, 150 sech^2(5000 (x2 + 0.0311))], [0, 1]]: ||.||_2 = 150.0067 at x2 = -0.0311 (a sample grid saw 1).
-    arts = _design(TWO_OUTPUTS, tmp_path)
+    arts = _design_text(TWO_OUTPUTS, tmp_path)
     b = arts["bound"]
     J = np.array([[1.0, 150.0], [0.0, 1.0]])
     exact = np.linalg.norm(J, 2)
@@ -357,8 +357,8 @@ def test_an_output_with_a_jump_inside_the_box_is_refused_and_one_outside_designs
 
     text = TWO_OUTPUTS.replace('"x1 + 0.03*tanh(5000*(x2 + 0.0311))"', '"x1 + 0.1*sign(x2 - 0.2)"')
     with pytest.raises(DesignError, match=r"concrete\.h\[0\]: sign\(x2 - 1/5\) jumps where x2 - 1/5 = 0.*Assumption 1"):
-        _design(text, tmp_path / "in")
-    arts = _design(text.replace("[[-1.5, 1.5], [-1.5, 1.5]]", "[[-1.5, 1.5], [-1.5, 0.1]]").replace("[[-0.5, 0.5], [-0.5, 0.5]]", "[[-0.5, 0.5], [-0.5, 0.05]]")
+        _design_text(text, tmp_path / "in")
+    arts = _design_text(text.replace("[[-1.5, 1.5], [-1.5, 1.5]]", "[[-1.5, 1.5], [-1.5, 0.1]]").replace("[[-0.5, 0.5], [-0.5, 0.5]]", "[[-0.5, 0.5], [-0.5, 0.05]]")
                    .replace("[[-1, 1], [-1, 1]]", "[[-1, 1], [-1, 0.08]]"), tmp_path / "out")
     assert arts["bound"].checks["h_lipschitz"].passed
 
