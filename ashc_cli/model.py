@@ -84,6 +84,53 @@ def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Ma
     return sp.Matrix(len(exprs), len(symbols), entries)
 
 
+#: Seconds a symbolic search (sympy.solve of a transcendental equation) may take before its numeric path is used.
+SYMBOLIC_BUDGET = 10.0
+
+
+def within_budget(fn, *args, seconds: float = SYMBOLIC_BUDGET):
+    """fn(*args) computed in a forked child process, or raise TimeoutError after ``seconds``.
+
+    sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
+    sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
+    The result comes back pickled (sympy expressions pickle).  Where fork is not available the call runs inline.
+    """
+    import multiprocessing as mp
+    import pickle
+
+    try:
+        ctx = mp.get_context("fork")
+    except ValueError:
+        return fn(*args)
+    reader, writer = ctx.Pipe(duplex=False)
+
+    def child():
+        try:
+            writer.send(("ok", pickle.dumps(fn(*args))))
+        except BaseException as exc:   # noqa: BLE001 (handed back to the parent and raised there)
+            writer.send(("error", repr(exc)))
+        finally:
+            writer.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    writer.close()
+    try:
+        if not reader.poll(seconds):
+            raise TimeoutError(f"symbolic work took longer than {seconds:g} s")
+        kind, payload = reader.recv()
+    except EOFError:
+        raise TimeoutError("the symbolic search ended without a result") from None
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        reader.close()
+    if kind != "ok":
+        raise ValueError(payload)
+    return pickle.loads(payload)
+
+
 def almost_everywhere(e: sp.Expr) -> sp.Expr:
     """A derivative with sympy's distributions replaced by functions every evaluator knows.
 

@@ -28,7 +28,7 @@ from .model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
            "inf_on_box", "range_on_box", "norm_expr", "ball", "ball_box", "upper", "lower", "psd_lower_bound_balls",
-           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M", "exact", "exact_number", "jump_inside"]
+           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M", "exact", "exact_number", "jump_inside", "refuse_jumps"]
 
 PROVED, SAMPLED, SIMULATED = "proved", "sampled", "simulated"
 
@@ -274,3 +274,18 @@ def jump_inside(model: Model, fun: sp.Expr, args: Sequence[sp.Symbol], box: np.n
     if not ok or lo <= 0 <= hi:
         return True, f"{fun} jumps where {z} = 0, and {z} ranges over [{lo:.6g}, {hi:.6g}] on the box"
     return False, ""
+
+
+def refuse_jumps(model: Model, fields: Sequence[tuple[str, sp.Expr]], args: Sequence[sp.Symbol], box: np.ndarray,
+                 what: str, expected: str, check: str) -> None:
+    """Raise a DesignError naming the field and the function when a jump of sign, square or step of the states
+    lies inside the box (:func:`jump_inside`); ``what`` says what fails there (it follows the jump's description)."""
+    from .errors import DesignError
+    from .model import jumps
+
+    for field, e in fields:
+        for fun in jumps([e], model.x):
+            inside, where = jump_inside(model, fun, args, box)
+            if inside:
+                raise DesignError(field, f"{where}: {what}", f"{expected} (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
+                                  check=check)

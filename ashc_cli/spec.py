@@ -319,6 +319,32 @@ def _refuse_duplicate_keys(node: yaml.Node, path: str) -> None:
     elif isinstance(node, yaml.SequenceNode):
         for i, item in enumerate(node.value):
             _refuse_duplicate_keys(item, f"{path}[{i}]")
+    elif isinstance(node, yaml.ScalarNode) and node.tag in (_FLOAT_TAG, _INT_TAG) and not path.startswith("stabilisability.M"):
+        _refuse_unheld_digits(node, path)
+
+
+_FLOAT_TAG, _INT_TAG = "tag:yaml.org,2002:float", "tag:yaml.org,2002:int"
+
+
+def _refuse_unheld_digits(node: yaml.ScalarNode, path: str) -> None:
+    """Refuse a number written with more digits than a double holds (2.99999999999999999 reads as 3.0).
+
+    Exact decisions (l(V) inside U, kappa(V) covering Y, identities) read each number as the decimal it is
+    written as; that is only the number the tool computes with when the double holds every written digit.
+    """
+    import decimal
+
+    text = node.value.replace("_", "")
+    try:
+        written = decimal.Decimal(text)
+    except decimal.InvalidOperation:
+        return   # .inf, .nan and the like: the validators say what is wrong with them
+    if not written.is_finite():
+        return
+    value = float(written)
+    if value in (float("inf"), float("-inf")) or decimal.Decimal(repr(value)) != written:
+        raise SpecError(path or f"line {node.start_mark.line + 1}", f"{node.value} has more significant digits than a double holds (it would be read as {value!r})",
+                        f"the number written with at most 17 significant digits (every exact decision reads the digits written)")
 
 
 def _yaml_load(text: str, source: str) -> Any:

@@ -135,7 +135,8 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
             chk = arts[stage].checks[check]
             value = float(chk.value) if np.isfinite(chk.value) else None
             rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, cite(chk.description), chk.evidence))
-        elif stopped is not None and stopped[0] == stage and getattr(stopped[1], "check", None) in (check, None):
+        elif stopped is not None and (getattr(stopped[1], "check", None) == check
+                                      or (stopped[0] == stage and getattr(stopped[1], "check", None) is None)):
             # The failure is about this row (or about the stage as a whole, e.g. an unsupported case).
             rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
         else:

@@ -67,6 +67,8 @@ CASES: tuple[Case, ...] = (
     Case("len-h", "h longer than output_set", edits=(('h: ["x4"]', 'h: ["x4", "x2"]'),), fragment="concrete.output_set: has 1 entries; expected 2"),
     Case("pair-not-pair", "a bound that is not a pair", edits=(("input_bounds: [[0, 1]]", "input_bounds: [[0]]"),), fragment="concrete.input_bounds[0]"),
     Case("pair-lo-gt-hi", "a bound with lo > hi", edits=(("input_bounds: [[0, 1]]", "input_bounds: [[1, 0]]"),), fragment="lo = 1.0 > hi = 0.0"),
+    Case("digits-beyond-double", "a bound with more digits than a double holds", edits=(("input_bounds: [[0, 1]]", "input_bounds: [[0, 0.99999999999999999]]"),),
+         fragment="concrete.input_bounds[0][1]: 0.99999999999999999 has more significant digits than a double holds (it would be read as 1.0)"),
     Case("param-nan", "a NaN parameter", edits=(("E: 12.0", "E: .nan"),), fragment="parameters.E"),
     Case("param-inf", "an infinite parameter", edits=(("E: 12.0", "E: .inf"),), fragment="parameters.E"),
     Case("param-not-number", "a parameter that is not a number", edits=(("E: 12.0", "E: twelve"),), fragment="parameters.E"),
@@ -116,7 +118,7 @@ CASES: tuple[Case, ...] = (
     Case("expr-signal-outside", "a time signal in the plant", edits=(('"x1/C_2"', '"triangle(x1)"'),), fragment="call of 'triangle' is not allowed"),
     # --- design conditions --------------------------------------------------------------------------------
     Case("plant-not-affine", "f not affine in x for polytopic_lmi", edits=(('"x1/C_2"', '"x1**2/C_2"'),), code=3, fragment="not affine in x"),
-    Case("lmi-infeasible", "an infeasible decay rate", edits=(("decay_rate: 2.0", "decay_rate: 3.0"),), code=3, fragment="(the largest feasible)"),
+    Case("lmi-infeasible", "an infeasible decay rate", edits=(("decay_rate: 2.0", "decay_rate: 3.0"),), code=3, fragment="(the largest the solver certifies)"),
     Case("l-outside-U", "l(V) outside U", edits=(('l: ["xi"]', 'l: ["2*xi"]'),), code=3, fragment="is not inside U"),
     Case("pde-not-fitted", "an invariance PDE no polynomial of degree <= 12 fits (Cuk with phi_bar = -xi, pde_max_degree: 12)",
          edits=(('phi_bar: ["0"]', 'phi_bar: ["-xi"]\n  pde_max_degree: 12'),), code=3,

@@ -46,7 +46,7 @@ from ..artefacts import Artefact, Check
 from ..proofs import PROVED, SAMPLED
 from ..errors import DesignError
 from ..grids import domain_grid
-from ..model import Model, jumps, sparse_jacobian
+from ..model import Model, sparse_jacobian
 from .manifold import dp_function, p_function
 
 #: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
@@ -256,7 +256,7 @@ def prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dba
         return None
     bounds = []
     try:
-        if model.spec.interface.saturate is not False and model.spec.stabilisability.feedback == "linear_gain":
+        if input_must_stay_in_U(model, upstream):
             Kb = _balls(K)
             KMK = Kb * Minv * Kb.transpose()
             g = constant_g(model)
@@ -310,6 +310,16 @@ def _rooms(exprs, box: np.ndarray) -> list[sp.Expr]:
     return out
 
 
+def input_must_stay_in_U(model: Model, upstream: dict[str, Artefact]) -> bool:
+    """Whether the certificate needs the applied u inside U: a clipped K (x - p) loses A + B K (saturating feedback),
+    and without clipping (``saturate: false``) an A(u) or a Jacobian that depends on u is certified on U only."""
+    itf, st = model.spec.interface, model.spec.stabilisability
+    if itf.saturate is not False:
+        return st.feedback == "linear_gain"
+    A = upstream["stabilise"].exprs.get("A")
+    return A is not None and any(e.free_symbols & set(model.u) for e in A)
+
+
 def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray, dbar: float, eta_eps: float,
                      grid: np.ndarray, l_grid: np.ndarray, p_grid: np.ndarray, dpd_grid: np.ndarray) -> tuple[float, float, list[str]]:
     """The sublevel set {W <= c} on which the bound is certified, and the largest ||v|| that keeps it invariant.
@@ -336,8 +346,13 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
     stab = upstream["stabilise"]
     K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
     # interface_dbar leaves the clipping patterns out for linear_gain, so the region must exclude clipping
-    # whatever K came out as (even a zero K).
-    if model.spec.interface.saturate is not False and model.spec.stabilisability.feedback == "linear_gain":
+    # whatever K came out as (even a zero K); without clipping, an A(u) certified on U needs u to stay in U.
+    if input_must_stay_in_U(model, upstream) and model.spec.interface.saturate is False and constant_g(model) is None:
+        raise DesignError("interface.saturate", "false with a g that depends on x: eq. egLMI holds for u in U only (A(u) depends on u "
+                          "through dg/dx u), and without clipping u = l + K (x - p) + q v leaves U for large v, with a q that grows "
+                          "where g(x) is small, so no region of W0 and v keeps u in U", "interface.saturate: true or scale (u stays in U)",
+                          check="certified_region")
+    if input_must_stay_in_U(model, upstream):
         # No channel clips while |K_i e| + |q_i v| <= room_i(xi): |K_i e| <= sqrt(c K_i M^-1 K_i^T) on {W <= c}
         # and |q_i v| <= ||q_i|| v_c with v_c = sqrt(c eta_eps) / dbar, so sqrt(c) <= room / (k_i + ||q_i|| sqrt(eta_eps) / dbar).
         k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
@@ -353,7 +368,8 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
             root = np.where(denom > 0, np.maximum(room, 0.0) / denom, np.inf)
         c_sat = float(np.min(root) ** 2)
         c = min(c, c_sat)
-        reasons.append(f"feedback K (x - p) does not clip (c <= {c_sat:.6g})")
+        reasons.append((f"feedback K (x - p) does not clip (c <= {c_sat:.6g})" if model.spec.interface.saturate is not False
+                        else f"u = l + K (x - p) + q v stays in U, where A(u) is certified (c <= {c_sat:.6g})"))
     box_used = "state_box" in stab.meta or model.C is None
     if box_used and model.state_box is not None:
         # p(xi) + e stays in the box for every e^T M e <= c: |e_j| <= sqrt(c (M^-1)_jj).
@@ -480,14 +496,6 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     M = np.asarray(st.value("M"), dtype=float)
     lam = float(st.value("lambda"))
     C = model.C
-    if C is None and model.state_box is not None:
-        for i, e in enumerate(model.h):
-            for fun in jumps([e], model.x):
-                inside, where = proofs.jump_inside(model, fun, list(model.x), model.state_box)
-                if inside:
-                    raise DesignError(f"concrete.h[{i}]", f"{where}: h is not Lipschitz on concrete.state_box (Assumption 1), so alpha_h does not exist",
-                                      f"a continuous output map (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
-                                      check="h_lipschitz")
     lipschitz_h, lipschitz_at = model.h_jacobian_bound()
     alpha_h = alpha_h_linear(M, C) if C is not None else alpha_h_lipschitz(M, lipschitz_h)
     eps = lam / 2.0

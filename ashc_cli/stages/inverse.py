@@ -54,7 +54,7 @@ from ..artefacts import Artefact, Check
 from ..errors import ArtefactError, DesignError
 from .. import chebyshev
 from ..grids import domain_grid, sample_states_with_output
-from ..model import Model, sparse_jacobian, tidy
+from ..model import Model, sparse_jacobian, tidy, within_budget
 from .manifold import p_function
 
 NAME = "inverse"
@@ -527,13 +527,23 @@ def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) ->
         return []
     mus = [sp.Dummy(f"mu{k}", real=True) for k in range(model.n_hat)]
     equations = [sp.Eq(e.xreplace(dict(zip(model.xi, mus))), yk) for e, yk in zip(kappa, ys)]
+    rational = all(sp.sympify(e).is_rational_function(*model.xi) for e in kappa)
     try:
         # check=False: every branch is verified numerically below (m(p(xi)) = xi on V), and sympy's own
-        # check (checksol) took 0.7 of the 0.8 s of this stage on the Cuk converter.
-        solutions = sp.solve(equations, mus, dict=True, check=False)
-    except (NotImplementedError, ValueError, TypeError):
+        # check (checksol) took 0.7 of the 0.8 s of this stage on the Cuk converter.  A transcendental kappa
+        # (tanh, exp of xi) gets a time budget: sympy may search for minutes without an answer.
+        if rational:
+            solutions = sp.solve(equations, mus, dict=True, check=False)
+        else:
+            solutions = within_budget(_solve_all, equations, mus)
+    except (NotImplementedError, ValueError, TypeError, TimeoutError):
         return []
     return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
+
+
+def _solve_all(equations: list, unknowns: list) -> list[dict]:
+    """sympy.solve of the equations for the unknowns, every solution as a dict (:func:`within_budget` runs it)."""
+    return sp.solve(equations, unknowns, dict=True, check=False)
 
 
 def branch_residuals(model: Model, branches: list[list[sp.Expr]], ys: list[sp.Symbol], y_grid: np.ndarray, grid: np.ndarray) -> list[float]:
@@ -808,6 +818,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         dk = np.diff(y_grid)
         turns = grid[0, 1:-1][np.sign(dk[1:]) != np.sign(dk[:-1])]
         where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
+        if not turns.size and method.startswith("Chebyshev"):
+            raise DesignError("abstract.m", f"kappa is strictly monotone on V = {model.V.tolist()} (so p is injective), but sympy finds no closed form "
+                              f"of m and its Chebyshev interpolant of degree <= {MAX_INVERSE_DEGREE} reaches only max |m(p(xi)) - xi| = "
+                              f"{left_residual:.3g} (kappa is too steep in places for one polynomial)",
+                              f"abstract.m written by hand (it is checked, not trusted), or a smaller abstract.domain", check="left_inverse")
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone", check="left_inverse")
     m_of_y = tidy(sp.Matrix([branches[best]]))[0]

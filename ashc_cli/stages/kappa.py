@@ -34,6 +34,12 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         If kappa is not finite somewhere on the grid of V.
     """
     man = upstream["manifold"]
+    if model.C is None and model.state_box is not None:
+        # A jump of h inside the box breaks Assumption 1 before anything is built on h (the inverse stage would
+        # meet it as a failure of condition (ii)).
+        proofs.refuse_jumps(model, [(f"concrete.h[{i}]", e) for i, e in enumerate(model.h)], list(model.x), model.state_box,
+                            "h is not Lipschitz on concrete.state_box (Assumption 1), so alpha_h does not exist",
+                            "a continuous output map", check="h_lipschitz")
     grid = np.asarray(man.value("xi_grid"))
     series = man.series["p"].left(model.C) if "p" in man.series and model.C is not None else None
     if series is not None:

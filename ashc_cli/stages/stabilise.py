@@ -123,17 +123,11 @@ def refuse_jumps(model: Model) -> None:
     DesignError
         Naming the field, the function and where its argument crosses the jump.
     """
-    box = np.r_[model.state_box, model.U]
-    args = list(model.x) + list(model.u)
     fields = [(f"concrete.f_bar[{i}]", e) for i, e in enumerate(model.f_bar)]
     fields += [(f"concrete.g[{i}][{j}]", model.g[i, j]) for i in range(model.n) for j in range(model.m)]
-    for field, e in fields:
-        for fun in jumps([e], model.x):
-            inside, where = proofs.jump_inside(model, fun, args, box)
-            if inside:
-                raise DesignError(field, f"{where}: f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. egLMI) can certify it",
-                                  f"a smooth approximation of {fun.func.__name__} (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
-                                  check="lmi_margin")
+    proofs.refuse_jumps(model, fields, list(model.x) + list(model.u), np.r_[model.state_box, model.U],
+                        "f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. egLMI) can certify it",
+                        "a smooth approximation of the jump", check="lmi_margin")
 
 
 def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, list[np.ndarray], np.ndarray, dict]:
@@ -890,15 +884,23 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
             return M, lam, meta
     worst = _worst_vertex_text(model, A_vertices, meta, scale)
     other = ("feedback: linear_gain (g constant, f affine in x) to synthesise a stabilising K" if "jacobian_entries" not in meta
-             else "a smaller concrete.state_box (the Jacobian ranges are taken over all of it)")
+             else "a smaller concrete.state_box (the Jacobian ranges are taken over all of it, each entry independently)")
+    # The eigenvalues bound every rate from above (Re eig(A_k) <= -lambda / 2); below that bound the solver's
+    # failure to find an M is not a proof that none exists (an M may have to be very ill-conditioned).
+    eig_bound = min(-2.0 * float(np.linalg.eigvals(A).real.max()) for A in A_vertices) * scale
+    unproved = (f"; the eigenvalues allow rates up to {eig_bound:.6g}, so an M may exist that the solver could not reach "
+                f"(very ill-conditioned): a given M (method: given) is verified exactly") if eig_bound > 0 else ""
     if st.decay_rate == "maximise":
-        raise DesignError("stabilisability", f"no decay rate lambda > 0 makes eq. egLMI feasible{worst}",
+        what = "no M certifies any decay rate lambda > 0" if eig_bound <= 0 else "the solver found no M certifying a decay rate lambda > 0"
+        raise DesignError("stabilisability", f"{what} (eq. egLMI){worst}{unproved}",
                           f"a plant that is incrementally stable on the set, or {other}", check="lmi_margin")
     best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
-    hint = (f"decay_rate below {best * scale:.6g} (the largest feasible), or 'maximise'" if best > 0
+    hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies), or 'maximise'" if best > 0
             else f"a plant that is incrementally stable on the set, or {other}")
-    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} (best margin {t * scale:.3g}"
-                      f"{'' if tried == ['full'] else ', M ' + ' or '.join(tried)}){worst if best <= 0 else ''}",
+    margin = f"best margin {t * scale:.3g}" if np.isfinite(t) else "no solution"
+    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} ({margin}"
+                      f"{'' if tried == ['full'] else ', M ' + ' or '.join(tried)}){worst if best <= 0 else ''}"
+                      f"{unproved if best <= 0 and lam * 1.0 < eig_bound else ''}",
                       hint, check="lmi_margin")
 
 
@@ -944,7 +946,7 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
         meta.update(status=status, weighted_gain=mu)
         if M is None:
             best, _ = _largest_feedback_rate(A_vertices, B, structure, weights)
-            hint = (f"decay_rate below {best * scale:.6g} (the largest feasible with feedback), or 'maximise'" if best > 0 else
+            hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies with feedback), or 'maximise'" if best > 0 else
                     f"a stabilisable pair (A(u), B) at every vertex of U{_worst_vertex_text(model, A_vertices, meta, scale)}")
             raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g}", hint, check="lmi_margin")
     return M, np.asarray(K, dtype=float), lam, meta
