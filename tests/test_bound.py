@@ -372,3 +372,34 @@ def test_sign_in_f_or_h_is_a_one_line_error_never_an_internal_one(tmp_path):
     assert proc.returncode == 3, proc.stderr
     assert "internal" not in proc.stderr and "Traceback" not in proc.stderr
     assert "sign(x1) jumps where x1 = 0" in proc.stdout
+
+
+def test_no_clipping_with_an_A_of_u_certified_on_U_only_is_refused(tmp_path):
+    # g = [k x1 + 1, -k x2]: A(u) = A0 + u dg/dx is certified for u in U = [-0.2, 0.2] only; with saturate: false the
+    # interface's u = l + q v leaves U (u reached +-21 in an independent run), so no global bound may be published.
+    from ashc_cli.errors import DesignError
+
+    text = """
+name: no_clip
+parameters: {k: 1.1, a: 1.0, bc: 0.95}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["-a*x1 + bc*x2", "bc*x1 - a*x2"]
+  g: [["k*x1 + 1"], ["-k*x2"]]
+  h: ["x1"]
+  input_bounds: [[-0.2, 0.2]]
+  output_set: [[-0.1, 0.1]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.2, 0.2]]
+interface: {q: least_squares, saturate: false}
+"""
+    with pytest.raises(DesignError, match=r"interface\.saturate: false with a g that depends on x: .*leaves U"):
+        _design_text(text, tmp_path / "a")
+    arts = _design_text(text.replace("saturate: false", "saturate: true"), tmp_path / "b")
+    assert not np.isfinite(arts["bound"].values["w0_max_certified"])        # clipped: u stays in U, the bound is global

@@ -436,3 +436,44 @@ def test_a_closed_form_inverse_of_two_outputs_is_proved(tmp_path):
     inv = arts["inverse"]
     for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y", "V_covers_Y"):
         assert inv.checks[name].evidence == "proved", name
+
+
+def test_a_transcendental_kappa_gets_a_time_budget_and_a_message_that_names_abstract_m(tmp_path, monkeypatch):
+    # kappa = xi + 0.0009 tanh(1e5 (xi - 0.123456)): sympy.solve searched for over 20 minutes; now it has a budget, the
+    # numeric interpolant cannot follow the steep band, and the message says kappa is monotone and names abstract.m.
+    import time
+
+    from ashc_cli import model as model_mod
+    from ashc_cli.pipeline import DESIGN, run
+
+    monkeypatch.setattr(model_mod, "SYMBOLIC_BUDGET", 1.0)
+    text = """
+name: steep_l
+concrete:
+  states: [x]
+  inputs: [u]
+  f_bar: ["-x"]
+  g: [["1"]]
+  h: ["x"]
+  input_bounds: [[-1, 1]]
+  output_set: [[-0.8, 0.8]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi + 0.0009*tanh(100000*(xi - 0.123456))"]
+  domain: [[-0.9, 0.9]]
+"""
+    start = time.perf_counter()
+    with pytest.raises(DesignError, match=r"abstract\.m: kappa is strictly monotone on V .* \(so p is injective\), but sympy finds no closed form"):
+        run(parse_spec_text(text), tmp_path, DESIGN)
+    assert time.perf_counter() - start < 60
+
+
+def test_within_budget_returns_the_result_or_times_out():
+    from ashc_cli.model import within_budget
+
+    assert within_budget(sorted, [3, 1, 2]) == [1, 2, 3]
+    with pytest.raises(TimeoutError):
+        within_budget(__import__("time").sleep, 5, seconds=0.2)
