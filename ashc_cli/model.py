@@ -88,8 +88,9 @@ def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Ma
 SYMBOLIC_BUDGET = 10.0
 
 
-def within_budget(fn, *args, seconds: float = SYMBOLIC_BUDGET):
-    """fn(*args) computed in a forked child process, or raise TimeoutError after ``seconds``.
+def within_budget(fn, *args, seconds: float | None = None):
+    """fn(*args) computed in a forked child process, or raise TimeoutError after ``seconds`` (default
+    :data:`SYMBOLIC_BUDGET`).
 
     sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
     sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
@@ -98,6 +99,7 @@ def within_budget(fn, *args, seconds: float = SYMBOLIC_BUDGET):
     import multiprocessing as mp
     import pickle
 
+    seconds = SYMBOLIC_BUDGET if seconds is None else seconds
     try:
         ctx = mp.get_context("fork")
     except ValueError:
