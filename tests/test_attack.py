@@ -14,7 +14,7 @@ from ashc_cli import attack
 from ashc_cli.falsify import counterexample_text
 from ashc_cli.pipeline import DESIGN, design_model, run
 from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import stabilise
+from ashc_cli.contraction import terms
 
 STEEP = """
 name: steep_band
@@ -41,7 +41,7 @@ abstract:
 def sampled_design(tmp_path_factory):
     """The steep plant designed with sampled Jacobian ranges (the enclosure disabled): its LMI row passes, sampled."""
     mp = pytest.MonkeyPatch()
-    mp.setattr(stabilise, "_enclose_entry", lambda *a, **k: None)
+    mp.setattr(terms, "_enclose_entry", lambda *a, **k: None)
     spec = parse_spec_text(STEEP)
     arts = run(spec, tmp_path_factory.mktemp("steep"), DESIGN)
     mp.undo()

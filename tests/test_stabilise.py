@@ -9,6 +9,7 @@ from ashc_cli.errors import DesignError
 from ashc_cli.model import build_model
 from ashc_cli.paper import cite
 from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.contraction import terms, vertex
 from ashc_cli.stages import stabilise
 
 from .conftest import CUK
@@ -133,7 +134,7 @@ def test_auto_structure_is_full_for_small_plants_and_diagonal_first_for_large(mo
     assert stabilise.structures("auto", stabilise.FULL_MAX_STATES) == ["full"]
     assert stabilise.structures("auto", stabilise.FULL_MAX_STATES + 1) == ["diagonal", "full"]
     assert stabilise.structures("full", 500) == ["full"]
-    monkeypatch.setattr(stabilise, "FULL_MAX_STATES", 4)
+    monkeypatch.setattr(vertex, "FULL_MAX_STATES", 4)
     art = stabilise.run(ladder_model(2), {})
     assert art.meta["structure"] == "diagonal" and art.meta["tried"] == ["diagonal"]
 
@@ -159,7 +160,7 @@ def test_a_plant_without_diagonal_certificate_falls_back_to_full(monkeypatch):
     # exists; a full one does (A is Hurwitz with eigenvalues -1/2 +- 0.87 i, so any lambda < 1 is feasible).
     with pytest.raises(DesignError, match="infeasible at lambda = 0.2.*M diagonal"):
         stabilise.run(build_model(parse_spec_text(OSCILLATOR.replace("STRUCTURE", "diagonal"))), {})
-    monkeypatch.setattr(stabilise, "FULL_MAX_STATES", 1)
+    monkeypatch.setattr(vertex, "FULL_MAX_STATES", 1)
     art = stabilise.run(build_model(parse_spec_text(OSCILLATOR.replace("STRUCTURE", "auto"))), {})
     assert art.meta["tried"] == ["diagonal", "full"] and art.meta["structure"] == "full"
     assert art.values["lmi_margin"] < 0
@@ -317,8 +318,8 @@ def test_maximise_reaches_the_ladders_known_rate(monkeypatch):
     assert np.allclose(np.asarray(A_num(1.0), dtype=float), A1, rtol=1e-12, atol=0)
 
     tried = []
-    certify = stabilise.certify_rate
-    monkeypatch.setattr(stabilise, "certify_rate", lambda A_list, lam, *a, **k: tried.append(lam) or certify(A_list, lam, *a, **k))
+    certify = vertex.certify_rate
+    monkeypatch.setattr(vertex, "certify_rate", lambda A_list, lam, *a, **k: tried.append(lam) or certify(A_list, lam, *a, **k))
     art = stabilise.run(model, {})
     lam, M = art.values["lambda"], art.values["M"]
     assert lam_star * (1 - stabilise.BISECTION_RTOL) <= lam <= lam_star
@@ -408,10 +409,10 @@ def test_maximise_survives_a_solver_failure_at_one_rate(monkeypatch):
         raise NumericalError("stabilise", "Clarabel failed (test)", "a solvable LMI")
 
     A = quarter_car_A()
-    monkeypatch.setattr(stabilise, "solve_lmi_scale_free", failing)
+    monkeypatch.setattr(vertex, "solve_lmi_scale_free", failing)
     lam, M = stabilise.largest_decay_rate([A])
     assert 2.0 < lam < 2.86656 and np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() <= 0
-    monkeypatch.setattr(stabilise, "_solve", failing)
+    monkeypatch.setattr(vertex, "_solve", failing)
     with pytest.raises(NumericalError, match="test"):
         stabilise.largest_decay_rate([A])
 
@@ -462,7 +463,7 @@ def test_enclosed_ranges_prove_the_lmi_of_a_smooth_plant():
 
 
 def test_sampled_ranges_say_sampled(monkeypatch):
-    monkeypatch.setattr(stabilise, "_enclose_entry", lambda *a, **k: None)
+    monkeypatch.setattr(terms, "_enclose_entry", lambda *a, **k: None)
     art = stabilise.run(_two_state("-0.5*x1 - 2*x2 + 0.04*tanh(5*(x1 + 0.0517))"), {})
     assert not art.meta["ranges_proved"] and art.checks["lmi_margin"].evidence == "sampled"
     assert "only sampled" in art.meta["lmi_proof"]
