@@ -28,7 +28,7 @@ from .model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
            "inf_on_box", "range_on_box", "norm_expr", "ball", "ball_box", "upper", "lower", "psd_lower_bound_balls",
-           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M", "exact", "exact_number", "jump_inside", "refuse_jumps"]
+           "lambda_min_lower", "matrix_balls", "quadratic_form_terms", "norm_sqrt_M", "exact", "exact_number", "jump_inside", "refuse_jumps", "sparse_psd_lower_bound"]
 
 PROVED, SAMPLED, SIMULATED = "proved", "sampled", "simulated"
 
@@ -289,3 +289,79 @@ def refuse_jumps(model: Model, fields: Sequence[tuple[str, sp.Expr]], args: Sequ
             if inside:
                 raise DesignError(field, f"{where}: {what}", f"{expected} (e.g. tanh(k*z) for sign(z)), or a concrete.state_box on one side of the jump",
                                   check=check)
+
+
+#: The banded LDL^T proof is attempted up to this many arb operations (n times the bandwidth squared).
+BANDED_PROOF_OPS = 5e7
+
+
+def sparse_psd_lower_bound(S: dict, n: int) -> float:
+    """A proved lower bound of lambda_min of a symmetric matrix given as {(i, j): arb} (both triangles), or -inf.
+
+    Up to :data:`MAX_PROOF_STATES` states the dense arb path (:func:`psd_lower_bound_balls`); above it, with tau half of
+    a float estimate of lambda_min, the float banded Cholesky factor of S - tau I and its residual bounded in ball
+    arithmetic along the band (:func:`_banded_cholesky_bound`; n w^2 operations for bandwidth w).
+    """
+    if n <= MAX_PROOF_STATES:
+        dense = [[S.get((i, j), arb(0)) for j in range(n)] for i in range(n)]
+        return psd_lower_bound_balls(dense)
+    import scipy.sparse as sps
+    import scipy.sparse.linalg as spla
+
+    keys = list(S)
+    if any(not S[k].is_finite() for k in keys):
+        return -np.inf
+    width = max((abs(i - j) for i, j in keys), default=0)
+    if n * max(1, width) ** 2 > BANDED_PROOF_OPS:
+        return -np.inf
+    mid = sps.csr_matrix(([float(S[k].mid()) for k in keys], ([k[0] for k in keys], [k[1] for k in keys])), shape=(n, n))
+    mid = 0.5 * (mid + mid.T)
+    try:
+        # shift-invert about 0: the eigenvalue nearest 0 to full relative accuracy, however small (a long ladder's
+        # is 1e-12 of its largest); when S is positive definite it is lambda_min
+        estimate = float(spla.eigsh(mid.tocsc(), k=1, sigma=0.0, which="LM", return_eigenvectors=False, tol=1e-12, maxiter=20 * n)[0])
+    except (spla.ArpackNoConvergence, RuntimeError, ValueError):
+        try:
+            estimate = float(spla.eigsh(mid.tocsc(), k=1, which="SA", return_eigenvectors=False, tol=1e-12, maxiter=20 * n)[0])
+        except spla.ArpackNoConvergence:
+            return -np.inf
+    if not estimate > 0:
+        return -np.inf
+    return _banded_cholesky_bound(S, n, width, mid, 0.5 * estimate)
+
+
+def _banded_cholesky_bound(S: dict, n: int, width: int, mid, shift: float) -> float:
+    """shift - ||R||_inf, R = S - shift I - L L^T in ball arithmetic with L the float banded Cholesky factor of
+    mid(S) - shift I (L L^T is positive semidefinite for any real L, so lambda_min(S) >= shift - ||R||_2 >= shift -
+    ||R||_inf); -inf if the float factorisation fails.  The factor is fixed floats: no interval dependency grows
+    along the factorisation, as it would in an LDL^T of balls."""
+    import scipy.linalg as sla
+
+    w = max(1, width)
+    band = np.zeros((w + 1, n))                       # upper form: band[w + i - j, j] = A[i, j] for i <= j
+    dense_mid = mid.tocoo()
+    for i, j, v in zip(dense_mid.row, dense_mid.col, dense_mid.data):
+        if i <= j and j - i <= w:
+            band[w + i - j, j] = v
+    band[w] -= shift
+    try:
+        U = sla.cholesky_banded(band, lower=False)     # A = U^T U, U upper with w super-diagonals
+    except np.linalg.LinAlgError:
+        return -np.inf
+    # U[i, j] (i <= j <= i + w) is U_band[w + i - j, j]
+    def u(i: int, j: int) -> float:
+        return float(U[w + i - j, j]) if 0 <= j - i <= w else 0.0
+
+    row_sums = [arb(0)] * n
+    for i in range(n):
+        for j in range(i, min(n, i + w + 1)):
+            # (U^T U)_ij = sum_k U_ki U_kj over k <= min(i, j)
+            acc = S.get((i, j), arb(0)) - (arb(shift) if i == j else arb(0))
+            for k in range(max(0, j - w), i + 1):
+                acc -= arb(u(k, i)) * arb(u(k, j))
+            r = abs(acc)
+            row_sums[i] += r
+            if j != i:
+                row_sums[j] += r
+    norm = max(upper(r) for r in row_sums)
+    return float(lower(arb(shift) - arb(norm)))

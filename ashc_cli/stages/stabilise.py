@@ -1,30 +1,23 @@
-"""Stage 1: asymptotic stabilisability by a quadratic incremental Lyapunov function (eq. egLMI).
+"""Stage 1: asymptotic stabilisability by a quadratic incremental Lyapunov function (eq. (28), Theorem 1).
 
-With f(x, u) = A(u) x + b(u) and A affine in u (eq. ConvertSystemLinear), V(x, z) = (x - z)^T M (x - z)
-(eq. egV) satisfies Theorem StabiliseLyap with k(z, x, u) = u when
+V(x, z) = (x - z)^T M (x - z) (eq. (30)) satisfies Theorem 1 with k(z, x, u) = u (or u + K (z - x) with a
+synthesised gain) when
 
-    A(u)^T M + M A(u) <= -lambda M,   M > 0                                          (eq. egLMI)
+    J^T M + M J <= -lambda M,   M > 0                                                   (eq. (28))
 
-for all u in U; since the left side is affine in u it suffices to impose it at the vertices of the box U.
-The LMI is solved with cvxpy + Clarabel, maximising the margin t in A^T M + M A + lambda M <= t I under
-the normalisation trace(M) = n, M >= 1e-3 I, and re-checked in numpy at the vertices and on a sweep of U.
-That normalisation bounds trace(M) / lambda_min(M) by 4000, so a rate whose every M is more ill-conditioned
-is refused by it; such a rate is then tried scale-free (:func:`solve_lmi_scale_free`: minimise the condition
-number, I <= M <= kappa I), and accepted only if the numpy re-check of its margin, relative to ||M||, is
-negative (:func:`certify_rate`, used by the fixed rate and by every step of the ``maximise`` bisection).
-``maximise`` tries the eigenvalue bound on lambda first (often attained: then one solve decides), and narrows
-its bracket from below by the rate each M found certifies and from above by the infeasibility the solver's
-duals prove (:func:`largest_decay_rate`); the rate it reports is always one its M certifies.
-M is searched in full, or diagonal (``stabilisability.structure``; ``auto`` tries a diagonal M first above
-:data:`FULL_MAX_STATES` states, where the dense SDP grows like n^6: 13 s at n = 64, 300 s and 7.7 GiB at 128).
+for every J the incremental dynamics can meet.  The matrices J range over a polytope (:mod:`ashc_cli.contraction.terms`)
+and the LMI, affine in J, is imposed at its vertices:
 
-When f is not affine in x, the same LMI is imposed on a polytope that contains the Jacobian df/dx over
-``concrete.state_box`` x U (:func:`jacobian_polytope`); the certificate then holds for solutions in that box.
+* f = A(u) x + b(u) with A affine in u (eq. (27)): A(u) at the vertices of U;
+* f not affine in x, over ``concrete.state_box`` x U (the mean-value form f(x) - f(z) = int J ds (x - z)): the Jacobian
+  written as A0 + sum_k theta_k A_k over the plant's distinct nonlinear terms, each theta_k enclosed by ball arithmetic,
+  at the corners of the box of term values; and the older box of independent entries, where it is small.  The one that
+  certifies the larger rate is used, and recorded (``meta["polytope"]``).
 
-``feedback: linear_gain`` (a plant that is not incrementally stable, with g(x) = B constant) synthesises K so
-that k(z, x, u) = u + K (z - x) renders the pair incrementally stable: with X = M^-1 and Y = K X the
-condition (A(u) + B K)^T M + M (A(u) + B K) <= -lambda M becomes the LMI
-A X + X A^T + B Y + Y^T B^T + lambda X <= t I (t < 0); the interface then adds K (x - p(xi)) (eq. Interface).
+The LMI itself is solved by :mod:`ashc_cli.contraction.vertex` (identity feedback) or
+:mod:`ashc_cli.contraction.feedback` (``feedback: linear_gain``: the smallest gain K the rate allows), on the matrices
+divided by the plant's rate scale so that its tolerances are relative, and proved in ball arithmetic by
+:mod:`ashc_cli.contraction.proof`.
 """
 
 from __future__ import annotations
@@ -32,13 +25,19 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import scipy.sparse as sps
 import sympy as sp
 
 from .. import proofs
 from ..artefacts import Artefact, Check
 from ..contraction.feedback import FEEDBACK_CONDITION, FEEDBACK_MAX_RATE, FEEDBACK_RATE_MARGIN, _largest_feedback_rate, solve_lmi_feedback
+from ..contraction.network import BACKOFF as NETWORK_BACKOFF
+from ..contraction.network import largest_rate as network_largest_rate
+from ..contraction.network import network_polytope
+from ..contraction.network import prove as prove_network
 from ..contraction.proof import prove_lmi
-from ..contraction.terms import jacobian_polytope, jacobian_samples, refuse_jumps
+from ..contraction.terms import (MAX_VARYING_ENTRIES, MAX_VERTEX_TERMS, Polytope, affine_polytope, decompose, entry_polytope,
+                                 jacobian_samples, refuse_jumps, subdivided_term_polytope, term_polytope)
 from ..contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES, M_MIN_EIG, MARGIN_TOL, SCALE_FREE_MARGIN, certify_rate,  # noqa: F401
                                   infeasible_from, largest_decay_rate, largest_decay_rate_for, lmi_margins, lmi_scale, solve_lmi,
                                   structures, sweep, vertices)
@@ -86,8 +85,50 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
     return tidy(A), b
 
 
+#: The term polytope is refined (its sub-box grid doubled) while the certified rate grows by more than this.
+REFINE_GAIN = 0.02
+
+
+def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp.Matrix]:
+    """The polytopes the LMI may be imposed on, best first, with A and b for the artefact.
+
+    f affine in x: A(u) at the vertices of U.  Otherwise the term polytope (at most MAX_VERTEX_TERMS terms) and the
+    entry polytope (at most MAX_VARYING_ENTRIES entries), both over state_box x U.
+
+    Raises
+    ------
+    DesignError
+        If f has a jump in the box, or no polytope is small enough to enumerate.
+    """
+    # (a sign of a state has a Jacobian free of x almost everywhere, but f is not affine: its jump needs the box)
+    affine = model.state_box is None or not (any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x))
+    if affine:
+        A_sym, b_sym = affine_form(model, J)
+        return [affine_polytope(model, A_sym, vertices(model.U))], A_sym, b_sym
+    refuse_jumps(model)
+    found = []
+    decomposition = decompose(model, J)
+    if len(decomposition) <= MAX_VERTEX_TERMS:
+        found.append(term_polytope(model, decomposition))
+        found[-1].meta["_terms"] = decomposition
+    network = network_polytope(model, decomposition)
+    if network is not None:
+        # a network of dissipative terms: a diagonal M found from the terms, a rate from an eigenvalue (any size)
+        network[0].meta["_terms"] = decomposition
+        found.insert(0 if len(decomposition) > MAX_VERTEX_TERMS else len(found), network[0])
+    args = set(model.x) | set(model.u)
+    entries = sum(1 for e in J if e.free_symbols & args)
+    if entries <= MAX_VARYING_ENTRIES and entries != len(decomposition):
+        found.append(entry_polytope(model, J))
+    if not found:
+        raise DesignError("concrete", f"df/dx has {len(decomposition)} distinct nonlinear terms and {entries} varying entries over the state box "
+                          f"(at most {MAX_VERTEX_TERMS} terms or {MAX_VARYING_ENTRIES} entries are enumerated as vertices)",
+                          "fewer state-dependent terms, f affine in x, or a given M (method: given)", check="lmi_margin")
+    return found, J, sp.zeros(model.n, 1)
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Certify stabilisability: M and lambda of eq. egLMI, with margins re-checked in numpy.
+    """Certify stabilisability: M and lambda of eq. (28), with margins re-checked in numpy and proved.
 
     Parameters
     ----------
@@ -99,75 +140,144 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Returns
     -------
     Artefact
-        Values M, lambda, vertex and sweep margins, lmi_margin; expressions A(u), b(u).
+        Values M, K, lambda, vertex and sweep margins, lmi_margin; expressions A (A(u) or df/dx) and b.
 
     Raises
     ------
     DesignError
-        If f is not of the class the method needs, M is not positive definite, or the LMI is
-        infeasible at the requested decay rate (the message gives the largest feasible one).
+        If f is not of the class the method needs, M is not positive definite, or the LMI is infeasible at the
+        requested decay rate (the message names the least stable vertex and the largest rate the solver certifies).
     NumericalError
         If the solver claims success but the numpy re-check fails.
     """
     st = model.spec.stabilisability
-    meta: dict = {"method": st.method, "feedback": st.feedback}
-    # Without a state box a plant not affine in x is refused by affine_form, with its reason.
     J = sparse_jacobian(model.f, model.x)
-    # (a sign of a state has a Jacobian free of x almost everywhere, but f is not affine: its jump needs the box)
-    affine = model.state_box is None or not (any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x))
-    if affine:
-        A_sym, b_sym = affine_form(model, J)
-        A_num = model.numeric(A_sym, list(model.u))
-        verts = vertices(model.U)
-        A_vertices = [A_num(*vtx) for vtx in verts]
-    else:
-        if st.feedback == "linear_gain":
-            raise SpecError("stabilisability.feedback", "'linear_gain' with f not affine in x", "feedback: identity (the Jacobian LMI certifies the plant itself)")
-        refuse_jumps(model)
-        A_sym, A_vertices, ranges, jmeta = jacobian_polytope(model, J)
-        b_sym = sp.zeros(model.n, 1)
-        verts = ranges
-        meta.update(jmeta, condition="J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (Jacobian polytope)")
-    K = np.zeros((model.m, model.n))
-    # The LMI is solved on A / s, s the largest spectral radius (rates divided by s too; M and K are unchanged), so that
-    # its tolerances are relative to the plant's own time scale: a plant in nanoseconds or in days is solved
-    # as one in seconds.
-    scale = lmi_scale(A_vertices)
-    scaled = [A / scale for A in A_vertices]
-    meta["lmi_scale"] = scale
-    if not affine:
-        meta["_ranges"] = ranges
+    candidates, A_sym, b_sym = polytopes(model, J)
+    if st.feedback == "linear_gain" and any(e.free_symbols & set(model.x) for e in model.g):
+        raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g (the closed loop's g(z) K would vary with the state)",
+                          "g independent of x, or feedback identity", check="lmi_margin")
+    results, first_error = [], None
+    for poly in candidates:
+        try:
+            results.append((poly, *_certify(model, st, poly)))
+        except DesignError as exc:
+            first_error = first_error or exc
+            continue
+        if st.decay_rate != "maximise":
+            break                      # a fixed rate: the first polytope that certifies it
+    terms_found = next((p.meta.get("_terms") for p in candidates if p.kind == "Jacobian terms"), None)
+    if terms_found is not None and (st.decay_rate == "maximise" or not results):
+        results += _refine(model, st, terms_found, results)
+    if not results:
+        raise first_error
+    poly, M, K, lam, meta = max(results, key=lambda r: r[3])
+    meta.update(method=st.method, feedback=st.feedback, polytope=poly.kind, vertices_count=len(poly.matrices),
+                polytopes_tried=[p.kind for p in candidates], **{k: v for k, v in poly.meta.items() if not k.startswith("_")})
+    if poly.kind != "affine in u":
+        # The certificate holds while x stays in the box: the bound stage's region reads this key.
+        meta["condition"] = "J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (" + poly.kind + ")"
+        meta["state_box"] = model.state_box.tolist()
+    return _artefact(model, st, poly, A_sym, b_sym, M, K, lam, meta)
 
+
+def _refine(model: Model, st, decomposition, results: list) -> list:
+    """Certificates on the term polytope over finer grids of sub-boxes (2, 4, 8, ... parts along each coordinate the
+    terms depend on: :func:`subdivided_term_polytope`), while the rate grows by more than REFINE_GAIN (``maximise``)
+    or until the requested rate is certified; stops at the vertex budget."""
+    found, best = [], max((r[3] for r in results), default=0.0)
+    splits = 2
+    while True:
+        poly = subdivided_term_polytope(model, decomposition, splits)
+        if poly is None:
+            return found
+        try:
+            found.append((poly, *_certify(model, st, poly)))
+        except DesignError:
+            splits *= 2
+            continue
+        lam = found[-1][3]
+        if st.decay_rate != "maximise":
+            return found
+        if lam <= best * (1 + REFINE_GAIN):
+            return found
+        best, splits = lam, splits * 2
+
+
+def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, float, dict]:
+    """M, K and lambda on one polytope (M given, searched, or with a synthesised gain), and what was done."""
+    meta: dict = {}
+    K = np.zeros((model.m, model.n))
+    if "_network" in poly.meta:
+        if st.feedback == "linear_gain" or st.method == "given":
+            raise DesignError("stabilisability", "the network certificate finds its own diagonal M (identity feedback, polytopic_lmi)",
+                              "feedback identity and method polytopic_lmi", check="lmi_margin")
+        M, lam, meta = _network_rate(model, st, poly, meta)
+        return M, K, lam, meta
+    # The LMI is solved on A / s, s the largest spectral radius (rates divided by s too; M and K are unchanged), so
+    # that its tolerances are relative to the plant's own time scale: a plant in nanoseconds or in days is solved
+    # as one in seconds.
+    scale = lmi_scale(poly.matrices)
+    scaled = [A / scale for A in poly.matrices]
+    meta["lmi_scale"] = scale
     if st.feedback == "linear_gain":
-        M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, scale)
+        M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, poly, scale)
     elif st.method == "given":
         M = np.array(st.M, dtype=float)
         if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
             raise SpecError("stabilisability.M", "is not symmetric", "a symmetric positive definite matrix")
         if np.linalg.eigvalsh(M).min() <= 0:
             raise DesignError("stabilisability.M", f"is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(M).min():.4g})", "M > 0", check="M_positive")
-        lam_max = largest_decay_rate_for(A_vertices, M)
+        lam_max = largest_decay_rate_for(poly.matrices, M)
         lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
+        if lam > lam_max * (1 + 1e-12) or lam_max <= 0:
+            raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} on the {poly.kind} polytope",
+                              f"a decay_rate <= {lam_max:.6g}, the largest this M certifies", check="lmi_margin")
         meta.update(solver="none (M given; verified in numpy)")
     else:
         meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n (and M >= {M_MIN_EIG} I in the maximum-margin problem)",
-                    objective="minimise t subject to A(u_k)^T M + M A(u_k) + lambda M <= t I at every vertex u_k",
+                    objective="minimise t subject to A_k^T M + M A_k + lambda M <= t I at every vertex A_k",
                     margin_tol=MARGIN_TOL,
-                    fallback=f"when that does not certify lambda: minimise kappa subject to I <= M <= kappa I and A(u_k)^T M + M A(u_k) + lambda M "
+                    fallback=f"when that does not certify lambda: minimise kappa subject to I <= M <= kappa I and A_k^T M + M A_k + lambda M "
                              f"<= -{SCALE_FREE_MARGIN:g} kappa I, accepted when the numpy margin over ||M|| is below -{MARGIN_TOL:g}; M scaled to trace(M) = n")
-        M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, scale)
+        M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, poly, scale)
+    return M, K, lam, meta
 
-    meta.pop("_ranges", None)
+
+def _network_rate(model: Model, st, poly: Polytope, meta: dict) -> tuple[np.ndarray, float, dict]:
+    """M = diag(d) of the network (:mod:`ashc_cli.contraction.network`) and the largest rate it certifies at every corner."""
+    net = poly.meta["_network"]
+    rate = min(network_largest_rate(A if not isinstance(A, np.ndarray) else sps.csr_matrix(A), net.d) for A in poly.matrices)
+    best = rate * (1 - NETWORK_BACKOFF)
+    if st.decay_rate == "maximise":
+        lam = best
+    else:
+        lam = float(st.decay_rate)
+        if not lam <= best:
+            raise DesignError("stabilisability.decay_rate", f"the network certificate (diagonal M of the dissipative terms) reaches lambda = {best:.6g} "
+                              f"only, below the requested {lam:g}", f"decay_rate below {best:.6g}, or 'maximise'", check="lmi_margin")
+    if not lam > 0:
+        raise DesignError("stabilisability", f"the network certificate (diagonal M of the dissipative terms) gives no decay rate (largest {rate:.4g})",
+                          "a network whose linear part is stable with every term at its lower end", check="lmi_margin")
+    M = np.diag(net.d)
+    meta.update(solver="none: M from the terms (M b_k = -gamma_k c_k), lambda from a sparse eigenvalue", structure="diagonal",
+                network_rate=rate)
+    return M, lam, meta
+
+
+def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matrix, M: np.ndarray, K: np.ndarray, lam: float,
+              meta: dict) -> Artefact:
+    """Re-check the certificate in numpy (vertices, and a sweep of U or samples of the box), prove it, and store it."""
     B_K = np.array(model.substitute(model.g), dtype=float) @ K if st.feedback == "linear_gain" else 0.0
-    vertex_margins = lmi_margins([A + B_K for A in A_vertices], M, lam)
-    if affine:
+    vertex_margins = lmi_margins([np.asarray(A.toarray() if hasattr(A, "toarray") else A) + B_K for A in poly.matrices], M, lam)
+    if poly.kind == "affine in u":
+        A_num = model.numeric(A_sym, list(model.u))
         sweep_u = sweep(model.U)
         A_sweep = np.broadcast_to(A_num(*sweep_u.T), (model.n, model.n, len(sweep_u)))   # one vectorised call
         sweep_margins = lmi_margins([A_sweep[:, :, k] + B_K for k in range(len(sweep_u))], M, lam)
     else:
         sweep_u = np.zeros((0, model.m))
         samples, where = jacobian_samples(model, A_sym)
-        sweep_margins = lmi_margins(samples, M, lam)
+        sweep_margins = lmi_margins([A + B_K for A in samples], M, lam)
         if sweep_margins.max() > 0:
             # A point of the box whose Jacobian breaks the LMI: the (sampled) ranges missed it, and no M found on
             # them certifies the plant. A counter-example, not a solver failure.
@@ -175,36 +285,41 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             x_at, u_at = where[k, :model.n], where[k, model.n:]
             raise DesignError("stabilisability", f"eq. egLMI fails at x = {np.round(x_at, 6).tolist()}, u = {np.round(u_at, 6).tolist()} "
                               f"(margin {sweep_margins[k]:.3g} > 0 at lambda = {lam:.6g}): its Jacobian lies outside the sampled ranges "
-                              f"({meta.get('range_method', '')})", "Jacobian ranges that ball arithmetic can enclose, or a smaller state_box",
+                              f"({meta.get('range_method', '')})", "ranges that ball arithmetic can enclose, or a smaller state_box",
                               check="lmi_margin")
     margin = float(max(vertex_margins.max(), sweep_margins.max()))
     eig_M = np.linalg.eigvalsh(M)
     meta.update(M_condition_number=float(eig_M.max() / eig_M.min()) if eig_M.min() > 0 else None)
-    if (st.method == "polytopic_lmi" or st.feedback == "linear_gain") and margin > 0:
-        raise NumericalError(NAME, f"Clarabel reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
-    if st.method == "given" and margin > 0:
-        raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} (margin {margin:.4g} > 0)",
-                          f"a decay_rate <= {largest_decay_rate_for(A_vertices, M):.6g}, the largest this M certifies", check="lmi_margin")
+    if margin > 0:
+        raise NumericalError(NAME, f"the solver reported a solution but the numpy re-check finds margin {margin:.3g} > 0", "a certified M (margin <= 0)")
 
-    proved_margin, proof = prove_lmi(model, A_sym, verts, affine, K, M, lam, ranges_proved=bool(meta.get("ranges_proved", False)))
+    if "_network" in poly.meta:
+        proved_margin, proof = prove_network(model, poly.meta["_terms"], poly.meta["_network"], lam)
+    else:
+        proved_margin, proof = prove_lmi(model, poly, K, M, lam)
     margin_evidence = proofs.PROVED if proved_margin <= 0 else proofs.SAMPLED
-    M_lower = proofs.lambda_min_lower(M) if model.n <= proofs.MAX_PROOF_STATES else -np.inf
+    if not np.any(M - np.diag(np.diag(M))):
+        M_lower = float(np.diag(M).min())          # a diagonal M of exact doubles: its eigenvalues are its entries
+    else:
+        M_lower = proofs.lambda_min_lower(M) if model.n <= proofs.MAX_PROOF_STATES else -np.inf
     meta.update(lmi_proof=proof if proved_margin <= 0 else f"not proved: {proof} (bound {proved_margin:.3g})")
 
     art = Artefact(stage=NAME, meta=meta)
     art.values.update({
         "lmi_margin_proved": proved_margin, "M_min_eigenvalue_proved": M_lower,
-        "M": M, "K": K, "lambda": lam, "vertices": verts, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
+        "M": M, "K": K, "lambda": lam, "vertex_margins": vertex_margins, "sweep_u": sweep_u,
         "sweep_margins": sweep_margins, "lmi_margin": margin, "M_eigenvalues": eig_M,
-        "A_vertices": np.stack(A_vertices), "relative_margin": margin / eig_M.max(),
+        "A_vertices": np.stack([np.asarray(A.toarray() if hasattr(A, "toarray") else A) for A in poly.matrices]) if model.n <= 400 else np.zeros((0, model.n, model.n)),
+        "relative_margin": margin / eig_M.max(),
+        "vertex_labels": list(poly.labels),
     })
     art.exprs.update({"A": A_sym, "b": b_sym})
     if margin_evidence == proofs.PROVED:
         art.checks["lmi_margin"] = Check(proved_margin, True, "proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M, A_cl = A + B K "
                                          f"(K = 0 for identity feedback; <= 0: eq. egLMI holds): {proof}", proofs.PROVED)
     else:
-        art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl(u)^T M + M A_cl(u) + lambda M over the vertices and a sweep of U, A_cl = A + B K "
-                                         f"(K = 0 for identity feedback; <= 0: eq. egLMI holds); proof: {meta['lmi_proof']}")
+        art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl^T M + M A_cl + lambda M over the vertices and a sweep (or samples), "
+                                         f"A_cl = A + B K (K = 0 for identity feedback; <= 0: eq. egLMI holds); proof: {meta['lmi_proof']}")
     if M_lower > 0:
         art.checks["M_positive"] = Check(M_lower, True, "proved lower bound of the smallest eigenvalue of M (> 0; arb Cholesky)", proofs.PROVED)
     else:
@@ -212,7 +327,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     return art
 
 
-def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, scale: float = 1.0) -> tuple[np.ndarray, float, dict]:
+def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, poly: Polytope, scale: float = 1.0) -> tuple[np.ndarray, float, dict]:
     """M and lambda of eq. egLMI (identity feedback), trying each structure of M in turn.
 
     ``A_vertices`` are divided by ``scale`` (so are the rates inside; the lambda returned is in the plant's units).
@@ -235,9 +350,9 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
         if M is not None:
             meta.update(structure=structure, tried=tried, status=status, optimal_margin=t * scale, **_formulation_meta(info))
             return M, lam, meta
-    worst = _worst_vertex_text(model, A_vertices, meta, scale)
-    other = ("feedback: linear_gain (g constant, f affine in x) to synthesise a stabilising K" if "jacobian_entries" not in meta
-             else "a smaller concrete.state_box (the Jacobian ranges are taken over all of it, each entry independently)")
+    worst = _worst_vertex_text(poly, A_vertices, scale)
+    other = ("feedback: linear_gain (g constant) to synthesise a stabilising K" if poly.kind == "affine in u"
+             else "a smaller concrete.state_box (the ranges are taken over all of it, each independently), or feedback: linear_gain")
     # The eigenvalues bound every rate from above (Re eig(A_k) <= -lambda / 2); below that bound the solver's
     # failure to find an M is not a proof that none exists (an M may have to be very ill-conditioned).
     eig_bound = min(-2.0 * float(np.linalg.eigvals(A).real.max()) for A in A_vertices) * scale
@@ -263,18 +378,16 @@ def _formulation_meta(info: dict) -> dict:
     if info:
         out["formulation"] = info["formulation"]
         if info["formulation"] == "scale_free":
-            out.update(scale_free_objective=f"minimise kappa subject to I <= M <= kappa I and A(u_k)^T M + M A(u_k) + lambda M <= -{SCALE_FREE_MARGIN:g} kappa I; M then scaled to trace(M) = n",
+            out.update(scale_free_objective=f"minimise kappa subject to I <= M <= kappa I and A_k^T M + M A_k + lambda M <= -{SCALE_FREE_MARGIN:g} kappa I; M then scaled to trace(M) = n",
                        scale_free_relative_margin=info["relative_margin"])
     return out
 
 
-def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict, scale: float = 1.0):
+def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict, poly: Polytope, scale: float = 1.0):
     """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X with the smallest
     gain (:func:`solve_lmi_feedback`).  ``A_vertices`` are divided by ``scale`` (rates too; K is unchanged)."""
     if st.method != "polytopic_lmi":
         raise SpecError("stabilisability.method", f"'{st.method}' with feedback linear_gain", "method polytopic_lmi (K is synthesised)")
-    if any(e.free_symbols & set(model.x) for e in model.g):
-        raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g", "g independent of x, or feedback identity")
     B = np.array(model.substitute(model.g), dtype=float) / scale
     weights = np.maximum(0.5 * (model.U[:, 1] - model.U[:, 0]), 1e-300)
     structure = "diagonal" if st.structure == "diagonal" else "full"   # auto: the feedback LMI is searched in full
@@ -287,9 +400,9 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
     if st.decay_rate == "maximise":
         lam, found = _largest_feedback_rate(A_vertices, B, structure, weights)
         if found is None:
-            raise DesignError("stabilisability", "no feedback gain K makes A(u) + B K incrementally stable with a positive decay rate "
-                              f"at every vertex{_worst_vertex_text(model, A_vertices, meta, scale)}",
-                              "a stabilisable pair (A(u), B) at every vertex of U", check="lmi_margin")
+            raise DesignError("stabilisability", "no feedback gain K makes A + B K incrementally stable with a positive decay rate "
+                              f"at every vertex{_worst_vertex_text(poly, A_vertices, scale)}",
+                              "a stabilisable pair (A, B) at every vertex", check="lmi_margin")
         M, K = found
         lam *= scale
         meta.update(bisection_rtol=BISECTION_RTOL, rate_cap=FEEDBACK_MAX_RATE * scale)
@@ -300,26 +413,23 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
         if M is None:
             best, _ = _largest_feedback_rate(A_vertices, B, structure, weights)
             hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies with feedback), or 'maximise'" if best > 0 else
-                    f"a stabilisable pair (A(u), B) at every vertex of U{_worst_vertex_text(model, A_vertices, meta, scale)}")
+                    f"a stabilisable pair (A, B) at every vertex{_worst_vertex_text(poly, A_vertices, scale)}")
             raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g}", hint, check="lmi_margin")
     return M, np.asarray(K, dtype=float), lam, meta
 
 
-def _worst_vertex_text(model: Model, A_vertices: list[np.ndarray], meta: dict, scale: float = 1.0) -> str:
-    """'; at u = [..] A has an eigenvalue with real part 0.5' (or at the corner of the Jacobian ranges df2/dx1 = ..):
-    the vertex whose A is least stable, which bounds every rate from above (lambda <= -2 Re eig(A))."""
+def _worst_vertex_text(poly: Polytope, A_vertices: list[np.ndarray], scale: float = 1.0) -> str:
+    """'; at the vertex u = [..] of U, A has an eigenvalue with real part 0.5' (or at a corner of the ranges): the
+    vertex whose A is least stable, which bounds every rate from above (lambda <= -2 Re eig(A))."""
     k = int(np.argmax([np.linalg.eigvals(A).real.max() for A in A_vertices]))
     re = float(np.linalg.eigvals(A_vertices[k]).real.max()) * scale
-    if "jacobian_entries" in meta:
-        ranges = meta.get("_ranges")
-        names = meta["jacobian_entries"]
-        corner = list(itertools.product(*[tuple(r) for r in ranges]))[k] if ranges is not None else ()
-        where = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, corner))
-        ranges_text = "; ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, (lo, hi) in zip(names, ranges)) if ranges is not None else ""
-        return (f"; at the corner {where} of the Jacobian ranges over state_box x U ({ranges_text}) df/dx has an eigenvalue "
-                f"with real part {re:.4g}")
-    verts = vertices(model.U)
-    return f"; at the vertex u = {np.round(verts[k], 6).tolist()} of U, A(u) has an eigenvalue with real part {re:.4g}"
+    if poly.kind == "affine in u":
+        return f"; at the vertex {poly.labels[k]} of U, A(u) has an eigenvalue with real part {re:.4g}"
+    ranges = poly.meta.get("ranges", poly.meta.get("term_ranges"))
+    names = poly.meta.get("jacobian_entries", poly.meta.get("jacobian_terms", []))
+    ranges_text = "; ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, (lo, hi) in zip(names, ranges)) if ranges is not None else ""
+    return (f"; at the corner {poly.labels[k]} of the {'Jacobian ranges' if poly.kind == 'Jacobian entries' else 'ranges of the nonlinear terms'} "
+            f"over state_box x U ({ranges_text}) df/dx has an eigenvalue with real part {re:.4g}")
 
 
 def summarise(art: Artefact) -> dict:
