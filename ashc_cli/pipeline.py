@@ -98,16 +98,37 @@ def as_folder(out: str | Path | Folder) -> Folder:
     return out if isinstance(out, Folder) else Folder(Path(out))
 
 
-def needed(targets: Iterable[str]) -> list[str]:
-    """The targets and every stage upstream of them, in flow-chart order."""
+def upstream_of(name: str, spec: Spec | None = None) -> tuple[str, ...]:
+    """The stages ``name`` reads: its module's ``upstream(spec)`` where it has one (stabilise reads the manifold for
+    ``objective: min_gain``), else its ``UPSTREAM``."""
+    mod = STAGES[name]
+    fun = getattr(mod, "upstream", None)
+    return tuple(fun(spec)) if fun is not None and spec is not None else tuple(mod.UPSTREAM)
+
+
+def needed(targets: Iterable[str], spec: Spec | None = None) -> list[str]:
+    """The targets and every stage upstream of them, in flow-chart order (an upstream stage always first)."""
     want: set[str] = set()
     stack = list(targets)
     while stack:
         name = stack.pop()
         if name not in want:
             want.add(name)
-            stack.extend(STAGES[name].UPSTREAM)
-    return [name for name in STAGES if name in want]
+            stack.extend(upstream_of(name, spec))
+    order: list[str] = []
+    for name in STAGES:          # flow-chart order, with each stage moved after the stages it reads
+        if name in want:
+            _place(name, spec, want, order)
+    return order
+
+
+def _place(name: str, spec, want: set[str], order: list[str]) -> None:
+    if name in order:
+        return
+    for up in upstream_of(name, spec):
+        if up in want:
+            _place(up, spec, want, order)
+    order.append(name)
 
 
 def frozen_stages(frozen: bool | Iterable[str], targets: Iterable[str]) -> set[str]:
@@ -166,7 +187,7 @@ def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
             elif prov["spec_sha256"] != spec.sha256:
                 reason = "made from another spec (SHA-256 differs)"
             else:
-                for up in STAGES[stage].UPSTREAM:
+                for up in upstream_of(stage, spec):
                     if staleness(spec, folder, up) is not None:
                         reason = f"upstream stage {up} is not up to date"
                         break
@@ -202,7 +223,7 @@ def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
     ArtefactError
         Naming the upstream stage to rerun.
     """
-    for up in STAGES[stage].UPSTREAM:
+    for up in upstream_of(stage, spec):
         prov = arts[up].provenance
         if prov.get("schema_version") != SCHEMA_VERSION:
             raise ArtefactError(f"{up}.h5", f"has schema {prov.get('schema_version')}, {stage} needs {SCHEMA_VERSION}", f"rerun `ashc {up} SPEC`")
@@ -256,7 +277,7 @@ def run(
         With ``frozen``, if a frozen stage is not up to date.
     """
     targets, folder = list(targets), as_folder(out)
-    order = needed(targets)
+    order = needed(targets, spec)
     fixed = frozen_stages(frozen, targets)
     model = dataclasses.replace(build_model(spec), numeric_paths=numeric)
     remove_leftovers(folder.path)
@@ -277,9 +298,10 @@ def run(
             if on_start is not None:
                 on_start(name, reason)
             check_upstream(spec, name, arts)
-            art = mod.run(model, {up: arts[up] for up in mod.UPSTREAM})
+            reads = upstream_of(name, spec)
+            art = mod.run(model, {up: arts[up] for up in reads})
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
-                           parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in mod.UPSTREAM},
+                           parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in reads},
                            names=declared_names(spec))
             folder.wrote(name, art)
             status = "ran"

@@ -124,6 +124,10 @@ class Stabilisability(_Strict):
     #: large networks), or ``auto`` (full up to ``stabilise.FULL_MAX_STATES`` states, else diagonal first and
     #: full only if the diagonal LMI is infeasible).
     structure: Literal["auto", "full", "diagonal"] = "auto"
+    #: What the search optimises: ``rate`` (the decay rate as given, or the largest with ``maximise``) or
+    #: ``min_gain`` (the M that minimises the gain G of the bound at the decay rate, or over the lambda-G frontier
+    #: with ``maximise``).
+    objective: Literal["rate", "min_gain"] = "rate"
 
 
 DeltaSpec = Union[Literal["identity", "flatten"], list[list[Expr]], Expr]

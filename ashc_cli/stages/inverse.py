@@ -396,10 +396,13 @@ def prove_affine_inverse(model: Model, man: Artefact, kap: Artefact, T: np.ndarr
             from sympy.solvers.simplex import InfeasibleLPError, linprog
 
             covers = True
+            # xi = lo + z with 0 <= z <= hi - lo (sympy's simplex keeps its variables non-negative)
+            Vq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]
+            lo_vec = sp.Matrix([lo for lo, _ in Vq])
+            A_in, b_in = sp.eye(n_hat), sp.Matrix([hi - lo for lo, hi in Vq])
             for vertex in itertools.product(*Yq):
                 try:
-                    linprog(sp.zeros(1, n_hat), A_eq=Kk, b_eq=sp.Matrix(vertex) - k0,
-                            bounds=[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V])
+                    linprog(sp.zeros(1, n_hat), A_in, b_in, Kk, sp.Matrix(vertex) - k0 - Kk * lo_vec)
                 except InfeasibleLPError:
                     covers = False
                     break

@@ -31,6 +31,8 @@ import sympy as sp
 from .. import proofs
 from ..artefacts import Artefact, Check
 from ..contraction.feedback import FEEDBACK_CONDITION, FEEDBACK_MAX_RATE, FEEDBACK_RATE_MARGIN, _largest_feedback_rate, solve_lmi_feedback
+from ..contraction.lyapunov import available_memory, distinct, lyapunov_M, refuse_if_too_large, sdp_memory_estimate
+from ..contraction.objective import frontier, gain_estimate, min_gain_M
 from ..contraction.network import BACKOFF as NETWORK_BACKOFF
 from ..contraction.network import largest_rate as network_largest_rate
 from ..contraction.network import network_polytope
@@ -42,10 +44,19 @@ from ..contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES, M_MIN_EIG, MA
                                   infeasible_from, largest_decay_rate, largest_decay_rate_for, lmi_margins, lmi_scale, solve_lmi,
                                   structures, sweep, vertices)
 from ..errors import DesignError, NumericalError, SpecError
+from ..grids import domain_grid
 from ..model import Model, jumps, sparse_jacobian, tidy
+from .manifold import dp_function
 
 NAME = "stabilise"
 UPSTREAM: tuple[str, ...] = ()
+#: Points of V (per abstract state) on which the smallest-gain objective measures dbar.
+GAIN_GRID = 65
+
+
+def upstream(spec) -> tuple[str, ...]:
+    """The manifold for ``objective: min_gain`` (dbar needs dp/dxi), else nothing: the first box of the flow chart."""
+    return ("manifold",) if spec.stabilisability.objective == "min_gain" else ()
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
@@ -171,6 +182,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if not results:
         raise first_error
     poly, M, K, lam, meta = max(results, key=lambda r: r[3])
+    if st.objective == "min_gain":
+        M, lam, meta = _min_gain(model, st, poly, upstream, M, lam, meta)
     meta.update(method=st.method, feedback=st.feedback, polytope=poly.kind, vertices_count=len(poly.matrices),
                 polytopes_tried=[p.kind for p in candidates], **{k: v for k, v in poly.meta.items() if not k.startswith("_")})
     if poly.kind != "affine in u":
@@ -233,6 +246,10 @@ def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, 
             raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} on the {poly.kind} polytope",
                               f"a decay_rate <= {lam_max:.6g}, the largest this M certifies", check="lmi_margin")
         meta.update(solver="none (M given; verified in numpy)")
+    elif model.n > FULL_MAX_STATES and (found := _lyapunov(model, st, scaled, scale)) is not None:
+        M, lam, how = found
+        meta.update(solver="none: M from the Lyapunov equation (A + lambda/2 I)^T M + M (A + lambda/2 I) = -I (scipy, no SDP)",
+                    structure="full", lyapunov=how)
     else:
         meta.update(solver="CLARABEL via cvxpy", normalisation=f"trace(M) = n (and M >= {M_MIN_EIG} I in the maximum-margin problem)",
                     objective="minimise t subject to A_k^T M + M A_k + lambda M <= t I at every vertex A_k",
@@ -241,6 +258,73 @@ def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, 
                              f"<= -{SCALE_FREE_MARGIN:g} kappa I, accepted when the numpy margin over ||M|| is below -{MARGIN_TOL:g}; M scaled to trace(M) = n")
         M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, poly, scale)
     return M, K, lam, meta
+
+
+def _min_gain(model: Model, st, poly: Polytope, upstream: dict, M_rate: np.ndarray, lam_rate: float, meta: dict):
+    """``objective: min_gain`` (:mod:`ashc_cli.contraction.objective`): the M of the smallest gain G at the decay rate,
+    or the (lambda, M) of the smallest G on the lambda-G frontier below the largest certified rate for ``maximise``.
+    The rate-optimal M and its G estimate are kept in the meta for comparison."""
+    if st.feedback != "identity" or st.method != "polytopic_lmi" or "_network" in poly.meta:
+        raise SpecError("stabilisability.objective", f"'min_gain' with feedback {st.feedback}, method {st.method}"
+                        f"{' and a network certificate' if '_network' in poly.meta else ''}",
+                        "min_gain with feedback identity and method polytopic_lmi (the vertex LMI)")
+    if model.delta is None:
+        raise SpecError("stabilisability.objective", "'min_gain' with abstract.delta: flatten (flatten designs delta from M)",
+                        "an explicit abstract.delta (or identity) with min_gain")
+    man = upstream["manifold"]
+    grid = domain_grid(model.V, GAIN_GRID ** model.n_hat)
+    dp = np.asarray(dp_function(man, model)(*grid), dtype=float)                        # (n, n_hat, N)
+    delta = np.broadcast_to(np.asarray(model.numeric(model.delta, list(model.xi))(*grid), dtype=float), (model.n_hat, model.m_hat, grid.shape[1]))
+    W = [dp[:, :, j] @ delta[:, :, j] for j in range(grid.shape[1])]
+    C = model.C
+    L_h = None if C is not None else float(model.h_jacobian_bound()[0])
+    scale = lmi_scale(poly.matrices)
+    scaled = [A / scale for A in poly.matrices]
+    # A full M where it fits (a chain needs its position-velocity couplings; a diagonal M certifies no rate there)
+    structure = "diagonal" if st.structure == "diagonal" else "full"
+    if structure == "full" and sdp_memory_estimate(model.n, len(distinct(scaled)), "full") > 0.8 * available_memory():
+        structure = "diagonal"
+    refuse_if_too_large(model.n, len(distinct(scaled)), structure)
+    rate_gain = gain_estimate(M_rate, lam_rate, W, C, L_h)
+    if st.decay_rate == "maximise":
+        points = [(lam * scale, g, Mv) for lam, g, Mv in frontier(scaled, lam_rate / scale, W, C, structure, L_h)]
+        points = [(lam, gain_estimate(Mv, lam, W, C, L_h), Mv) for lam, _, Mv in points]
+        if not points:
+            return M_rate, lam_rate, meta
+        lam, gain, M = min(points, key=lambda q: q[1])
+        meta.update(objective_frontier=[[float(a), float(b)] for a, b, _ in points])
+    else:
+        lam = float(st.decay_rate)
+        M, _ = min_gain_M(scaled, lam / scale, W, C, structure)
+        if M is None:
+            return M_rate, lam_rate, meta
+        gain = gain_estimate(M, lam, W, C, L_h)
+    if gain >= rate_gain:
+        lam, gain, M = lam_rate, rate_gain, M_rate
+    M = model.n * M / np.trace(M)
+    meta.update(objective="min_gain: minimise max_j ||sqrt(M) dp/dxi delta (xi_j)||^2 on a grid of V subject to eq. (28) and alpha_h >= 1",
+                gain_estimate=gain, rate_objective_lambda=lam_rate, rate_objective_gain_estimate=rate_gain, structure=structure,
+                solver="CLARABEL via cvxpy (smallest gain)")
+    return M, lam, meta
+
+
+def _lyapunov(model: Model, st, scaled: list[np.ndarray], scale: float) -> tuple[np.ndarray, float, str] | None:
+    """M from the Lyapunov equation (:mod:`ashc_cli.contraction.lyapunov`) when it certifies every vertex: always for one
+    distinct A (then the rate is (1 - BISECTION_RTOL) lambda_sup for ``maximise``), for several when the M of their
+    mean happens to certify them all (else None, and the SDP decides)."""
+    uniq = distinct(scaled)
+    sup = min(-2.0 * float(np.linalg.eigvals(A).real.max()) for A in uniq)
+    if not sup > 0:
+        return None
+    lam = (1.0 - BISECTION_RTOL) * sup if st.decay_rate == "maximise" else float(st.decay_rate) / scale
+    if not lam < sup:
+        return None
+    centre = uniq[0] if len(uniq) == 1 else sum(uniq) / len(uniq)
+    M = lyapunov_M(centre, lam)
+    if M is None or lmi_margins(uniq, M, lam).max() >= 0:
+        return None
+    how = "one distinct A" if len(uniq) == 1 else f"the mean of {len(uniq)} distinct vertices, checked at each"
+    return M, lam * scale, how
 
 
 def _network_rate(model: Model, st, poly: Polytope, meta: dict) -> tuple[np.ndarray, float, dict]:
@@ -337,6 +421,8 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
     tried = []
     for structure in tries:
         tried.append(structure)
+        # never start an SDP that cannot fit: a one-line refusal with the estimate instead of being killed
+        refuse_if_too_large(model.n, len(distinct(A_vertices)), structure)
         if st.decay_rate == "maximise":
             how: dict = {}
             lam, M = largest_decay_rate(A_vertices, structure=structure, info=how)
