@@ -199,8 +199,10 @@ def test_continuation_manifold_matches_an_independent_root_solve(spring):
 
 def test_spring_certificates_use_the_state_box(spring):
     st = read_artefact(spring["out"] / "stabilise.h5")
-    assert st.meta["jacobian_entries"] == ["df1/dx1", "df2/dx1", "df2/dx2"]
-    assert st.values["lmi_margin"] <= 0
+    # the Jacobian over its two nonlinear terms (tanh(x1)^2 enters df1/dx1 and df2/dx1, x2^2 enters df2/dx2)
+    assert st.meta["polytope"] == "Jacobian terms" and st.meta["jacobian_terms"] == ["tanh(x1)**2", "x2**2"]
+    assert st.meta["state_box"] == [[-4.0, 4.0], [-3.0, 3.0]]
+    assert st.values["lmi_margin"] <= 0 and st.checks["lmi_margin"].evidence == "proved"
     bd = read_artefact(spring["out"] / "bound.h5")
     assert bd.values["lipschitz_h"] == pytest.approx(1.1, abs=1e-9)  # |1 + 0.1 cos x1| peaks at x1 = 0
     M = st.values["M"]

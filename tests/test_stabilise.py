@@ -578,3 +578,24 @@ abstract:
     art = stabilise.run(model, {})
     assert art.values["lambda"] >= 3.0
     assert art.checks["lmi_margin"].evidence == "proved" and art.checks["lmi_margin"].passed
+
+
+def test_an_inverted_pendulum_gets_a_gain_and_a_local_certificate_that_holds(tmp_path):
+    # x2' = a sin(x1) - b x2 + c u: one term cos(x1) in [cos 1, 1] over the box; K synthesised on its two corners.
+    from ashc_cli.falsify import falsify
+    from ashc_cli.pipeline import DESIGN, design_model, run
+
+    from .conftest import SPECS
+
+    spec = load_spec(SPECS / "inverted_pendulum.yaml")
+    arts = run(spec, tmp_path, DESIGN)
+    st, bd = arts["stabilise"], arts["bound"].values
+    assert st.meta["polytope"] == "Jacobian terms" and st.checks["lmi_margin"].evidence == "proved"
+    K, M, lam = np.asarray(st.values["K"]).ravel(), np.asarray(st.values["M"]), float(st.values["lambda"])
+    a, b, c = 9.81, 0.5, 2.0
+    for x1 in np.linspace(-1, 1, 201):          # the closed loop at every angle of the box, independently of the stage
+        A = np.array([[0.0, 1.0], [a * np.cos(x1) + c * K[0], -b + c * K[1]]])
+        assert np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() < 0
+    assert 0 < bd["w0_max_certified"] < np.inf and 0 < bd["v_max_certified"] < np.inf     # local: the box and no clipping
+    art = falsify(design_model(spec, arts), arts, 64, t_final=5.0)
+    assert art.values["max_ratio"] <= 1.0 and art.values["certificate_counterexamples"] == 0

@@ -386,74 +386,108 @@ MAX_SUBDIVIDED_VERTICES = 2048
 SUBBOX_TIME_BUDGET = 2.0
 
 
-def subdivided_term_polytope(model: Model, terms: Terms, splits: int) -> Polytope | None:
-    """The term polytope over a grid of sub-boxes of state_box x U: the union of the corners of each sub-box's box
-    of term values (each range enclosed by ball arithmetic on the sub-box), or None above MAX_SUBDIVIDED_VERTICES.
+class SubBoxes:
+    """The term polytope over a set of sub-boxes of state_box x U, refined where the LMI binds.
 
     The terms of one state are correlated (exp(-E/T) and c exp(-E/T)/T^2 both follow T), and one box of their values
     holds combinations no state produces; on small sub-boxes it does not.  The mean value of df/dx along a segment of
-    the (convex) box lies in the convex hull of the union, so the vertex argument holds for the union as it does for
-    one box, and the certified rate approaches the supremum over the true Jacobians as the grid is refined.  Only the
-    coordinates the terms depend on are split, each into ``splits`` equal parts.
+    the (convex) box lies in the convex hull of the union of the sub-boxes' corner sets (each sub-box's term ranges
+    enclosed by ball arithmetic), so the vertex argument holds for the union as for one box, and the certified rate
+    approaches the supremum over the true Jacobians as the sub-boxes shrink.  :meth:`split` halves the sub-boxes
+    whose corners bind the LMI for a given (M, lambda), along the coordinate the terms depend on that is widest
+    relative to the whole box: the refinement goes where the rate is lost (branch and bound on the state box).
     """
-    args = list(model.x) + list(model.u)
-    box = np.r_[model.state_box, model.U]
-    used = sorted({args.index(s) for t in terms.thetas for s in t.free_symbols if s in args})
-    cells = splits ** len(used)
-    if cells * 2 ** len(terms) > MAX_SUBDIVIDED_VERTICES:
-        return None
-    compiled = []
-    for theta in terms.thetas:
-        try:
-            compiled.append(proofs.compile_claims(model, [theta], args))
-        except proofs.interval.UnsupportedExpression:
-            return None
-    edges = {d: np.linspace(box[d, 0], box[d, 1], splits + 1) for d in used}
-    dense = terms.dense()
-    matrices, labels, ranges_all = [], [], []
-    seen = set()
-    for index in itertools.product(range(splits), repeat=len(used)):
-        sub = box.copy()
-        for d, i in zip(used, index):
-            sub[d] = (edges[d][i], edges[d][i + 1])
-        ranges = []
-        for fun in compiled:
-            lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
-            hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
-            if not (ok_lo and ok_hi):
+
+    def __init__(self, model: Model, terms: Terms):
+        self.model, self.terms = model, terms
+        args = list(model.x) + list(model.u)
+        self.args = args
+        self.box = np.r_[model.state_box, model.U]
+        self.used = sorted({args.index(s) for t in terms.thetas for s in t.free_symbols if s in args})
+        self.compiled = [proofs.compile_claims(model, [theta], args) for theta in terms.thetas]
+        self.dense = terms.dense()
+        self.boxes = [self.box.copy()]
+        self._ranges: dict = {}
+
+    def ranges(self, sub: np.ndarray) -> list[tuple[float, float]] | None:
+        """The enclosures of every term on one sub-box (cached), or None if one is not finite."""
+        key = tuple(map(float, sub.ravel()))
+        if key not in self._ranges:
+            out = []
+            for fun in self.compiled:
+                lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
+                hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
+                if not (ok_lo and ok_hi):
+                    out = None
+                    break
+                out.append((lo, hi))
+            self._ranges[key] = out
+        return self._ranges[key]
+
+    def vertex_count(self) -> int:
+        return len(self.boxes) * 2 ** len(self.terms)
+
+    def polytope(self) -> Polytope | None:
+        """The union of the sub-boxes' corner sets as a polytope (None if an enclosure fails)."""
+        terms, n = self.terms, self.model.n
+        corners, owner, seen = [], [], set()
+        for b, sub in enumerate(self.boxes):
+            ranges = self.ranges(sub)
+            if ranges is None:
                 return None
-            ranges.append((lo, hi))
-        ranges_all.append(ranges)
-        for corner in itertools.product(*ranges):
-            key = tuple(np.round(corner, 15))
-            if key in seen:
+            for corner in itertools.product(*ranges):
+                key = tuple(np.round(corner, 15))
+                if key not in seen:
+                    seen.add(key)
+                    corners.append(corner)
+                    owner.append(b)
+        matrices = [terms.A0 + sum((t * A for t, A in zip(c, self.dense)), np.zeros_like(terms.A0)) for c in corners]
+        labels = [", ".join(f"{t} = {v:.6g}" for t, v in zip(terms.thetas, c)) for c in corners]
+
+        def balls():
+            f = proofs.BoxFunction(self.model, {f"A{k}": A for k, A in enumerate(terms.coefficient_matrices(n))}, [])
+            parts = f([])
+            A0, As = parts["A0"], [parts[f"A{k + 1}"] for k in range(len(terms))]
+            return [[[A0[i][j] + sum((proofs.arb(float(t)) * A[i][j] for t, A in zip(c, As)), proofs.arb(0)) for j in range(n)]
+                     for i in range(n)] for c in corners]
+
+        names = [str(self.args[d]) for d in self.used]
+        meta = {"jacobian_terms": [str(t) for t in terms.thetas], "term_ranges": terms.ranges.tolist(), "ranges_proved": True,
+                "subdivision": f"{len(self.boxes)} sub-boxes of state_box x U along {names}, refined where the LMI binds "
+                               f"({len(matrices)} distinct vertices)",
+                "range_method": "ball-arithmetic enclosure of each term on each sub-box by branch and bound (rigorous)"}
+        poly = Polytope("Jacobian terms", matrices, labels, True, balls, meta)
+        poly.meta["_owner"] = owner
+        return poly
+
+    def split(self, poly: Polytope, M: np.ndarray, lam: float, share: float = 0.25) -> bool:
+        """Halve the sub-boxes whose worst corner margin of A^T M + M A + lambda M is among the largest (the top
+        ``share``, at least one), within the vertex budget; False when nothing more can be split."""
+        from .vertex import lmi_margins
+
+        owner = poly.meta["_owner"]
+        margins = lmi_margins(poly.matrices, M, lam)
+        worst = np.full(len(self.boxes), -np.inf)
+        for b, mg in zip(owner, margins):
+            worst[b] = max(worst[b], mg)
+        room = (MAX_SUBDIVIDED_VERTICES - self.vertex_count()) // 2 ** len(self.terms)
+        if room <= 0 or not self.used:
+            return False
+        # the binding boxes (worst margin within 5% of the rate's scale of 0), at least the top ``share`` of them
+        scale = max(abs(lam), 1e-300) * float(np.linalg.eigvalsh(M).max())
+        binding = int(np.sum(worst >= -0.05 * scale))
+        count = max(1, min(room, max(binding, int(np.ceil(share * len(self.boxes))))))
+        chosen = set(np.argsort(-worst)[:count].tolist())
+        widths = np.maximum(np.ptp(self.box, axis=1), 1e-300)
+        boxes = []
+        for b, sub in enumerate(self.boxes):
+            if b not in chosen:
+                boxes.append(sub)
                 continue
-            seen.add(key)
-            matrices.append(terms.A0 + sum((t * A for t, A in zip(corner, dense)), np.zeros_like(terms.A0)))
-            labels.append(", ".join(f"{t} = {v:.6g}" for t, v in zip(terms.thetas, corner)))
-    corners = [tuple(map(float, label_values)) for label_values in _corners_of(ranges_all)]
-
-    def balls():
-        f = proofs.BoxFunction(model, {f"A{k}": A for k, A in enumerate(terms.coefficient_matrices(model.n))}, [])
-        parts = f([])
-        A0, As = parts["A0"], [parts[f"A{k + 1}"] for k in range(len(terms))]
-        n = model.n
-        return [[[A0[i][j] + sum((proofs.arb(t) * A[i][j] for t, A in zip(corner, As)), proofs.arb(0)) for j in range(n)] for i in range(n)]
-                for corner in corners]
-
-    meta = {"jacobian_terms": [str(t) for t in terms.thetas], "term_ranges": terms.ranges.tolist(), "ranges_proved": True,
-            "subdivision": f"{splits} parts along each of {[str(args[d]) for d in used]} ({cells} sub-boxes, {len(matrices)} distinct vertices)",
-            "range_method": "ball-arithmetic enclosure of each term on each sub-box by branch and bound (rigorous)"}
-    return Polytope("Jacobian terms", matrices, labels, True, balls, meta)
-
-
-def _corners_of(ranges_all: list[list[tuple[float, float]]]) -> list[tuple]:
-    """The distinct corners of every sub-box's box of term values, in the order subdivided_term_polytope adds them."""
-    seen, out = set(), []
-    for ranges in ranges_all:
-        for corner in itertools.product(*ranges):
-            key = tuple(np.round(corner, 15))
-            if key not in seen:
-                seen.add(key)
-                out.append(corner)
-    return out
+            d = max(self.used, key=lambda k: (sub[k, 1] - sub[k, 0]) / widths[k])
+            mid = 0.5 * (sub[d, 0] + sub[d, 1])
+            left, right = sub.copy(), sub.copy()
+            left[d, 1], right[d, 0] = mid, mid
+            boxes += [left, right]
+        self.boxes = boxes
+        return True

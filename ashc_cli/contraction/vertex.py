@@ -138,6 +138,41 @@ def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> 
     return M, t, status
 
 
+#: Problems kept compiled (cvxpy's canonicalisation of a few thousand small LMIs costs seconds; a bisection re-solves
+#: the same problem at a dozen rates, so the rate is a cvxpy Parameter and the compiled problem is reused).
+_COMPILED: dict = {}
+_COMPILED_MAX = 6
+
+
+def _key(A_list: list[np.ndarray], *extra) -> tuple:
+    import hashlib
+
+    digest = hashlib.sha1(np.ascontiguousarray(np.stack(A_list)).tobytes()).hexdigest()
+    return (digest, len(A_list), A_list[0].shape) + extra
+
+
+def _remember(key: tuple, value):
+    if len(_COMPILED) >= _COMPILED_MAX:
+        _COMPILED.pop(next(iter(_COMPILED)))
+    _COMPILED[key] = value
+    return value
+
+
+def _margin_problem(A_list: list[np.ndarray], structure: str, with_cone: bool):
+    """The maximum-margin problem of :func:`_max_margin` with the rate as a Parameter (built once per vertex set)."""
+    key = _key(A_list, structure, with_cone, "margin")
+    if key in _COMPILED:
+        return _COMPILED[key]
+    n = A_list[0].shape[0]
+    eye = np.eye(n)
+    var, M, positive = _unknown(n, structure)
+    t = cp.Variable()
+    rate = cp.Parameter(nonneg=True)
+    lmis = [A.T @ M + M @ A + rate * M << t * eye for A in A_list]
+    constraints = [cp.trace(M) == n] + (positive if with_cone else []) + lmis
+    return _remember(key, (cp.Problem(cp.Minimize(t), constraints), var, t, lmis, rate))
+
+
 def _max_margin(A_list: list[np.ndarray], lam: float, structure: str, cone: bool = True,
                 hopeless_cone: bool = False) -> tuple[np.ndarray | None, float, str, float, list[np.ndarray] | None]:
     """:func:`solve_lmi`, the optimal margin without the cone M >= eps I (inf when that problem had none), and
@@ -149,8 +184,6 @@ def _max_margin(A_list: list[np.ndarray], lam: float, structure: str, cone: bool
     knows it fails at this lambda); ``hopeless_cone`` skips it when the margin without the cone is already
     >= -MARGIN_TOL (the cone only raises the margin, so it cannot certify), returning that margin as t.
     """
-    n = A_list[0].shape[0]
-    eye = np.eye(n)
     free_t, duals = np.inf, None
     # First without the cone M >= eps I (a third of the work at n = 64): when some A + lambda/2 I is Hurwitz,
     # the LMI with t < 0 already forces M > 0 (Lyapunov), and M is checked; otherwise solve with the cone.
@@ -159,11 +192,9 @@ def _max_margin(A_list: list[np.ndarray], lam: float, structure: str, cone: bool
             return None, free_t, "not solved (the cone problem fails at a lower rate)", free_t, duals
         if with_cone and hopeless_cone and free_t >= -MARGIN_TOL:
             return None, free_t, "not solved (the margin without the cone is >= -MARGIN_TOL)", free_t, duals
-        var, M, positive = _unknown(n, structure)
-        t = cp.Variable()
-        lmis = [A.T @ M + M @ A + lam * M << t * eye for A in A_list]
-        constraints = [cp.trace(M) == n] + (positive if with_cone else []) + lmis
-        problem = _solve(cp.Problem(cp.Minimize(t), constraints), f"the LMI at lambda = {lam:g} ({structure} M)")
+        problem, var, t, lmis, rate = _margin_problem(A_list, structure, with_cone)
+        rate.value = float(lam)
+        problem = _solve(problem, f"the LMI at lambda = {lam:g} ({structure} M)")
         if var.value is None or t.value is None:
             if with_cone:
                 return None, np.inf, str(problem.status), free_t, duals
@@ -254,17 +285,24 @@ def solve_lmi_scale_free(A_list: list[np.ndarray], lam: float, structure: str = 
         cvxpy's status string.
     """
     n = A_list[0].shape[0]
-    eye = np.eye(n)
-    kappa = cp.Variable()
-    if structure == "diagonal":
-        var = cp.Variable(n)
-        M = cp.diag(var)
-        constraints = [var >= 1.0, var <= kappa]
+    key = _key(A_list, structure, "scale_free")
+    if key in _COMPILED:
+        problem, var, kappa, rate = _COMPILED[key]
     else:
-        var = M = cp.Variable((n, n), symmetric=True)
-        constraints = [M >> eye, M << kappa * eye]
-    constraints += [A.T @ M + M @ A + lam * M << -SCALE_FREE_MARGIN * kappa * eye for A in A_list]
-    problem = _solve(cp.Problem(cp.Minimize(kappa), constraints), f"the scale-free LMI at lambda = {lam:g} ({structure} M)")
+        eye = np.eye(n)
+        kappa = cp.Variable()
+        rate = cp.Parameter(nonneg=True)
+        if structure == "diagonal":
+            var = cp.Variable(n)
+            M = cp.diag(var)
+            constraints = [var >= 1.0, var <= kappa]
+        else:
+            var = M = cp.Variable((n, n), symmetric=True)
+            constraints = [M >> eye, M << kappa * eye]
+        constraints += [A.T @ M + M @ A + rate * M << -SCALE_FREE_MARGIN * kappa * eye for A in A_list]
+        problem, var, kappa, rate = _remember(key, (cp.Problem(cp.Minimize(kappa), constraints), var, kappa, rate))
+    rate.value = float(lam)
+    problem = _solve(problem, f"the scale-free LMI at lambda = {lam:g} ({structure} M)")
     if var.value is None or kappa.value is None:
         return None, np.inf, str(problem.status)
     Mv = _matrix(var, structure)

@@ -39,7 +39,7 @@ from ..contraction.network import network_polytope
 from ..contraction.network import prove as prove_network
 from ..contraction.proof import prove_lmi
 from ..contraction.terms import (MAX_VARYING_ENTRIES, MAX_VERTEX_TERMS, Polytope, affine_polytope, decompose, entry_polytope,
-                                 jacobian_samples, refuse_jumps, subdivided_term_polytope, term_polytope)
+                                 jacobian_samples, refuse_jumps, SubBoxes, term_polytope)
 from ..contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES, M_MIN_EIG, MARGIN_TOL, SCALE_FREE_MARGIN, certify_rate,  # noqa: F401
                                   infeasible_from, largest_decay_rate, largest_decay_rate_for, lmi_margins, lmi_scale, solve_lmi,
                                   structures, sweep, vertices)
@@ -50,8 +50,8 @@ from .manifold import dp_function
 
 NAME = "stabilise"
 UPSTREAM: tuple[str, ...] = ()
-#: Points of V (per abstract state) on which the smallest-gain objective measures dbar.
-GAIN_GRID = 65
+#: Points of V on which the smallest-gain objective measures dbar (per abstract state: 65, then 17 x 17, ...).
+GAIN_GRID = {1: 65, 2: 17 ** 2, 3: 7 ** 3}
 
 
 def upstream(spec) -> tuple[str, ...]:
@@ -194,26 +194,38 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
 
 def _refine(model: Model, st, decomposition, results: list) -> list:
-    """Certificates on the term polytope over finer grids of sub-boxes (2, 4, 8, ... parts along each coordinate the
-    terms depend on: :func:`subdivided_term_polytope`), while the rate grows by more than REFINE_GAIN (``maximise``)
-    or until the requested rate is certified; stops at the vertex budget."""
-    found, best = [], max((r[3] for r in results), default=0.0)
-    splits = 2
+    """Certificates on the term polytope over sub-boxes of state_box x U refined where the LMI binds
+    (:class:`SubBoxes`): for ``maximise`` while the rate grows by more than REFINE_GAIN over two rounds, for a fixed
+    rate until it is certified; both stop at the vertex budget."""
+    try:
+        grid = SubBoxes(model, decomposition)
+    except proofs.interval.UnsupportedExpression:
+        return []
+    found, history = [], []
+    # the first refinement is uniform (every used coordinate halved once) so that binding boxes can be told apart
+    for _ in grid.used:
+        poly = grid.polytope()
+        if poly is None or not grid.split(poly, np.eye(model.n), 0.0, share=1.0):
+            break
     while True:
-        poly = subdivided_term_polytope(model, decomposition, splits)
+        poly = grid.polytope()
         if poly is None:
             return found
         try:
-            found.append((poly, *_certify(model, st, poly)))
+            last = (poly, *_certify(model, st, poly))
+            found.append(last)
         except DesignError:
-            splits *= 2
-            continue
-        lam = found[-1][3]
-        if st.decay_rate != "maximise":
+            last = None
+        if last is not None and st.decay_rate != "maximise":
             return found
-        if lam <= best * (1 + REFINE_GAIN):
+        if last is not None:
+            history.append(last[3])
+            # stop when three rounds together gained less than REFINE_GAIN
+            if len(history) > 3 and history[-1] <= history[-4] * (1 + REFINE_GAIN):
+                return found
+        M, lam = (last[1], last[3]) if last is not None else (np.eye(model.n), float(st.decay_rate) if st.decay_rate != "maximise" else 0.0)
+        if not grid.split(poly, M, lam, share=0.25 if last is not None else 1.0):
             return found
-        best, splits = lam, splits * 2
 
 
 def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, float, dict]:
@@ -272,10 +284,14 @@ def _min_gain(model: Model, st, poly: Polytope, upstream: dict, M_rate: np.ndarr
         raise SpecError("stabilisability.objective", "'min_gain' with abstract.delta: flatten (flatten designs delta from M)",
                         "an explicit abstract.delta (or identity) with min_gain")
     man = upstream["manifold"]
-    grid = domain_grid(model.V, GAIN_GRID ** model.n_hat)
+    grid = domain_grid(model.V, GAIN_GRID.get(model.n_hat, 4 ** model.n_hat))
     dp = np.asarray(dp_function(man, model)(*grid), dtype=float)                        # (n, n_hat, N)
     delta = np.broadcast_to(np.asarray(model.numeric(model.delta, list(model.xi))(*grid), dtype=float), (model.n_hat, model.m_hat, grid.shape[1]))
-    W = [dp[:, :, j] @ delta[:, :, j] for j in range(grid.shape[1])]
+    W = []
+    for j in range(grid.shape[1]):              # distinct values only (an affine p with a constant delta has one)
+        w = dp[:, :, j] @ delta[:, :, j]
+        if not any(np.array_equal(w, other) for other in W[-8:]):
+            W.append(w)
     C = model.C
     L_h = None if C is not None else float(model.h_jacobian_bound()[0])
     scale = lmi_scale(poly.matrices)
