@@ -726,25 +726,34 @@ SWEEP_WORKERS = 2
 @app.command(short_help=SHORT_HELP["example"])
 @_guard
 def example(
-    kind: Annotated[str, typer.Argument(metavar="KIND", help="Which family: 'ladder' (an N-stage switched LC ladder, n = 4 N).", show_default=False)],
-    stages: Annotated[int, typer.Option("--stages", min=1, max=256, help="Number of stages N (n = 4 N states).")] = 1,
+    kind: Annotated[str, typer.Argument(metavar="KIND", help=(
+        "Which family: 'ladder' (an N-stage switched LC ladder, n = 4 N), 'rc_ladder' (the MORwiki nonlinear RC ladder "
+        "with N diodes, n = N) or 'chain' (N masses on springs, n = 2 N)."), show_default=False)],
+    stages: Annotated[int, typer.Option("--stages", min=1, max=4096, help="Number of stages N (cells, nodes or masses).")] = 1,
     output: Annotated[Optional[Path], typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
 ) -> None:
     """Write the spec of a scalable example plant (for benchmarks and large designs).
 
     Prints the spec, or with --output writes it and prints its path.
     """
-    from .examples import ladder
+    from . import examples
 
-    if kind != "ladder":
-        raise SpecError("KIND", f"'{kind}' is not an example family", "ladder")
-    text = ladder(stages)
+    families = {"ladder": (examples.ladder, 256, lambda N: 4 * N), "rc_ladder": (examples.rc_ladder, 4096, lambda N: N),
+                "chain": (examples.chain, 1024, lambda N: 2 * N)}
+    if kind not in families:
+        raise SpecError("KIND", f"'{kind}' is not an example family", "one of " + ", ".join(families))
+    make, most, states = families[kind]
+    if kind == "rc_ladder" and stages < 2:
+        raise SpecError("--stages", f"{stages}", "at least 2 nodes for an RC ladder")
+    if stages > most:
+        raise SpecError("--stages", f"{stages}", f"at most {most} for the {kind} family")
+    text = make(stages)
     if output is None:
         typer.echo(text, nl=False)
     else:
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(text, encoding="utf-8")
-        typer.echo(f"{output}: {stages}-stage ladder, n = {4 * stages}")
+        typer.echo(f"{output}: {stages}-stage {kind}, n = {states(stages)}")
 
 
 @app.command(short_help=SHORT_HELP["regress"])
@@ -802,10 +811,19 @@ def summary_command(
         for key, value in entry.items():
             if key in ("checks", "provenance"):
                 continue
-            typer.echo(f"  {key} = {value}")
+            typer.echo(f"  {key} = {_short(value)}")
         for key, chk in entry["checks"].items():
             value = chk["value"] if isinstance(chk["value"], str) else number_text(chk["value"], ".4g")
             typer.echo(f"  check {key}: {'pass' if chk['passed'] else 'FAIL'} ({value}, {chk.get('evidence', 'sampled')})")
+
+
+def _short(value, limit: int = 400) -> str:
+    """A value as text, cut to `limit` characters for the terminal (a 500-vertex margin list reads badly)."""
+    text = str(value)
+    if len(text) <= limit:
+        return text
+    count = f"{len(value)} entries, " if isinstance(value, (list, tuple)) else ""
+    return text[:limit].rstrip(", ") + f" ... ({count}--json for all)"
 
 
 @app.command(name="eval", short_help=SHORT_HELP["eval"])

@@ -8,9 +8,13 @@ tables (Markdown, ready for README):
    n (least squares of log t on log n over the ladder sizes);
 2. the closed loops and the large plants (issue 13): Cuk `simulate` and `falsify` with the compiled code's
    first run (an empty cache: numba compiles) and a cached run in a new process, 10,000 falsification runs,
-   the ladder at n = 256 and 512, and `stabilise` with `decay_rate: maximise` at 64 states.
+   the ladder at n = 256 and 512, and `stabilise` with `decay_rate: maximise` at 64 states;
+3. the contraction certificates (issue 20): the MORwiki RC ladder at N = 5..1000, a chain of 100 masses,
+   an ill-conditioned ladder, the CSTR and the inverted pendulum, and the objectives rate and min_gain
+   (with the falsified error over the bound).
 
     python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900] [--runs 10000] [--no-closed-loops]
+                          [--no-certificates | --only-certificates]
 """
 
 from __future__ import annotations
@@ -125,15 +129,108 @@ def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
     return out
 
 
+def example_spec(folder: Path, kind: str, stages: int, edit=None) -> Path:
+    """`ashc example KIND --stages N` written to folder, optionally edited (a function of the loaded YAML)."""
+    path = folder / f"{kind}_{stages}.yaml"
+    subprocess.run(ASHC + ["example", kind, "--stages", str(stages), "--output", str(path)], check=True, capture_output=True, cwd=ROOT)
+    if edit is not None:
+        import yaml
+
+        spec = yaml.safe_load(path.read_text())
+        edit(spec)
+        path.write_text(yaml.safe_dump(spec, sort_keys=False, width=140))
+    return path
+
+
+def certificates(tmp: Path, timeout: float) -> list[dict]:
+    """The rows of issue 20: contraction certificates for networks, reactors, large and unstable plants, and the
+    smallest-gain objective.  Each `ashc design` runs in a fresh process."""
+    out = []
+
+    def timed(label: str, cmd: list[str], target: str, note=None) -> dict:
+        try:
+            wall, mem, text, rc = run_child(cmd, timeout)
+        except subprocess.TimeoutExpired:
+            wall, mem, text, rc = float("nan"), float("nan"), "", -1
+        row = {"work": label, "stage": wall, "wall": wall, "mem": mem, "rc": rc, "target": target, "note": note(text) if note else ""}
+        out.append(row)
+        print(f"  measured {label}: {wall:.1f} s, {mem:.0f} MiB", file=sys.stderr, flush=True)
+        return row
+
+    def summary_value(folder: Path, stage: str, key: str) -> float:
+        proc = subprocess.run(ASHC + ["summary", str(folder), "--json"], capture_output=True, text=True, cwd=ROOT)
+        try:
+            return float(json.loads(proc.stdout)[stage][key])
+        except (ValueError, KeyError):
+            return float("nan")
+
+    def polytope_of(folder: Path) -> str:
+        proc = subprocess.run(ASHC + ["summary", str(folder), "--json"], capture_output=True, text=True, cwd=ROOT)
+        try:
+            return str(json.loads(proc.stdout)["stabilise"].get("polytope", "?"))
+        except (ValueError, KeyError):
+            return "?"
+
+    ladder_rows = []
+    for N in (5, 50, 200, 1000):
+        path = example_spec(tmp, "rc_ladder", N)
+        folder = tmp / f"rc{N}"
+        row = timed(f"RC ladder (MORwiki), N = n = {N}, `design`", ASHC + ["design", str(path), "--out", str(folder)],
+                    "N = 1000: <= 300 s, <= 4 GiB" if N == 1000 else "")
+        row["note"] = f"lambda = {summary_value(folder, 'stabilise', 'lambda'):.4g} ({polytope_of(folder)})"
+        ladder_rows.append((N, row["wall"]))
+    good = [(n, t) for n, t in ladder_rows if np.isfinite(t)]
+    if len(good) >= 2:
+        slope = np.polyfit(np.log([n for n, _ in good]), np.log([t for _, t in good]), 1)[0]
+        out[-1]["note"] += f"; wall time grows like N^{slope:.2f} over N = {good[0][0]}..{good[-1][0]}"
+    path = example_spec(tmp, "chain", 100)
+    timed("chain of 100 masses, n = 200, `design`", ASHC + ["design", str(path), "--out", str(tmp / "chain100")], "<= 60 s, <= 4 GiB")
+
+    def ill(spec):
+        spec["stabilisability"]["decay_rate"] = "maximise"
+        spec["parameters"]["L"] /= 100.0
+        spec["parameters"]["r"] /= 10.0
+    path = example_spec(tmp, "ladder", 16, ill)
+    timed("ladder n = 64, L / 100 (cond M = 100), `stabilise` maximise", ASHC + ["stabilise", str(path), "--out", str(tmp / "ill")], "<= 60 s")
+    for spec, label in (("specs/cstr.yaml", "CSTR (specs/cstr.yaml) at its rate 1.2"), ("specs/inverted_pendulum.yaml", "inverted pendulum, linear_gain")):
+        timed(f"{label}, `design`", ASHC + ["design", spec, "--out", str(tmp / Path(spec).stem)], "",
+              note=lambda text: next((line.split(": ", 1)[1][:60] for line in text.splitlines() if line.startswith("design '")), ""))
+    for N, objective in ((30, "rate"), (30, "min_gain")):
+        def set_objective(spec, objective=objective):
+            spec["stabilisability"]["objective"] = objective
+        path = example_spec(tmp, "chain", N, set_objective)
+        path = path.rename(path.with_name(f"chain_{N}_{objective}.yaml"))
+        folder = tmp / f"chain{N}_{objective}"
+        row = timed(f"chain n = {2 * N}, objective {objective}, `design`", ASHC + ["design", str(path), "--out", str(folder)], "")
+        gain = summary_value(folder, "bound", "gain")
+        fal = subprocess.run(ASHC + ["falsify", str(path), "--out", str(folder), "--runs", "400", "--json"], capture_output=True, text=True, cwd=ROOT)
+        try:
+            ratio = float(json.loads(fal.stdout)["max_ratio_w0_zero"])
+        except (ValueError, KeyError):
+            ratio = float("nan")
+        row["note"] = f"G = {gain:.4g}; largest error / bound on the manifold (400 runs) = {ratio:.3g}" + (" (target >= 1/30)" if objective == "min_gain" else "")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stages", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32])
     ap.add_argument("--timeout", type=float, default=900.0)
     ap.add_argument("--runs", type=int, default=10000, help="runs of the falsify row")
-    ap.add_argument("--no-closed-loops", action="store_true", help="only the design table")
+    ap.add_argument("--no-closed-loops", action="store_true", help="leave out the closed-loop table")
+    ap.add_argument("--no-certificates", action="store_true", help="leave out the contraction-certificate table (issue 20)")
+    ap.add_argument("--only-certificates", action="store_true", help="only the contraction-certificate table")
     args = ap.parse_args()
 
     rows = []
+    if args.only_certificates:
+        with tempfile.TemporaryDirectory() as tmp:
+            certs = certificates(Path(tmp), args.timeout)
+        print("| contraction certificates (issue 20) | wall (s) | peak RSS (MiB) | target | note | exit |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        for r in certs:
+            print(f"| {r['work']} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         # Cold start: `ashc --help`, and the bare import time of the dependencies a design needs.
@@ -173,7 +270,15 @@ def main() -> int:
         for r in loops:
             print(f"| {r['work']} | {r['stage']:.2f} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
         print("(seconds: the stage's own time from its progress line; for the ladders the whole `ashc design`)")
-    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops}) + "\n")
+    certs = []
+    if not args.no_certificates:
+        with tempfile.TemporaryDirectory() as tmp:
+            certs = certificates(Path(tmp), args.timeout)
+        print("\n| contraction certificates (issue 20) | wall (s) | peak RSS (MiB) | target | note | exit |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        for r in certs:
+            print(f"| {r['work']} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs}) + "\n")
     return 0
 
 

@@ -545,6 +545,8 @@ def summarise(art: Artefact) -> dict:
         "vertex_margins": np.asarray(v["vertex_margins"]).tolist(),
         "M_min_eigenvalue": float(np.min(v["M_eigenvalues"])),
         "method": art.meta.get("method"),
+        "polytope": art.meta.get("polytope"),
+        "proof": art.meta.get("lmi_proof"),
         "A": [str(e) for e in art.exprs["A"]],
     }
 
