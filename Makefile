@@ -8,7 +8,7 @@ BIN    := $(VENV)/bin
 SPEC   ?= specs/cuk_converter.yaml
 OUT    ?= outputs/cuk_converter
 
-.PHONY: install demo test bench fuzz docs lock clean
+.PHONY: install demo test test-fast bench fuzz docs lock clean
 
 # The pinned set (constraints.txt: pip, the build tools and every package make test installs). pyproject.toml
 # keeps ranges; `make lock` refreshes the pins from the registry's newest releases, on purpose.
@@ -32,8 +32,13 @@ demo: install
 	@echo "    source $(VENV)/bin/activate     # then: ashc --help, ashc check $(SPEC)"
 	@echo "or call it as $(BIN)/ashc. Next: write a spec of your plant (docs/spec-format.md) and run ashc design on it."
 
+# The suite on two cores (pytest-xdist; CI has two). `make test-fast` leaves out the tests marked slow
+# (whole designs and campaigns through the CLI): about a third of the time, for the edit-test loop.
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
+
+test-fast: install
+	$(BIN)/python -m pytest -q -n 2 -m "not slow"
 
 # Wall time and peak memory per stage on the ladder family (n = 4..128) and the Cuk spec; prints a table.
 bench: install

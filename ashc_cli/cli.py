@@ -1,4 +1,4 @@
-"""The ``ashc`` command line: a thin typer layer over :mod:`ashc_cli.pipeline` and :mod:`ashc_cli.query`.
+"""The ``ashc`` command line: a thin typer layer over :mod:`ashc_cli.design.pipeline` and :mod:`ashc_cli.outputs.query`.
 
 One output channel: stdout carries only a command's result (a summary line or table, JSON, file paths);
 progress goes to stderr, for every command: one line per stage (``<stage> <status> <seconds> s
@@ -20,21 +20,21 @@ import traceback
 import warnings
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import numpy as np
 import typer
 
-from . import __version__
-from .errors import ArtefactError, AshcError, SpecError
-from .falsify import NAME as FALSIFY, SEGMENTS, headline as falsify_headline
-from .pipeline import (DESIGN, STAGES, Folder, StageReport, artefact_path, default_out, falsify_differs, falsify_t_final, load_all,
-                       needed, run, run_falsify, run_for_verdict)
-from .paper import cite
-from .query import EVALUABLE, evaluate, no_negative_zero, number_text, parse_point, summary
-from .spec import load_spec
-from .verdict import verdict
-from .stages.bound import gain_text, region_text
+from ashc_cli import __version__
+from ashc_cli.errors import ArtefactError, AshcError, SpecError
+from ashc_cli.products.falsify import NAME as FALSIFY, SEGMENTS, headline as falsify_headline
+from ashc_cli.design.pipeline import DESIGN, STAGES, Folder, StageReport, artefact_path, default_out, load_all, needed, run, run_for_verdict
+from ashc_cli.products.campaign import falsify_differs, falsify_t_final, run_falsify
+from ashc_cli.paper import cite
+from ashc_cli.outputs.query import EVALUABLE, evaluate, no_negative_zero, number_text, parse_point, summary
+from ashc_cli.problem.spec import load_spec
+from ashc_cli.design.verdict import verdict
+from ashc_cli.design.stages.bound import gain_text, region_text
 
 app = typer.Typer(
     name="ashc",
@@ -57,10 +57,12 @@ app = typer.Typer(
 _DEBUG = False
 
 SpecArg = Annotated[Path, typer.Argument(metavar="SPEC", help="The YAML spec (see docs/spec-format.md).", show_default=False)]
-OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
+OutOpt = Annotated[Path | None, typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Recompute every needed stage even if up to date.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")]
-NumericOpt = Annotated[Optional[bool], typer.Option("--numeric/--symbolic", help="Force the numeric fast paths (grids and interpolants) or the symbolic ones (sympy) [default: numeric above 12 states]. Stages already up to date are kept (a note on stderr names them): add --force when switching on an existing folder.", show_default=False)]
+NumericOpt = Annotated[bool | None, typer.Option("--numeric/--symbolic", help=(
+    "Force the numeric fast paths (grids and interpolants) or the symbolic ones (sympy) [default: numeric above 12 states]. "
+    "Stages already up to date are kept (a note on stderr names them): add --force when switching on an existing folder."), show_default=False)]
 
 
 def _frozen_opt(text: str):
@@ -107,7 +109,7 @@ def plain_text(text: str) -> str:
     """``text`` with every standalone negative zero ("-0", "-0.0") written without its sign.
 
     For lines whose numbers were formatted elsewhere (stage headlines); numbers the CLI formats itself go
-    through :func:`ashc_cli.query.number_text`.
+    through :func:`ashc_cli.outputs.query.number_text`.
 
     Parameters
     ----------
@@ -145,7 +147,7 @@ class Progress:
         self._display = None
         self._task = None
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Progress:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -210,7 +212,7 @@ class Progress:
             self._display = self._task = None
 
     def on_start(self, stage: str, reason: str) -> None:
-        """Called by :func:`ashc_cli.pipeline.run` before a stage is computed: show it while it runs."""
+        """Called by :func:`ashc_cli.design.pipeline.run` before a stage is computed: show it while it runs."""
         self.start(f"{stage}: {reason}", total=SEGMENTS if stage == FALSIFY else None)
 
     def on_stage(self, report: StageReport) -> None:
@@ -226,7 +228,7 @@ def _load(spec_path: Path, out: Path | None):
 
 
 def _run(spec_path: Path, out: Path | None, targets, force: bool, progress: Progress, frozen=False, numeric: bool | None = None):
-    """Load the spec and bring ``targets`` up to date (:func:`ashc_cli.pipeline.run`), with progress on stderr.
+    """Load the spec and bring ``targets`` up to date (:func:`ashc_cli.design.pipeline.run`), with progress on stderr.
 
     Returns
     -------
@@ -412,15 +414,15 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
 
 RunsOpt = Annotated[int, typer.Option("--runs", min=1, max=100000, help="Number of closed-loop runs, shared among the search strategies (compiled, over every core).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same batch.")]
-TFinalOpt = Annotated[Optional[float], typer.Option("--t-final", help="Length of each run in seconds, > 0 [default: the spec's tracking t_final].", show_default=False)]
+TFinalOpt = Annotated[float | None, typer.Option("--t-final", help="Length of each run in seconds, > 0 [default: the spec's tracking t_final].", show_default=False)]
 #: report's falsify settings: given, they must match a stored falsify.h5 (else it reruns); omitted, any stored one is used.
-ReportRunsOpt = Annotated[Optional[int], typer.Option("--runs", min=1, max=100000, show_default=False, help=(
+ReportRunsOpt = Annotated[int | None, typer.Option("--runs", min=1, max=100000, show_default=False, help=(
     "Runs of the falsification [default: those of a falsify.h5 already made for this design, else 32]. Given, a falsify.h5 made "
     "with another number is run again."))]
-ReportSeedOpt = Annotated[Optional[int], typer.Option("--seed", show_default=False, help=(
+ReportSeedOpt = Annotated[int | None, typer.Option("--seed", show_default=False, help=(
     "Random seed of the falsification [default: that of a stored falsify.h5, else 0]. Given, a falsify.h5 made with another "
     "seed is run again."))]
-ReportTFinalOpt = Annotated[Optional[float], typer.Option("--t-final", show_default=False, help=(
+ReportTFinalOpt = Annotated[float | None, typer.Option("--t-final", show_default=False, help=(
     "Length of each falsification run in seconds, > 0 [default: that of a stored falsify.h5, else the spec's tracking t_final]. "
     "Given, a falsify.h5 made with another length is run again."))]
 #: The falsification settings report uses when there is no falsify.h5 to reuse.
@@ -464,7 +466,7 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     m_relation_inputs/outputs.png, and falsify.png when `ashc falsify` has run on this design. Runs the
     stale stages (simulate included) first. Prints the paths of the figures.
     """
-    from . import plots  # matplotlib only for the commands that draw (cold start of the others)
+    from ashc_cli.outputs import plots  # matplotlib only for the commands that draw (cold start of the others)
 
     _exclusive(force, frozen, "plot")
     with Progress() as progress:
@@ -594,7 +596,7 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
     <out>/plots/tradeoff.png, the speed/accuracy frontier. The governor runs on scipy: a wide range of
     tolerances takes minutes.
     """
-    from . import tradeoff as tradeoff_mod
+    from ashc_cli.products import tradeoff as tradeoff_mod
 
     values = tradeoff_mod.parse_tolerances(tolerances)
     spec_obj, folder = _load(spec, out)
@@ -629,8 +631,8 @@ def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: 
     given; otherwise falsify runs (stderr says why). Prints the page's path. Exit 0 when written, also for a
     design that fails (the page says why); exit 3 if the falsification finds a violation.
     """
-    from . import plots
-    from .report import render
+    from ashc_cli.outputs import plots
+    from ashc_cli.outputs.report import render
 
     _exclusive(force, frozen, "report")
     _positive_t_final(t_final)
@@ -666,8 +668,9 @@ def sweep(
     spec: SpecArg,
     param: Annotated[list[str], typer.Option("--param", help="NAME=LO:HI:COUNT, a spec parameter and its values (repeat for a grid).", show_default=False)],
     out: OutOpt = None,
-    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) [default: a local cluster].", show_default=False)] = None,
-    workers: Annotated[Optional[int], typer.Option("--workers", min=1, max=256, show_default=False, help=f"Worker processes of the local cluster [default: {2}]; not with --scheduler.")] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", show_default=False,
+                                                   help="Address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) [default: a local cluster].")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=1, max=256, show_default=False, help=f"Worker processes of the local cluster [default: {2}]; not with --scheduler.")] = None,
     falsify_runs: Annotated[int, typer.Option("--falsify-runs", min=0, help="Also run `ashc falsify` with this many runs per solved design (0: no).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
@@ -678,8 +681,8 @@ def sweep(
     falsify ratio, seconds, error per combination) and <out>/plots/sweep.png (headline numbers against
     the first swept parameter). One line per finished combination goes to stderr.
     """
-    from . import sweep as sweep_mod
-    from .artefacts import write_artefact
+    from ashc_cli.products import sweep as sweep_mod
+    from ashc_cli.design.artefacts import write_artefact
 
     if scheduler is not None and workers is not None:
         raise SpecError("--workers", f"{workers} worker processes are for the local cluster, but --scheduler {scheduler} is given",
@@ -730,13 +733,13 @@ def example(
         "Which family: 'ladder' (an N-stage switched LC ladder, n = 4 N), 'rc_ladder' (the MORwiki nonlinear RC ladder "
         "with N diodes, n = N) or 'chain' (N masses on springs, n = 2 N)."), show_default=False)],
     stages: Annotated[int, typer.Option("--stages", min=1, max=4096, help="Number of stages N (cells, nodes or masses).")] = 1,
-    output: Annotated[Optional[Path], typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
+    output: Annotated[Path | None, typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
 ) -> None:
     """Write the spec of a scalable example plant (for benchmarks and large designs).
 
     Prints the spec, or with --output writes it and prints its path.
     """
-    from . import examples
+    from ashc_cli.problem import examples
 
     families = {"ladder": (examples.ladder, 256, lambda N: 4 * N), "rc_ladder": (examples.rc_ladder, 4096, lambda N: N),
                 "chain": (examples.chain, 1024, lambda N: 2 * N)}
@@ -761,7 +764,7 @@ def example(
 def regress(
     specs: Annotated[Path, typer.Argument(metavar="SPECS", help="A folder of specs (every *.yaml in it).", show_default=False)],
     golden: Annotated[Path, typer.Option("--golden", help="Folder of golden JSON files, one per spec name.")] = Path("tests/golden"),
-    out: Annotated[Optional[Path], typer.Option("--out", help="Where the designs go [default: outputs/regress].", show_default=False)] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Where the designs go [default: outputs/regress].", show_default=False)] = None,
     update: Annotated[bool, typer.Option("--update", help="Write the golden files from this run (keeping edited tolerances).")] = False,
     as_json: JsonOpt = False,
 ) -> None:
@@ -772,7 +775,7 @@ def regress(
     differs or has no golden file (write them with --update, after checking the numbers). Prints one row per
     spec (with --json: the rows as JSON, and the rows as progress on stderr).
     """
-    from .regress import regress as run_regress
+    from ashc_cli.products.regress import regress as run_regress
 
     total = len(list(Path(specs).glob("*.yaml")))
     with Progress() as progress:
@@ -832,7 +835,7 @@ def eval_command(
     folder: Annotated[Path, typer.Argument(metavar="DIR", help="An artefact folder.", show_default=False)],
     name: Annotated[str, typer.Argument(metavar="NAME", help=f"One of: {', '.join(EVALUABLE)}, u_w (the interface law, needs --spec).", show_default=False)],
     at: Annotated[str, typer.Option("--at", help="The point, in the spec's own names: --at xi=0.6156 or --at x1=1,x2=2,x3=3,x4=4 (theta takes both; u_w takes xi, x and v).", show_default=False)],
-    spec: Annotated[Optional[Path], typer.Option("--spec", help="The spec the folder was designed from; needed by u_w only (l(xi), U and the interface are in no artefact).", show_default=False)] = None,
+    spec: Annotated[Path | None, typer.Option("--spec", help="The spec the folder was designed from; needed by u_w only (l(xi), U and the interface are in no artefact).", show_default=False)] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Evaluate a stored function (p, kappa, m, delta, b, c, theta) or the interface law u_w at a point.
@@ -842,7 +845,7 @@ def eval_command(
     """
     point = parse_point(at)
     if name == "u_w":
-        from .export import interface_value
+        from ashc_cli.outputs.export import interface_value
 
         if spec is None:
             raise SpecError("--spec", "u_w needs the spec the folder was designed from (l(xi), U and the interface are stored in no artefact)", "--spec SPEC")
@@ -876,7 +879,7 @@ def export_command(
     ashc_controller is the set-point law of the tracking scenario (gain and v_max from the spec, else
     arguments). Runs the stale design stages first (unless --frozen). Prints the paths written.
     """
-    from .export import check_target, write_export
+    from ashc_cli.outputs.export import check_target, write_export
 
     _exclusive(force, frozen, "export")
     lang, output = check_target(lang, output)   # before any stage runs

@@ -50,7 +50,7 @@ class AshcError(Exception):
 
     def line(self) -> str:
         """The one-line message the CLI prints (without the ``error:`` prefix)."""
-        from .paper import cite   # the paper's numbers, not its LaTeX labels
+        from ashc_cli.paper import cite   # the paper's numbers, not its LaTeX labels
 
         text = f"{self.where}: {self.what}" if self.where else self.what
         if self.expected:
@@ -88,6 +88,35 @@ class ArtefactError(AshcError):
     """An artefact is missing, stale, made from another spec or schema, or unreadable (exit code 5)."""
 
     exit_code = 5
+
+
+# Internal refusals: caught inside ashc, where a slower or sampled path takes over; never reach the user.
+
+class UnsupportedExpression(ValueError):
+    """A sympy node :func:`compile_interval` cannot enclose rigorously.
+
+    Parameters
+    ----------
+    node : sympy.Basic
+        The offending node.
+    why : str, optional
+        Why it is refused, if more can be said than its type.
+    """
+
+    def __init__(self, node: object, why: str | None = None):
+        self.node = node
+        name = type(node).__name__
+        text = str(node)
+        text = text if len(text) <= 60 else text[:57] + "..."
+        msg = f"cannot enclose the sympy node {name} ({text})"
+        super().__init__(msg + (f": {why}" if why else ""))
+
+
+class Unsupported(Exception):
+    """The compiled closed loop cannot run this design (numba is missing, or an expression has no numba form).
+
+    The caller uses the scipy path.
+    """
 
 
 EXIT_CODES = {cls.__name__: cls.exit_code for cls in (SpecError, DesignError, NumericalError, ArtefactError)}

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ashc_cli.pipeline import DESIGN
+from ashc_cli.design.pipeline import DESIGN
 
 ROOT = Path(__file__).resolve().parents[1]
 ASHC = [str(Path(sys.executable).with_name("ashc"))]

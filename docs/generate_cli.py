@@ -21,9 +21,9 @@ import typer
 
 from ashc_cli import errors
 from ashc_cli.cli import app
-from ashc_cli.pipeline import DESIGN, EXTRAS, STAGES
-from ashc_cli.query import EVALUABLE
-from ashc_cli.verdict import Row
+from ashc_cli.design.pipeline import DESIGN, PRODUCTS, STAGES
+from ashc_cli.outputs.query import EVALUABLE
+from ashc_cli.design.verdict import Row
 
 #: Width click wraps the help to: what `ashc CMD --help` prints in a terminal of 80 columns or more (click's default),
 #: fixed so the page does not depend on the terminal it is generated in.
@@ -77,7 +77,7 @@ def _contract(group) -> list[str]:
     eval_missing = [n for n in CONTRACT_EVAL_NAMES if n not in EVALUABLE]
     row_keys = [f.name for f in dataclasses.fields(Row)]
     stage_files = "  ".join(f"{name}.h5" for name in STAGES)
-    extra_files = "  ".join(f"{name}.h5" for name in EXTRAS)
+    extra_files = "  ".join(f"{name}.h5" for name in PRODUCTS)
 
     out = [
         "## The contract",
@@ -102,7 +102,7 @@ def _contract(group) -> list[str]:
         "```text",
         "<out>/",
         f"  {stage_files}",
-        "      one HDF5 artefact per stage (layout: the docstring of ashc_cli/artefacts.py)",
+        "      one HDF5 artefact per stage (layout: the docstring of ashc_cli/design/artefacts.py)",
         f"  {extra_files}",
         "      written by falsify, and by report when there is none for this design or it was made with other --runs/--seed/--t-final than report is given",
         "  plots/*.png",

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ashc_cli.errors import AshcError
-from ashc_cli.pipeline import DESIGN, run
-from ashc_cli.spec import parse_spec_text
+from ashc_cli.design.pipeline import DESIGN, run
+from ashc_cli.problem.spec import parse_spec_text
 
 ROOT = Path(__file__).resolve().parents[1]
 CUK = ROOT / "specs" / "cuk_converter.yaml"

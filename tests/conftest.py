@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from ashc_cli.model import build_model
-from ashc_cli.pipeline import DESIGN, run
-from ashc_cli.spec import load_spec
+from ashc_cli.problem.model import build_model
+from ashc_cli.design.pipeline import DESIGN, run
+from ashc_cli.problem.spec import load_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 SPECS = ROOT / "specs"

@@ -1,12 +1,12 @@
-"""Tests of HDF5 artefacts (ashc_cli.artefacts): round trip, provenance, atomic writes."""
+"""Tests of HDF5 artefacts (ashc_cli.design.artefacts): round trip, provenance, atomic writes."""
 
 import h5py
 import numpy as np
 import pytest
 import sympy as sp
 
-from ashc_cli import artefacts
-from ashc_cli.artefacts import SCHEMA_VERSION, Artefact, Check, read_artefact, write_artefact
+from ashc_cli.design import artefacts
+from ashc_cli.design.artefacts import SCHEMA_VERSION, Artefact, Check, read_artefact, write_artefact
 from ashc_cli.errors import ArtefactError
 
 
@@ -78,7 +78,7 @@ def test_tampered_expression_is_not_executed(tmp_path):
 
 
 def test_series_backed_exprs_are_stored_as_coefficients_and_built_when_read(tmp_path, monkeypatch):
-    from ashc_cli import chebyshev
+    from ashc_cli.numerics import chebyshev
 
     xi = sp.Symbol("xi", real=True)
     box = np.array([[0.0, 0.6]])

@@ -1,4 +1,4 @@
-"""Tests of ashc_cli.attack: counter-examples to rows a design only sampled, found where the samples miss them.
+"""Tests of ashc_cli.products.attack: counter-examples to rows a design only sampled, found where the samples miss them.
 
 The planted plant: x1' = -x1 + x2, x2' = -0.5 x1 - 2 x2 + 0.04 tanh(50000 (x1 + 0.0517)) + u on [-1.5, 1.5]^2,
 U = [-3, 3].  df2/dx1 = -0.5 + 2000 sech^2(50000 (x1 + 0.0517)) reaches 1999.5 in a band about 1e-4 wide, and
@@ -10,11 +10,11 @@ attacks must find the band and the second equilibrium.
 import numpy as np
 import pytest
 
-from ashc_cli import attack
-from ashc_cli.falsify import counterexample_text
-from ashc_cli.pipeline import DESIGN, design_model, run
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.contraction import terms
+from ashc_cli.products import attack
+from ashc_cli.products.falsify import counterexample_text
+from ashc_cli.design.pipeline import DESIGN, design_model, run
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.contraction import terms
 
 STEEP = """
 name: steep_band
@@ -81,7 +81,7 @@ def test_second_equilibrium_is_found_and_is_one(sampled_design):
 
 
 def test_falsify_reports_the_counterexamples_and_fails(sampled_design):
-    from ashc_cli.falsify import falsify, summarise
+    from ashc_cli.products.falsify import falsify, summarise
 
     model, arts = sampled_design
     art = falsify(model, arts, runs=16, t_final=2.0)
@@ -124,7 +124,7 @@ abstract:
   l: ["xi1", "xi2"]
   domain: [[-1, 1], [-1, 1]]
 """)
-    from ashc_cli.model import build_model
+    from ashc_cli.problem.model import build_model
 
     model = build_model(spec)
     arts = {"bound": SimpleNamespace(values={"lipschitz_h": 1.0})}

@@ -5,7 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ashc_cli.stages import bound
+from ashc_cli.design.stages import bound
+from ashc_cli.numerics import linalg
 
 PAPER_M = np.array([[0.4804, 0.0102, 0.0002, -0.0093], [0.0102, 0.5304, 0.0081, 0.0001],
                     [0.0002, 0.0081, 0.4824, -0.0135], [-0.0093, 0.0001, -0.0135, 0.5304]])
@@ -100,15 +101,15 @@ interface: {{q: least_squares, saturate: {mode}}}
 
 
 def _design(tmp_path, text, name):
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import load_spec
     path = tmp_path / f"{name}.yaml"
     path.write_text(text)
     return run(load_spec(path), tmp_path / name, DESIGN)
 
 
 def _clip(u, U, mode):
-    """The interface's saturation, written independently of ashc_cli.model.apply_saturation."""
+    """The interface's saturation, written independently of ashc_cli.problem.model.apply_saturation."""
     if mode == "scale":
         s = 1.0
         for ui, li, (lo, hi) in zip(u[1], u[0], U):
@@ -183,9 +184,8 @@ def test_state_dependent_g_with_per_channel_clipping_is_refused(tmp_path):
 def test_saturating_feedback_is_local_and_the_region_excludes_the_counter_example(tmp_path):
     # Counter-example 2 (specs/unstable_linear.yaml): from x0 = (0, 21), xi = 0, K (x - p) saturates and the
     # plant diverges. The certificate is local: W0 <= w0_max_certified, ||v|| <= v_max_certified.
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import load_spec
-    from scipy.integrate import solve_ivp
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import load_spec
     arts = run(load_spec(ROOT / "specs" / "unstable_linear.yaml"), tmp_path / "ul", DESIGN)
     b = arts["bound"].values
     w0_max, v_max = b["w0_max_certified"], b["v_max_certified"]
@@ -234,16 +234,16 @@ def test_sqrt_M_times_is_L_transpose_times_w_at_every_point():
     rng = np.random.default_rng(5)
     w = rng.normal(size=(7, 2, 11))
     for L in (np.linalg.cholesky(np.cov(rng.normal(size=(7, 20)))), np.diag(rng.uniform(1, 2, 7))):
-        assert np.allclose(bound.sqrt_M_times(L, w), np.einsum("ij,jkN->Nik", L.T, w), rtol=1e-14, atol=1e-14)
+        assert np.allclose(linalg.sqrt_M_times(L, w), np.einsum("ij,jkN->Nik", L.T, w), rtol=1e-14, atol=1e-14)
 
 
 def test_alpha_h_proved_entry_by_entry_for_a_diagonal_M_at_any_size(monkeypatch):
     # A diagonal M and an output reading one state: M - alpha C^T C is diagonal, so its entries decide, with no
     # n^3 Cholesky: proved above proofs.MAX_PROOF_STATES too (the 512-state ladder), refused when alpha is too big.
-    from ashc_cli import proofs
-    from ashc_cli.examples import ladder
-    from ashc_cli.model import build_model
-    from ashc_cli.spec import parse_spec_text
+    from ashc_cli.numerics import proofs
+    from ashc_cli.problem.examples import ladder
+    from ashc_cli.problem.model import build_model
+    from ashc_cli.problem.spec import parse_spec_text
 
     model = build_model(parse_spec_text(ladder(2)))
     M = np.diag(np.linspace(0.5, 2.0, model.n))
@@ -262,8 +262,8 @@ def test_alpha_h_proved_entry_by_entry_for_a_diagonal_M_at_any_size(monkeypatch)
 # --- issue 19: L_h of several outputs proved, saturation patterns and local regions proved --------------------
 
 def _design_text(text, tmp_path):
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import parse_spec_text
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import parse_spec_text
 
     return run(parse_spec_text(text), tmp_path, DESIGN)
 
@@ -323,9 +323,9 @@ def test_jacobian_norm_expr_bounds_the_2_norm():
 def test_clipping_patterns_of_a_constant_theta_are_proved(tmp_path):
     # linear_left_inverse: two inputs clipped one by one, affine p, constant delta and g: theta is constant on V,
     # and the sup over the 2^2 patterns is proved in ball arithmetic (the grid's value up to the enclosure's width).
-    from ashc_cli.model import build_model
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.problem.model import build_model
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import load_spec
 
     spec = load_spec(ROOT / "specs" / "linear_left_inverse.yaml")
     arts = run(spec, tmp_path, DESIGN)
@@ -340,8 +340,8 @@ def test_clipping_patterns_of_a_constant_theta_are_proved(tmp_path):
 
 
 def test_a_local_region_is_proved_and_no_larger_than_the_sampled_one(tmp_path):
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import load_spec
 
     arts = run(load_spec(ROOT / "specs" / "unstable_linear.yaml"), tmp_path, DESIGN)
     b = arts["bound"]

@@ -3,7 +3,7 @@
 import numpy as np
 import sympy as sp
 
-from ashc_cli import chebyshev
+from ashc_cli.numerics import chebyshev
 
 
 def test_fit_reproduces_a_polynomial_exactly_and_its_sympy_form():

@@ -13,7 +13,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from ashc_cli.artefacts import read_artefact
+from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.cli import Progress, app, plain_text
 
 from .conftest import CUK, CUK_PAPER_M, ROOT, ashc
@@ -56,6 +56,7 @@ def test_summary_json_keys(cli_run):
     assert data["simulate"]["m_relation"]["max_abs_error"] < 1e-6
 
 
+@pytest.mark.slow
 def test_eval_prints_the_contract_shape(cli_run):
     out = ashc("eval", str(cli_run["out"]), "p", "--at", "xi=0.6156", check=True).stdout.strip()
     assert out.startswith("p(xi=0.6156) = [1.3678")
@@ -113,7 +114,7 @@ def test_help_explains():
 # --- issue 14: one output channel, progress, options that do what they say ------------------------------
 
 #: One progress line: `<stage> <status> <seconds> s  <headline>`.
-STAGE_LINE = re.compile(r"^(%s) +(ran|up to date) +\d+\.\d\d s  \S" % "|".join([*SUMMARY_KEYS, "simulate", "falsify"]))
+STAGE_LINE = re.compile(r"^({}) +(ran|up to date) +\d+\.\d\d s  \S".format("|".join([*SUMMARY_KEYS, "simulate", "falsify"])))
 #: A negative zero standing alone ("-0", "-0.0"; not "-0.5").
 NEGATIVE_ZERO = re.compile(r"(?<![\w.])-0(?:\.0*)?(?:e[+-]?0+)?(?![\w.])")
 
@@ -139,6 +140,7 @@ def test_stdout_carries_only_the_result(cli_run):
     assert all(STAGE_LINE.match(line) for line in lines), lines
 
 
+@pytest.mark.slow
 def test_falsify_then_report_reruns_only_when_the_options_differ(cli_run, tmp_path):
     out = _copy(cli_run, tmp_path)
     falsify = ashc("falsify", str(CUK), "--out", str(out), "--runs", "8", "--t-final", "2", check=True)

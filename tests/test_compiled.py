@@ -1,4 +1,4 @@
-"""Tests of ashc_cli.compiled: the tracking and m-relation closed loops and DOP853 in numba against the scipy
+"""Tests of ashc_cli.closedloop.compiled: the tracking and m-relation closed loops and DOP853 in numba against the scipy
 path of simulate.
 
 The scipy path (``simulate.tracking_law``, ``simulate.run_tracking`` and ``simulate.run_m_relation``) is the
@@ -20,12 +20,12 @@ import sympy as sp
 
 pytest.importorskip("numba")
 
-from ashc_cli import compiled  # noqa: E402
+from ashc_cli.closedloop import compiled
 from ashc_cli.errors import NumericalError  # noqa: E402
-from ashc_cli.pipeline import DESIGN, design_model, run  # noqa: E402
-from ashc_cli.spec import load_spec  # noqa: E402
-from ashc_cli.stages import simulate  # noqa: E402
-from ashc_cli.stages.simulate import SAMPLE_DT, TRACKING_TOL, reference_state, sample_times  # noqa: E402
+from ashc_cli.design.pipeline import DESIGN, design_model, run  # noqa: E402
+from ashc_cli.problem.spec import load_spec  # noqa: E402
+from ashc_cli.design.stages import simulate  # noqa: E402
+from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, reference_state, sample_times  # noqa: E402
 
 from .conftest import CUK, ROOT, SPECS  # noqa: E402
 
@@ -41,7 +41,7 @@ class Design:
         self.out = out
         self.arts = run(self.spec, out, DESIGN)
         self.model = design_model(self.spec, self.arts)
-        self.plant = simulate._Plant(self.model, self.arts)
+        self.plant = simulate.DesignTerms(self.model, self.arts)
         self.loop = compiled.tracking_loop(self.model, self.arts)
         self._reference = None
 
@@ -199,9 +199,9 @@ def test_non_finite_start_is_a_numerical_error(designs):
 def test_expressions_numba_cannot_run_are_unsupported():
     x = sp.Symbol("x", real=True)
     with pytest.raises(compiled.Unsupported, match="foo"):
-        compiled._emit_kernel("eval_x", "x", [x], [("h", sp.Matrix([[sp.Function("foo")(x)]]), True)], {})
+        compiled.emit_kernel("eval_x", "x", [x], [("h", sp.Matrix([[sp.Function("foo")(x)]]), True)], {})
     with pytest.raises(compiled.Unsupported, match="not states"):
-        compiled._emit_kernel("eval_x", "x", [x], [("h", sp.Matrix([[x * sp.Symbol("k")]]), True)], {})
+        compiled.emit_kernel("eval_x", "x", [x], [("h", sp.Matrix([[x * sp.Symbol("k")]]), True)], {})
 
 
 def test_printed_functions_run_in_numba():
@@ -209,7 +209,7 @@ def test_printed_functions_run_in_numba():
     x = sp.Symbol("x", real=True)
     exprs = [sp.Min(x, 1), sp.Max(x, -1, 0), sp.Abs(x) + sp.sign(x), sp.sqrt(x**2 + 1), (x**2 + 1) ** sp.Rational(3, 2),
              sp.Piecewise((x, x > 0), (-x, True)), sp.exp(-x) * sp.tanh(x) + sp.atan(x)]
-    src = "import math\nfrom numba import njit, types\nF1 = types.float64[::1]\nF2 = types.float64[:, ::1]\n" + compiled._emit_kernel(
+    src = "import math\nfrom numba import njit, types\nF1 = types.float64[::1]\nF2 = types.float64[:, ::1]\n" + compiled.emit_kernel(
         "eval_x", "x", [x], [("fb", sp.Matrix([[0]]), True), ("g", sp.Matrix([[0]]), False), ("h", sp.Matrix(exprs), True)], {})
     module = compiled.load_source(src, "ashc_test_kernel")
     f = sp.lambdify([x], exprs, "math")
@@ -231,16 +231,18 @@ def test_source_is_deterministic_and_named_by_its_hash(designs):
     src = compiled.kernel_source(d.model, d.arts)
     assert src == compiled.kernel_source(d.model, d.arts)
     files = {p.name for p in compiled.cache_dir().glob("ashc_*.py")}
-    assert any(name.startswith("ashc_kernels_") for name in files) and any(name.startswith("ashc_core_") for name in files)
+    assert any(name.startswith("ashc_kernels_") for name in files)
     assert d.loop.kernels.__file__.startswith(str(compiled.cache_dir()))
+    # the core is the same for every design: an ordinary module of the package, not generated text
+    assert d.loop.core.__name__ == "ashc_cli.closedloop.tracking_core"
 
 
 def test_second_process_loads_the_cache_without_compiling(designs):
     d = designs(CUK)   # this process has compiled (or loaded) the core and the Cuk kernels
     script = textwrap.dedent(f"""
-        from ashc_cli import compiled
-        from ashc_cli.pipeline import DESIGN, design_model, run
-        from ashc_cli.spec import load_spec
+        from ashc_cli.closedloop import compiled
+        from ashc_cli.design.pipeline import DESIGN, design_model, run
+        from ashc_cli.problem.spec import load_spec
         spec = load_spec({str(CUK)!r})
         arts = run(spec, {str(d.out)!r}, DESIGN)
         loop = compiled.tracking_loop(design_model(spec, arts), arts)
@@ -341,34 +343,34 @@ def test_m_relation_matches_scipy(designs, monkeypatch, path):
     monkeypatch.setitem(simulate.M_RELATION_TOL, "atol", REFERENCE_TOL)
     ref, _ = simulate.run_m_relation(d.model, d.plant, {k: d.arts[k] for k in simulate.UPSTREAM})
     promise = GLOBAL_ERROR_FACTOR * max(tol["rtol"], tol["atol"])
-    for run in (mine, theirs):
-        assert np.array_equal(run["m_relation/t"], ref["m_relation/t"])
-        assert np.array_equal(run["m_relation/xi0"], ref["m_relation/xi0"])
+    for result in (mine, theirs):
+        assert np.array_equal(result["m_relation/t"], ref["m_relation/t"])
+        assert np.array_equal(result["m_relation/xi0"], ref["m_relation/xi0"])
         for name in ("xi", "x"):
-            a, b = run[f"m_relation/{name}"], ref[f"m_relation/{name}"]
+            a, b = result[f"m_relation/{name}"], ref[f"m_relation/{name}"]
             assert a.shape == b.shape, name
             assert _scaled_diff(a, b) <= promise, name
-        z_err = np.abs(np.r_[run["m_relation/xi"], run["m_relation/x"]] - np.r_[ref["m_relation/xi"], ref["m_relation/x"]])
+        z_err = np.abs(np.r_[result["m_relation/xi"], result["m_relation/x"]] - np.r_[ref["m_relation/xi"], ref["m_relation/x"]])
         bound = _sensitivity(d, ref, z_err)
-        np.testing.assert_array_equal(run["m_relation/u"], ref["m_relation/u"])   # u(t) at the same sample times
+        np.testing.assert_array_equal(result["m_relation/u"], ref["m_relation/u"])   # u(t) at the same sample times
         for name, first_order in bound.items():
-            a, b = run[f"m_relation/{name}"], ref[f"m_relation/{name}"]
+            a, b = result[f"m_relation/{name}"], ref[f"m_relation/{name}"]
             floor = 1e-12 * max(1.0, float(np.abs(b).max()))
             excess = np.abs(a - b) - (2.0 * first_order + floor)
             assert excess.max() <= 0, f"{name}: {excess.max():.3g} beyond what the state's error carries"
     # psi - y and m(x) - xi are the integration's own error: both runs keep them as small as the promise
     scale = max(1.0, float(np.abs(ref["m_relation/y"]).max()))
-    for run in (mine, theirs):
+    for result in (mine, theirs):
         for name in ("max_abs_error", "invariance_residual"):
-            assert abs(run[f"m_relation/{name}"] - ref[f"m_relation/{name}"]) <= promise * scale, name
+            assert abs(result[f"m_relation/{name}"] - ref[f"m_relation/{name}"]) <= promise * scale, name
     assert mine["m_relation/max_abs_error"] < simulate.M_RELATION_TOL_ABS
 
 
 def test_boost_m_relation_takes_solve_ivps_steps(designs):
     # The loop on its own against solve_ivp on the same right-hand side, same tolerances: the same calls.
     import scipy.integrate as sint
-    from ashc_cli.expr import parse_expression
-    from ashc_cli.model import TIME, compile_flat
+    from ashc_cli.problem.expr import parse_expression
+    from ashc_cli.problem.model import TIME, compile_flat
 
     d = designs(BOOST)
     mr, model, plant = d.spec.simulate.m_relation, d.model, d.plant
@@ -405,7 +407,7 @@ def test_boost_m_relation_takes_solve_ivps_steps(designs):
 
 def _leaving_cuk(tmp_path, domain="[[0, 0.95]]"):
     """The Cuk spec's m-relation scenario alone, driven (u = 0.95 from x = 0) below kappa(V) at t = 0.78 s."""
-    from ashc_cli.spec import parse_spec_text
+    from ashc_cli.problem.spec import parse_spec_text
 
     text = CUK.read_text()
     text = text[:text.index("  tracking:")] + text[text.index("  m_relation:"):]
@@ -416,7 +418,7 @@ def _leaving_cuk(tmp_path, domain="[[0, 0.95]]"):
     spec = parse_spec_text(text)
     arts = run(spec, tmp_path, DESIGN)
     model = design_model(spec, arts)
-    return model, simulate._Plant(model, arts), {k: arts[k] for k in simulate.UPSTREAM}
+    return model, simulate.DesignTerms(model, arts), {k: arts[k] for k in simulate.UPSTREAM}
 
 
 @pytest.mark.parametrize("domain", ["[[0, 0.95]]", "auto"])
@@ -456,13 +458,13 @@ def test_leaving_the_certified_set_stops_both_paths_at_the_same_point(tmp_path, 
 def test_signal_functions_match_the_spec_functions():
     # triangle, square and step as the printer writes them for numba, against the numpy functions the scipy
     # path evaluates (expr.NUMERIC_MODULES), at the kinks, the jumps and far out.
-    from ashc_cli.expr import square, step, triangle
-    from ashc_cli.model import TIME, compile_flat
+    from ashc_cli.problem.expr import square, step, triangle
+    from ashc_cli.problem.model import TIME, compile_flat
 
     t = TIME
     exprs = [0.3 * triangle(t - 2) + 0.1 * sp.sin(2 * sp.pi * (t - 2)) + 0.45, square(3 * t), step(t - 1), triangle(t) * step(-t)]
     src = "\n".join(["import math", "import numpy as np", "from numba import njit, types", "F1 = types.float64[::1]", "F2 = types.float64[:, ::1]",
-                     compiled.SIGNAL_HELPERS, compiled._emit_kernel("eval_u", "t", [t], [("u", sp.Matrix(exprs), True)], {})])
+                     compiled.SIGNAL_IMPORT, compiled.emit_kernel("eval_u", "t", [t], [("u", sp.Matrix(exprs), True)], {})])
     module = compiled.load_source(src, "ashc_test_signals")
     numeric = compile_flat(exprs, [t])
     points = np.r_[np.linspace(-40.0, 40.0, 4001), 2.0, 2.0 + np.pi, 2.0 - np.pi, 1.0, 0.0, -0.0, np.pi / 3, 1e6 + 0.1]
@@ -485,17 +487,19 @@ def test_second_process_loads_the_m_relation_loop_without_compiling(designs):
     simulate.run_m_relation(d.model, d.plant, up)   # and the Cuk's link module
     script = textwrap.dedent(f"""
         import numba
-        from ashc_cli import compiled
-        from ashc_cli.pipeline import DESIGN, design_model, run
-        from ashc_cli.spec import load_spec
-        from ashc_cli.stages import simulate
+        from ashc_cli.closedloop import compiled
+        from ashc_cli.design.pipeline import DESIGN, design_model, run
+        from ashc_cli.problem.spec import load_spec
+        from ashc_cli.design.stages import simulate
         spec = load_spec({str(CUK)!r})
         arts = run(spec, {str(d.out)!r}, DESIGN)
         model = design_model(spec, arts)
-        values, _ = simulate.run_m_relation(model, simulate._Plant(model, arts), arts)
-        # the modules the run imported: the core, the Cuk's kernels and its link module
+        values, _ = simulate.run_m_relation(model, simulate.DesignTerms(model, arts), arts)
+        # the modules the run imported: the Cuk's kernels and its link module (generated), and the core
+        from ashc_cli.closedloop import tracking_core
         modules = list(compiled._MODULES.values())
         print(sorted(m.__name__.split("_")[1] for m in modules))
+        modules.append(tracking_core)
         fns = [f for mod in modules for f in vars(mod).values() if isinstance(f, numba.core.registry.CPUDispatcher)]
         misses = sum(sum(f.stats.cache_misses.values()) for f in fns)
         hits = sum(sum(f.stats.cache_hits.values()) for f in fns)
@@ -504,6 +508,6 @@ def test_second_process_loads_the_m_relation_loop_without_compiling(designs):
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, env=os.environ.copy(), timeout=300)
     assert proc.returncode == 0, proc.stderr
     names, (used, misses, hits, compiled_functions) = proc.stdout.splitlines()[-2], proc.stdout.split()[-4:]
-    assert names == "['core', 'kernels', 'link']"
+    assert names == "['kernels', 'link']"
     # every compiled function of the three modules came from the cache (16: core 9, kernels 2, link 5)
     assert used == "True" and int(misses) == 0 and int(hits) == int(compiled_functions) == 16

@@ -5,9 +5,9 @@ import pytest
 import sympy as sp
 
 from ashc_cli.errors import DesignError
-from ashc_cli.model import build_model
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import delta, inverse, kappa, manifold
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.stages import delta, inverse, kappa, manifold
 
 from .conftest import CUK_PAPER_M
 
@@ -55,8 +55,9 @@ def test_delta_losing_rank_is_refused():
         delta.run(model, {"manifold": man, "inverse": inv})
 
 
+@pytest.mark.slow
 def test_flatten_makes_theta_constant_and_least(tmp_path):
-    from ashc_cli.pipeline import DESIGN, run
+    from ashc_cli.design.pipeline import DESIGN, run
 
     text = CUK_PAPER_M.read_text().replace('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', "delta: flatten")
     arts = run(parse_spec_text(text), tmp_path, DESIGN)

@@ -13,13 +13,12 @@ from __future__ import annotations
 import importlib.util
 import json
 import re
-import types
 import typing
 from pathlib import Path
 
 from pydantic import BaseModel
 
-from ashc_cli.spec import Spec, parse_spec_text
+from ashc_cli.problem.spec import Spec, parse_spec_text
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -61,7 +60,7 @@ def test_the_walk_reaches_every_level_of_the_models():
 def test_every_spec_key_is_documented():
     page = (DOCS / "spec-format.md").read_text(encoding="utf-8")
     missing = [key for key in spec_keys() if f"`{key}`" not in page]
-    assert not missing, f"docs/spec-format.md does not document {', '.join(missing)} (see the models in ashc_cli/spec.py)"
+    assert not missing, f"docs/spec-format.md does not document {', '.join(missing)} (see the models in ashc_cli/problem/spec.py)"
 
 
 def test_every_documented_key_exists():

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from ashc_cli.artefacts import read_artefact
-from ashc_cli.examples import TOTALS, ladder, parameters
-from ashc_cli.model import NUMERIC_THRESHOLD, build_model
-from ashc_cli.spec import parse_spec_text
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.problem.examples import TOTALS, ladder, parameters
+from ashc_cli.problem.model import NUMERIC_THRESHOLD, build_model
+from ashc_cli.problem.spec import parse_spec_text
 
 from .conftest import ashc
 
@@ -32,7 +32,7 @@ def test_ladder_spec_is_the_documented_model(stages):
     assert model.spec.stabilisability.decay_rate == 2.0
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def ladder_model(stages: int):
     return build_model(parse_spec_text(ladder(stages)))
 
@@ -71,6 +71,7 @@ def test_ladder_per_cell_values_are_the_totals_over_N():
         assert all(p[k] * stages == pytest.approx(TOTALS[k], rel=1e-15) for k in ("L", "C", "r", "G_c"))
 
 
+@pytest.mark.slow
 def test_numeric_and_symbolic_paths_agree_on_a_mid_size_ladder(tmp_path):
     # n = 12 is the largest size still designed symbolically by default (NUMERIC_THRESHOLD); force both ways.
     assert NUMERIC_THRESHOLD == 12
@@ -113,7 +114,7 @@ def test_scaled_reactances_leave_the_numeric_manifold_unchanged(tmp_path):
     # The equilibria do not depend on L and C, which only scale the terms of f (by 1/L, 1/C): the fit must reach
     # pde_tolerance at the same degree, its residual being judged against the size of those terms.  (Judged
     # against 1, the fit of the 512-state ladder, whose terms reach 1e5, never met the tolerance.)
-    from ashc_cli.pipeline import run
+    from ashc_cli.design.pipeline import run
 
     text = ladder(3)
     small = text.replace("L: 0.0033333333333333335", "L: 3.3333333333333335e-07").replace("C: 0.0033333333333333335", "C: 3.3333333333333335e-07")

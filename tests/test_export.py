@@ -2,7 +2,7 @@
 
 Each exported function is compared with the tool's own evaluation at random points: p and kappa with the
 stored formulas lambdified, m with the formula and the certified set (``inverse.m_domain``), the interface and
-the abstract controller with :func:`ashc_cli.stages.simulate.tracking_law`.  The C file is compiled with the
+the abstract controller with :func:`ashc_cli.design.stages.simulate.tracking_law`.  The C file is compiled with the
 system compiler (``cc -std=c99 -Wall -Werror -O2``, as a shared library called through ctypes); the tests that
 need it are skipped, saying so, when there is none.  The tracking scenario of each spec is integrated again
 with the exported Python functions (scipy's DOP853 at simulate's tolerances) and must give simulate's
@@ -25,16 +25,16 @@ import pytest
 import scipy.integrate as sint
 
 from ashc_cli.errors import ArtefactError, SpecError
-from ashc_cli.export import c_sources, export_sources, gather, interface_value, python_source, require_current, write_export
-from ashc_cli.model import compile_terms
-from ashc_cli.pipeline import design_model, load_all, run
-from ashc_cli.spec import Interface, load_spec
-from ashc_cli.stages.inverse import certified_set, outside_certified_set
-from ashc_cli.stages.simulate import SAMPLE_DT, TRACKING_TOL, _Plant, reference_state, sample_times, tracking_law
+from ashc_cli.outputs.export import c_sources, export_sources, gather, interface_value, python_source, require_current, write_export
+from ashc_cli.problem.model import compile_terms
+from ashc_cli.design.pipeline import design_model, load_all, run
+from ashc_cli.problem.spec import Interface, load_spec
+from ashc_cli.design.upstream import certified_set, outside_certified_set
+from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, DesignTerms, reference_state, sample_times, tracking_law
 
 from .conftest import CUK, SPECS, edited
 
-#: tracking_law evaluates the plant's m, b and c at every x (simulate._Plant.at_x), also off the set where m is real.
+#: tracking_law evaluates the plant's m, b and c at every x (DesignTerms.at_x), also off the set where m is real.
 pytestmark = pytest.mark.filterwarnings("ignore:invalid value encountered in sqrt:RuntimeWarning")
 
 #: The specs exported: one input and a least-squares q (Cuk, boost), two inputs with saturate: scale and a
@@ -145,7 +145,7 @@ def designs(cli_run, tmp_path_factory):
             run(spec, folder, ["simulate"])
         arts = load_all(folder)
         model = design_model(spec, arts)
-        out[name] = {"spec": spec, "arts": arts, "model": model, "plant": _Plant(model, arts), "folder": folder}
+        out[name] = {"spec": spec, "arts": arts, "model": model, "plant": DesignTerms(model, arts), "folder": folder}
     return out
 
 
@@ -390,7 +390,7 @@ def test_controller_takes_gain_and_bound_when_the_spec_gives_none(which, designs
 @pytest.mark.parametrize("name", NAMES)
 def test_interface_value_for_eval(name, designs):
     d = designs[name]
-    spec, model = d["spec"], d["model"]
+    spec, _model = d["spec"], d["model"]
     names = [*spec.abstract.states, *spec.concrete.states, *spec.abstract.inputs]
     for xi, x, v, u, *_ in _interface_samples(d, np.random.default_rng(5), points=20):
         point = dict(zip(names, [*xi, *x, *v]))
@@ -488,7 +488,7 @@ def test_python_and_c_sources_from_one_gathering(designs):
 def test_c_pseudo_inverse_matches_numpy(tmp_path):
     # The C file's fixed-size pseudo-inverse (one-sided Jacobi SVD) against numpy.linalg.pinv, for tall, wide,
     # square and rank-deficient matrices up to 5 x 5 (the designs above use it on 2 x 2 and 3 x 2 only).
-    from ashc_cli.export import _c_pinv_small
+    from ashc_cli.outputs.export import _c_pinv_small
 
     source = tmp_path / "pinv.c"
     source.write_text("#include <math.h>\n" + "\n".join(_c_pinv_small(25, 5)) +
@@ -522,6 +522,7 @@ def test_c_pseudo_inverse_matches_numpy(tmp_path):
     assert worst <= RTOL
 
 
+@pytest.mark.slow
 @needs_cc
 def test_cli_export_and_eval_u_w_agree(cli_run, tmp_path):
     """A user's check of exported code: `ashc export` writes FILE.c/.h; the compiled ashc_interface gives what

@@ -1,4 +1,4 @@
-"""Tests of the whitelist expression parser (ashc_cli.expr)."""
+"""Tests of the whitelist expression parser (ashc_cli.problem.expr)."""
 
 import math
 
@@ -7,8 +7,8 @@ import pytest
 import sympy as sp
 
 from ashc_cli.errors import ArtefactError, SpecError
-from ashc_cli.expr import MAX_LENGTH, from_srepr, parse_expression
-from ashc_cli.model import lambdify
+from ashc_cli.problem.expr import MAX_LENGTH, from_srepr, parse_expression
+from ashc_cli.problem.model import lambdify
 
 x, y = sp.symbols("x y", real=True)
 NAMES = {"x": x, "y": y}

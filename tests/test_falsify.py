@@ -16,11 +16,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ashc_cli import falsify
-from ashc_cli.artefacts import read_artefact
-from ashc_cli.pipeline import DESIGN, design_model, run
-from ashc_cli.spec import load_spec
-from ashc_cli.stages.bound import error_bound_gain
+from ashc_cli.products import falsify
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.design.pipeline import DESIGN, design_model, run
+from ashc_cli.problem.spec import load_spec
+from ashc_cli.design.stages.bound import error_bound_gain
 
 from .conftest import CUK, SPECS, ashc
 
@@ -47,6 +47,7 @@ def _designed(spec_path: Path, out: Path):
     return spec, arts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", sorted(SPECS.glob("*.yaml")), ids=lambda p: p.stem)
 def test_no_violation_on_any_spec(spec, tmp_path):
     proc = ashc("falsify", str(spec), "--out", str(tmp_path), "--runs", "6", "--t-final", "2", "--json")

@@ -1,4 +1,4 @@
-"""Tests of ashc_cli.falsify_loop: falsify's runs as compiled code, one adaptive integration per run.
+"""Tests of ashc_cli.closedloop.falsify_loop: falsify's runs as compiled code, one adaptive integration per run.
 
 The reference is falsify._simulate, the numpy batch.  Integrated as a batch of one run, its step control is
 that run's alone, so each compiled run must reproduce it to round-off: the same held inputs (greedy choices,
@@ -8,11 +8,11 @@ guard reversals), the same ratio, time of the worst ratio and states at every ho
 import numpy as np
 import pytest
 
-from ashc_cli import falsify as F
-from ashc_cli.compiled import Unsupported
-from ashc_cli.falsify_loop import falsify_loop, layout
-from ashc_cli.pipeline import DESIGN, design_model, run
-from ashc_cli.spec import load_spec
+from ashc_cli.products import falsify as F
+from ashc_cli.closedloop.compiled import Unsupported
+from ashc_cli.closedloop.falsify_loop import falsify_loop, layout
+from ashc_cli.design.pipeline import DESIGN, design_model, run
+from ashc_cli.problem.spec import load_spec
 
 from .conftest import CUK, SPECS
 from .test_falsify import COUNTER_SATURATION

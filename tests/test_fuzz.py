@@ -6,15 +6,16 @@ The regular suite runs a few thousand cases; `make fuzz` runs many more (ASHC_FU
 import os
 import time
 
+import pytest
 import sympy as sp
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ashc_cli.errors import AshcError
-from ashc_cli.expr import parse_expression
-from ashc_cli.model import build_model
-from ashc_cli.spec import parse_spec_text
+from ashc_cli.problem.expr import parse_expression
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
 
 from .conftest import CUK
 
@@ -75,6 +76,7 @@ def mutate(base, path, value, delete):
     return spec
 
 
+@pytest.mark.slow
 @FUZZ
 @given(st.sampled_from(ALL_PATHS), json_values | expression_text, st.booleans())
 def test_random_specs(path, value, delete):

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from ashc_cli.artefacts import read_artefact
+from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.errors import ArtefactError
-from ashc_cli.pipeline import DESIGN, check_upstream, run, staleness
-from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.design.pipeline import DESIGN, check_upstream, run, staleness
+from ashc_cli.problem.spec import load_spec, parse_spec_text
 
 from .conftest import CUK_PAPER_M, ROOT
 
@@ -66,7 +66,7 @@ def test_foreign_upstream_is_refused(paper_design):
 
 
 def test_foreign_schema_is_stale(paper_out, tmp_path, monkeypatch):
-    import ashc_cli.pipeline as pipeline
+    import ashc_cli.design.pipeline as pipeline
 
     out = tmp_path / "out"
     shutil.copytree(paper_out, out)

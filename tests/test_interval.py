@@ -1,4 +1,4 @@
-"""Tests of the rigorous enclosure toolkit (ashc_cli.interval)."""
+"""Tests of the rigorous enclosure toolkit (ashc_cli.numerics.interval)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ashc_cli.errors import NumericalError
-from ashc_cli.expr import FUNCTIONS, NUMERIC_MODULES, SIGNAL_FUNCTIONS, square, step, triangle
-from ashc_cli.interval import (
+from ashc_cli.problem.expr import FUNCTIONS, NUMERIC_MODULES, SIGNAL_FUNCTIONS, square, step, triangle
+from ashc_cli.numerics.interval import (
     IntervalFunction,
     UnsupportedExpression,
     compile_interval,

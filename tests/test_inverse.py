@@ -7,9 +7,10 @@ import pytest
 import sympy as sp
 
 from ashc_cli.errors import DesignError
-from ashc_cli.model import build_model
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import inverse, kappa, manifold
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design import upstream
+from ashc_cli.design.stages import inverse, kappa, manifold
 
 from .conftest import CUK_PAPER_M
 
@@ -107,24 +108,24 @@ def test_m_certified_on_kappa_V_within_where_it_is_real(paper_design):
 
 def test_outside_certified_set():
     box = np.array([[-126.1875, 0.0]])
-    assert not inverse.outside_certified_set(box, [0.0]) and not inverse.outside_certified_set(box, [-126.1875])
-    assert not inverse.outside_certified_set(box, [0.5e-9 * 126.1875])     # within DOMAIN_RTOL of the width
-    assert inverse.outside_certified_set(box, [1e-6]) and inverse.outside_certified_set(box, [-126.19])
-    assert inverse.outside_certified_set(box, [math.nan])
+    assert not upstream.outside_certified_set(box, [0.0]) and not upstream.outside_certified_set(box, [-126.1875])
+    assert not upstream.outside_certified_set(box, [0.5e-9 * 126.1875])     # within DOMAIN_RTOL of the width
+    assert upstream.outside_certified_set(box, [1e-6]) and upstream.outside_certified_set(box, [-126.19])
+    assert upstream.outside_certified_set(box, [math.nan])
     two = np.array([[0.1, 1.0], [0.1, 0.9]])
-    assert inverse.outside_certified_set(two, [0.05, 0.3]) and not inverse.outside_certified_set(two, [0.5, 0.5])
-    assert inverse.format_box(two) == "[0.1, 1] x [0.1, 0.9]"
+    assert upstream.outside_certified_set(two, [0.05, 0.3]) and not upstream.outside_certified_set(two, [0.5, 0.5])
+    assert upstream.format_box(two) == "[0.1, 1] x [0.1, 0.9]"
 
 
 def _design_inverse(text, tmp_path, numeric=None):
-    from ashc_cli.pipeline import run
+    from ashc_cli.design.pipeline import run
     return run(parse_spec_text(text), tmp_path, ["inverse"], numeric=numeric)["inverse"]
 
 
 def test_chebyshev_inverse_certified_exactly_on_kappa_V(tmp_path):
     # The numeric left inverse is a polynomial fitted on kappa(V); beyond it, it extrapolates (the issue's
     # m(v32 = 90) = 2.8e9). Neither m_real_interval nor m_domain may claim more than kappa(V).
-    from ashc_cli.examples import ladder
+    from ashc_cli.problem.examples import ladder
     art = _design_inverse(ladder(1), tmp_path, numeric=True)
     assert art.meta["method"].startswith("Chebyshev")
     k_range = np.asarray(art.values["kappa_range"])
@@ -164,7 +165,7 @@ def _m_relation_only(*pairs):
      r"simulate\.m_relation: at t = 0\.78\d* s the output y = -126\.188 leaves kappa\(V\) = \[-126\.188, 0\], where m is certified; x = "),
 ])
 def test_m_relation_run_stays_where_m_is_certified(tmp_path, pairs, message):
-    from ashc_cli.pipeline import run
+    from ashc_cli.design.pipeline import run
     with pytest.raises(DesignError, match=message):
         run(parse_spec_text(_m_relation_only(*pairs)), tmp_path, ["simulate"])
 
@@ -178,8 +179,8 @@ def _left_spec():
 
 @pytest.fixture(scope="module")
 def left_design(tmp_path_factory):
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
     spec = load_spec(_left_spec())
     return build_model(spec), run(spec, tmp_path_factory.mktemp("left_inverse"), ["inverse"])
 
@@ -332,8 +333,8 @@ def test_explicit_nonlinear_m_the_papers_eq_egm(tmp_path):
 
 
 def test_a_series_p_is_affine_exactly_when_its_formula_is():
-    from ashc_cli import chebyshev
-    from ashc_cli.artefacts import Artefact
+    from ashc_cli.numerics import chebyshev
+    from ashc_cli.design.artefacts import Artefact
 
     xi = sp.Symbol("xi", real=True)
     box = np.array([[0.0, 0.6]])
@@ -386,7 +387,7 @@ abstract:
 
 def test_affine_p_with_a_nonlinear_h_gets_a_left_inverse_reading_the_output_state(tmp_path):
     # p(xi) = (xi, xi): P^+ = (x1 + x2) / 2 would break condition (ii) for h = x1 + 0.3 x1^3; m = x1 keeps it exactly.
-    from ashc_cli.pipeline import DESIGN, run
+    from ashc_cli.design.pipeline import DESIGN, run
 
     arts = run(parse_spec_text(CUBIC_OUTPUT), tmp_path, DESIGN)
     inv = arts["inverse"]
@@ -400,7 +401,7 @@ def test_affine_p_with_a_nonlinear_h_gets_a_left_inverse_reading_the_output_stat
 def test_a_gap_below_the_linear_programs_tolerance_is_found_exactly(tmp_path):
     # kappa(V) = [0, 0.3] against Y = [0, 0.30000000000000004]: the floating-point LP accepts the vertex; the exact
     # decision (in rationals) does not, and says by how much.
-    from ashc_cli.pipeline import DESIGN, run
+    from ashc_cli.design.pipeline import DESIGN, run
 
     text = """
 name: gap
@@ -427,8 +428,8 @@ abstract:
 
 
 def test_a_closed_form_inverse_of_two_outputs_is_proved(tmp_path):
-    from ashc_cli.pipeline import DESIGN, run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import load_spec
 
     from .conftest import SPECS
 
@@ -443,8 +444,8 @@ def test_a_transcendental_kappa_gets_a_time_budget_and_a_message_that_names_abst
     # numeric interpolant cannot follow the steep band, and the message says kappa is monotone and names abstract.m.
     import time
 
-    from ashc_cli import model as model_mod
-    from ashc_cli.pipeline import DESIGN, run
+    from ashc_cli.problem import model as model_mod
+    from ashc_cli.design.pipeline import DESIGN, run
 
     monkeypatch.setattr(model_mod, "SYMBOLIC_BUDGET", 1.0)
     text = """
@@ -472,7 +473,7 @@ abstract:
 
 
 def test_within_budget_returns_the_result_or_times_out():
-    from ashc_cli.model import within_budget
+    from ashc_cli.problem.model import within_budget
 
     assert within_budget(sorted, [3, 1, 2]) == [1, 2, 3]
     with pytest.raises(TimeoutError):

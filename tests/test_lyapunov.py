@@ -1,14 +1,14 @@
-"""Tests of ashc_cli.contraction.lyapunov: large linear plants without an SDP, and refusals before memory runs out."""
+"""Tests of ashc_cli.design.contraction.lyapunov: large linear plants without an SDP, and refusals before memory runs out."""
 
 import numpy as np
 import pytest
 
-from ashc_cli.contraction import lyapunov
+from ashc_cli.design.contraction import lyapunov
 from ashc_cli.errors import DesignError
-from ashc_cli.examples import chain
-from ashc_cli.model import build_model
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import stabilise
+from ashc_cli.problem.examples import chain
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.stages import stabilise
 
 
 def test_a_chain_of_one_hundred_masses_gets_its_M_from_the_lyapunov_equation():
@@ -35,10 +35,10 @@ def test_lyapunov_M_solves_the_equation_and_refuses_a_rate_beyond_the_eigenvalue
 
 def test_an_sdp_that_would_not_fit_is_refused_with_its_estimate(monkeypatch):
     monkeypatch.setattr(lyapunov, "available_memory", lambda: 1.0e9)
-    from ashc_cli.contraction import vertex
+    from ashc_cli.design.contraction import vertex
 
     monkeypatch.setattr(vertex, "FULL_MAX_STATES", 1000)            # force the full-M SDP on a 64-state plant
-    from ashc_cli.examples import ladder
+    from ashc_cli.problem.examples import ladder
 
     model = build_model(parse_spec_text(ladder(16).replace("structure: auto", "structure: full")))
     with pytest.raises(DesignError, match=r"stabilisability\.structure: the full-M SDP of eq\. \(28\) for n = 64 states .* would need about "

@@ -4,9 +4,9 @@ import pytest
 import sympy as sp
 
 from ashc_cli.errors import DesignError
-from ashc_cli.model import build_model
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import manifold
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.stages import manifold
 
 from .conftest import CUK
 
@@ -96,8 +96,8 @@ abstract:
 def test_sparse_newton_terms_match_the_dense_jacobians():
     import numpy as np
 
-    from ashc_cli.examples import ladder
-    from ashc_cli.model import sparse_jacobian
+    from ashc_cli.problem.examples import ladder
+    from ashc_cli.problem.model import sparse_jacobian
 
     model = build_model(parse_spec_text(ladder(2)))
     terms = manifold.field_terms(model)
@@ -133,8 +133,8 @@ def test_singular_jacobians_are_refused_by_the_condition_estimate():
 # --- issue 19: exact solutions where they exist; l(V) in U decided exactly ----------------------------------
 
 def test_the_sylvester_solution_is_exact_and_proved(tmp_path):
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
 
     from .conftest import SPECS
 
@@ -148,8 +148,8 @@ def test_the_sylvester_solution_is_exact_and_proved(tmp_path):
 def test_a_fitted_polynomial_that_is_exact_is_recognised(tmp_path):
     # nonlinear_cascade: the collocation finds p = [xi, xi^2] up to round-off; its coefficients are rationals that
     # solve eq. (14a) exactly, so the PDE row is proved.
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
 
     from .conftest import SPECS
 

@@ -1,12 +1,12 @@
-"""Tests of the symbolic and numeric systems (ashc_cli.model)."""
+"""Tests of the symbolic and numeric systems (ashc_cli.problem.model)."""
 
 import numpy as np
 import pytest
 import sympy as sp
 
 from ashc_cli.errors import SpecError
-from ashc_cli.model import build_model, lambdify
-from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.problem.model import build_model, lambdify
+from ashc_cli.problem.spec import load_spec, parse_spec_text
 
 from .conftest import CUK
 
@@ -43,7 +43,7 @@ def test_lambdify_broadcasts_and_marks_non_real():
 
 
 def test_cse_skipped_only_for_long_lists_of_small_expressions():
-    from ashc_cli.model import _worth_cse, compile_flat
+    from ashc_cli.problem.model import _worth_cse, compile_flat
 
     x = sp.symbols("x0:100", real=True)
     small = [x[i] - 2 * x[i + 1] for i in range(99)]

@@ -1,15 +1,15 @@
-"""Tests of ashc_cli.contraction.network: networks of dissipative terms, their diagonal M and a banded proof."""
+"""Tests of ashc_cli.design.contraction.network: networks of dissipative terms, their diagonal M and a banded proof."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sps
 
-from ashc_cli import proofs
-from ashc_cli.contraction import network, terms
-from ashc_cli.examples import rc_ladder
-from ashc_cli.model import build_model, sparse_jacobian
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import stabilise
+from ashc_cli.numerics import proofs
+from ashc_cli.design.contraction import network, terms
+from ashc_cli.problem.examples import rc_ladder
+from ashc_cli.problem.model import build_model, sparse_jacobian
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.stages import stabilise
 
 
 def _ladder_lower_matrix(N: int) -> np.ndarray:

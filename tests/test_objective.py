@@ -1,11 +1,11 @@
-"""Tests of ashc_cli.contraction.objective (``objective: min_gain``): the M of the smallest bound."""
+"""Tests of ashc_cli.design.contraction.objective (``objective: min_gain``): the M of the smallest bound."""
 
 import numpy as np
 import pytest
 
 from ashc_cli.errors import SpecError
-from ashc_cli.pipeline import DESIGN, design_model, run
-from ashc_cli.spec import parse_spec_text
+from ashc_cli.design.pipeline import DESIGN, design_model, run
+from ashc_cli.problem.spec import parse_spec_text
 
 TANK = """
 name: quadruple_tank
@@ -53,7 +53,7 @@ def test_min_gain_divides_the_quadruple_tanks_gain_by_more_than_twenty(tanks):
 
 
 def test_the_min_gain_bound_is_within_thirty_times_of_the_largest_error_found(tanks):
-    from ashc_cli.falsify import falsify
+    from ashc_cli.products.falsify import falsify
 
     spec, arts = tanks["min_gain"]
     art = falsify(design_model(spec, arts), arts, 96, t_final=300.0)

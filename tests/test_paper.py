@@ -6,7 +6,7 @@ import re
 import pytest
 
 from ashc_cli.paper import LABELS, cite
-from ashc_cli.verdict import ROWS
+from ashc_cli.design.verdict import ROWS
 
 from .conftest import CUK, ROOT, ashc
 
@@ -39,6 +39,7 @@ def test_every_verdict_reference_is_a_paper_number():
         assert not LATEX_CITATION.search(cite(label)), label
 
 
+@pytest.mark.slow
 def test_check_and_help_cite_the_paper_numbers(tmp_path):
     proc = ashc("check", str(CUK), "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr

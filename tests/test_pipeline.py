@@ -1,14 +1,15 @@
-"""Tests of stage order and caching (ashc_cli.pipeline)."""
+"""Tests of stage order and caching (ashc_cli.design.pipeline)."""
 
 import shutil
 
 import pytest
 
-from ashc_cli import pipeline
-from ashc_cli.artefacts import Artefact, read_artefact, write_artefact
+from ashc_cli.design import pipeline
+from ashc_cli.products import campaign
+from ashc_cli.design.artefacts import Artefact, read_artefact, write_artefact
 from ashc_cli.errors import ArtefactError
-from ashc_cli.pipeline import DESIGN, Folder, needed, run, run_for_verdict, staleness
-from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.design.pipeline import DESIGN, Folder, needed, run, run_for_verdict, staleness
+from ashc_cli.problem.spec import load_spec, parse_spec_text
 
 from .conftest import CUK_PAPER_M
 
@@ -119,17 +120,17 @@ def test_on_start_is_called_before_each_stage_computed(paper_out, tmp_path):
 def test_falsify_differs_names_the_setting(paper_design, paper_spec):
     stored = Artefact(stage="falsify", meta={"runs": 64, "seed": 0}, values={"t_final": 10.0})
     stored.provenance = {"spec_sha256": paper_spec.sha256,
-                         "upstream": {up: paper_design[up].provenance["sha256"] for up in pipeline.FALSIFY_UPSTREAM}}
-    t_default = pipeline.falsify_t_final(paper_spec, None)
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored) is None           # nothing asked: any run will do
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 64, 0) is None
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 32, 0) == "made with --runs 64, not 32"
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 32, 1) == "made with --runs 64, not 32, --seed 0, not 1"
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final=10.0, t_final_given=True) is None
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final=2.0, t_final_given=True) == "made with --t-final 10, not 2"
+                         "upstream": {up: paper_design[up].provenance["sha256"] for up in campaign.FALSIFY_UPSTREAM}}
+    t_default = campaign.falsify_t_final(paper_spec, None)
+    assert campaign.falsify_differs(paper_spec, paper_design, stored) is None           # nothing asked: any run will do
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, 64, 0) is None
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, 32, 0) == "made with --runs 64, not 32"
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, 32, 1) == "made with --runs 64, not 32, --seed 0, not 1"
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, t_final=10.0, t_final_given=True) is None
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, t_final=2.0, t_final_given=True) == "made with --t-final 10, not 2"
     if t_default != 10.0:
-        assert pipeline.falsify_differs(paper_spec, paper_design, stored, t_final_given=True) == f"made with --t-final 10, not {t_default:g}"
+        assert campaign.falsify_differs(paper_spec, paper_design, stored, t_final_given=True) == f"made with --t-final 10, not {t_default:g}"
     stored.provenance["upstream"]["bound"] = "0" * 64
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored, 64, 0) == "made for an earlier design (bound.h5 changed since)"
+    assert campaign.falsify_differs(paper_spec, paper_design, stored, 64, 0) == "made for an earlier design (bound.h5 changed since)"
     stored.provenance["spec_sha256"] = "other"
-    assert pipeline.falsify_differs(paper_spec, paper_design, stored) == "made from another spec"
+    assert campaign.falsify_differs(paper_spec, paper_design, stored) == "made from another spec"

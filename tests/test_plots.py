@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from matplotlib.mathtext import MathTextParser
 
-from ashc_cli import plots
-from ashc_cli.pipeline import load_all
-from ashc_cli.spec import load_spec
+from ashc_cli.outputs import plots
+from ashc_cli.design.pipeline import load_all
+from ashc_cli.problem.spec import load_spec
 
 from .conftest import CUK, SPECS, ashc
 

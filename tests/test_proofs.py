@@ -1,11 +1,11 @@
-"""Tests of the proof helpers (ashc_cli/proofs.py): symbolic identities, ball bounds, matrix inequalities."""
+"""Tests of the proof helpers (ashc_cli/numerics/proofs.py): symbolic identities, ball bounds, matrix inequalities."""
 
 import numpy as np
 import pytest
 import sympy as sp
 from flint import arb
 
-from ashc_cli import proofs
+from ashc_cli.numerics import proofs
 
 x, y = sp.symbols("x y", real=True)
 

@@ -1,4 +1,4 @@
-"""Tests of summary and eval on artefacts (ashc_cli.query)."""
+"""Tests of summary and eval on artefacts (ashc_cli.outputs.query)."""
 
 import json
 import re
@@ -6,10 +6,10 @@ import re
 import numpy as np
 import pytest
 
-from ashc_cli.artefacts import Artefact
+from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import ArtefactError, SpecError
-from ashc_cli.pipeline import load_all
-from ashc_cli.query import evaluate, no_negative_zero, number_text, parse_point, summary
+from ashc_cli.design.pipeline import load_all
+from ashc_cli.outputs.query import evaluate, no_negative_zero, number_text, parse_point, summary
 
 from .conftest import ashc
 

@@ -3,13 +3,16 @@
 import json
 import shutil
 
-from ashc_cli.regress import compare
+import pytest
+
+from ashc_cli.products.regress import compare
 
 from .conftest import ROOT, SPECS, ashc
 
 GOLDEN = ROOT / "tests" / "golden"
 
 
+@pytest.mark.slow
 def test_regress_passes_on_main(tmp_path):
     proc = ashc("regress", str(SPECS), "--golden", str(GOLDEN), "--out", str(tmp_path), "--json")
     assert proc.returncode == 0, proc.stdout + proc.stderr

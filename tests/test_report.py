@@ -1,4 +1,4 @@
-"""Tests of the review page (ashc_cli.report): every stored value in full, a layout that fits a laptop screen,
+"""Tests of the review page (ashc_cli.outputs.report): every stored value in full, a layout that fits a laptop screen,
 and (where Chromium is installed) the page as a real browser renders it."""
 
 from __future__ import annotations
@@ -14,12 +14,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from ashc_cli import plots
-from ashc_cli.pipeline import load_all
-from ashc_cli.query import summary
-from ashc_cli.report import CSS, _figure_html, render
-from ashc_cli.spec import load_spec
-from ashc_cli.verdict import verdict
+from ashc_cli.outputs import plots
+from ashc_cli.design.pipeline import load_all
+from ashc_cli.outputs.query import summary
+from ashc_cli.outputs.report import CSS, _figure_html, render
+from ashc_cli.problem.spec import load_spec
+from ashc_cli.design.verdict import verdict
 
 from .conftest import CUK, SPECS, ashc
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from ashc_cli.artefacts import read_artefact
-from ashc_cli.stages import simulate
-from ashc_cli.stages.simulate import SAMPLE_DT, sample_times
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.design.stages import simulate
+from ashc_cli.design.stages.simulate import SAMPLE_DT, sample_times
 
 from .conftest import SPECS, edited
 
@@ -27,11 +27,11 @@ def test_m_relation_outputs_match(sim):
 
 def test_integrators_are_recorded(sim):
     # Both scenarios say which DOP853 ran (the compiled one wherever numba is, as in this run) and at what tolerances.
-    from ashc_cli import compiled
+    from ashc_cli.closedloop import compiled
     used = compiled.available()
     for scenario, tol in (("tracking", simulate.TRACKING_TOL), ("m_relation", simulate.M_RELATION_TOL)):
         assert bool(sim.values[f"{scenario}/compiled"]) is used
-        assert sim.meta[f"{scenario}_integrator"] == {**tol, "implementation": "ashc_cli.compiled (numba)" if used else "scipy.integrate.solve_ivp"}
+        assert sim.meta[f"{scenario}_integrator"] == {**tol, "implementation": "ashc_cli.closedloop.compiled (numba)" if used else "scipy.integrate.solve_ivp"}
 
 
 def test_tracking_input_stays_in_U(sim):
@@ -58,10 +58,10 @@ def test_tracking_error_below_uniform_bound(sim, cli_run):
 
 
 def test_controller_and_interface_law(paper_spec, paper_design):
-    from ashc_cli.model import build_model
+    from ashc_cli.problem.model import build_model
 
     model = build_model(paper_spec)
-    plant = simulate._Plant(model, paper_design)
+    plant = simulate.DesignTerms(model, paper_design)
     xi, x0 = np.array([0.5]), np.array([1.0, 20.0, -1.0, -12.0])
     v, u, dxi, dx, _ = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "zero", True)
     assert v[0] == 60.0  # far from the reference: clipped at v_max
@@ -110,8 +110,8 @@ def test_sample_times_never_leave_the_segment(t0, length, dt):
 
 def test_dwell_that_does_not_divide_t_final_runs(tmp_path):
     # Issue: dwell 0.3 with t_final 1.2 crashed simulate ("Values in t_eval are not within t_span").
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
     spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("t_final: 9.0", "t_final: 1.2"), ("dwell: 3.0", "dwell: 0.3"),
                   ("reference_levels: [0.5, -0.8, 0.2]", "reference_levels: [0.5, -0.8, 0.2, 0.4, -0.3]"))
     arts = run(load_spec(spec), tmp_path / "out", ("simulate",))
@@ -143,13 +143,14 @@ GUARANTEED = SPECS.parent / "tests" / "specs" / "cuk_guaranteed.yaml"
 @pytest.fixture(scope="module")
 def guaranteed(tmp_path_factory):
     """tests/specs/cuk_guaranteed.yaml (the Cuk spec, kind: guaranteed, tolerance 5 V, mode auto) designed and simulated."""
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
     out = tmp_path_factory.mktemp("cuk_guaranteed")
     arts = run(load_spec(GUARANTEED), out, ("simulate",))
     return arts
 
 
+@pytest.mark.slow
 def test_guaranteed_cuk_meets_five_volts_at_every_sample(guaranteed):
     sim_art, bound = guaranteed["simulate"], guaranteed["bound"].values
     v = sim_art.values
@@ -195,9 +196,9 @@ def test_governor_reaches_every_level_at_least_twice_as_fast_as_the_budget(guara
 
 def _adversarial_start(paper_design, paper_spec, fraction, sign):
     """x0 off the manifold with W0 = fraction x W_max in the direction that makes |psi - y| largest for its W."""
-    from ashc_cli.pipeline import design_model
+    from ashc_cli.design.pipeline import design_model
     model = design_model(paper_spec, paper_design)
-    plant = simulate._Plant(model, paper_design)
+    plant = simulate.DesignTerms(model, paper_design)
     M = np.asarray(paper_design["stabilise"].value("M"))
     alpha_h = float(paper_design["bound"].value("alpha_h"))
     d = np.linalg.solve(M, model.C.T)[:, 0]             # maximises |C e|^2 / e^T M e: |psi - y| = sqrt(W0 / alpha_h)
@@ -310,8 +311,9 @@ def test_reach_time_is_from_the_last_entry_into_the_band():
     assert np.isnan(simulate.reach_time(t, y[:, ::-1], np.array([0.0]), 5.0, 0.0))   # outside at the end: not reached
 
 
+@pytest.mark.slow
 def test_deadline_is_met_only_when_psi_sits_on_the_level_through_the_window(guaranteed):
-    from ashc_cli.spec import TimedLevel
+    from ashc_cli.problem.spec import TimedLevel
     v = guaranteed["simulate"].values
     t, psi, y = v["tracking/t"], v["tracking/psi"], v["tracking/y"]
     level, seg = np.array([-80.9]), (20.0, 40.0)          # level 1, reached within 5 V after 16.3 s, psi settled after 17.7 s
@@ -326,8 +328,8 @@ def test_deadline_is_met_only_when_psi_sits_on_the_level_through_the_window(guar
 
 def test_deadlines_are_reported_by_simulate(tmp_path):
     # unstable_linear (feedback: linear_gain, a local bound: v_max_certified = 0.0158) in budget mode: compiled, and slow.
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
     spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("reference_levels: [0.5, -0.8, 0.2]", "reference_levels: [0.0, {level: 0.05, by: 2.0, hold: 1.0}, {level: 0.1, by: 0.5, hold: 1.0}]"),
                   ("{kind: setpoint, gain: 5.0, v_max: 2.0}", "{kind: guaranteed, tolerance: 0.3, gain: 5.0, mode: budget}"))
     arts = run(load_spec(spec), tmp_path / "out", ("simulate",))
@@ -366,7 +368,7 @@ def test_simulate_refuses_a_tolerance_the_start_cannot_meet(tmp_path):
     proc = ashc("simulate", str(spec), "--out", str(tmp_path / "out"))
     assert proc.returncode == 3
     # the numbers from the design itself: W0 = e^T M e for e = p(xi0) - x0 = (-0.01, 0)
-    from ashc_cli.artefacts import read_artefact
+    from ashc_cli.design.artefacts import read_artefact
     M = np.asarray(read_artefact(tmp_path / "out" / "stabilise.h5").values["M"])
     alpha_h = float(read_artefact(tmp_path / "out" / "bound.h5").values["alpha_h"])
     start = np.sqrt(1e-4 * M[0, 0] / alpha_h)
@@ -382,8 +384,8 @@ def test_simulate_refuses_a_tolerance_the_start_cannot_meet(tmp_path):
 def test_a_start_off_the_manifold_is_held_to_the_whole_bound(tmp_path):
     # x0 = (0.5, 0) off p(0) = (0, 0), v at most 0.01: |psi - y| starts at 0.5, far above G ||v||_inf = 0.07, but
     # inside sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf, which the check now compares with.
-    from ashc_cli.pipeline import run
-    from ashc_cli.spec import load_spec
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import load_spec
 
     spec = edited(SPECS / "unstable_linear.yaml", tmp_path, ("x0: on_manifold", "x0: [0.5, 0.0]"), ("v_max: 2.0", "v_max: 0.01"))
     arts = run(load_spec(spec), tmp_path / "out", ("simulate",))
@@ -401,7 +403,7 @@ def test_a_start_off_the_manifold_is_held_to_the_whole_bound(tmp_path):
 
 
 def test_headline_prints_the_truth_when_a_bound_or_a_tolerance_is_exceeded():
-    from ashc_cli.artefacts import Artefact, Check
+    from ashc_cli.design.artefacts import Artefact, Check
 
     art = Artefact(stage="simulate")
     art.values.update({"tracking/t": np.zeros(2), "tracking/max_abs_error": 2.0, "tracking/uniform_bound": 1.0,

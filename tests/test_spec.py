@@ -1,9 +1,9 @@
-"""Tests of the spec contract (ashc_cli.spec)."""
+"""Tests of the spec contract (ashc_cli.problem.spec)."""
 
 import pytest
 
 from ashc_cli.errors import SpecError
-from ashc_cli.spec import load_spec, parse_spec_text
+from ashc_cli.problem.spec import load_spec, parse_spec_text
 
 from .conftest import CUK, CUK_PAPER_M
 

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from ashc_cli.artefacts import read_artefact
-from ashc_cli.model import build_model
-from ashc_cli.spec import load_spec
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import load_spec
 
 from .conftest import SPECS, ashc
 
@@ -58,6 +58,7 @@ def test_boost_simulations(boost):
     assert max(sim["tracking/settle_errors"]) < 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", sorted(SPECS.glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_spec_passes_check_unless_it_says_why_not(spec, tmp_path):
     # A spec that is meant to fail says so in a comment line "Expected: `ashc check` answers no: <reason>".
@@ -185,6 +186,7 @@ def spring(tmp_path_factory):
     return designed(SPRING, tmp_path_factory)
 
 
+@pytest.mark.slow
 def test_continuation_manifold_matches_an_independent_root_solve(spring):
     # Equilibria under u = xi (spec header): (1 + c_d) x2 + c_3 x2^3 = xi, then x1 + k_s tanh(x1) = x2.
     import scipy.optimize as sopt
@@ -242,6 +244,7 @@ def test_two_state_pde_finds_the_exact_manifold_and_inverse(two):
     assert_runs_hold(two["out"])
 
 
+@pytest.mark.slow
 def test_flatten_makes_theta_constant_for_two_abstract_states(tmp_path):
     spec = tmp_path / "flat.yaml"
     spec.write_text(TWO.read_text().replace("  delta: identity", "  delta: flatten"))

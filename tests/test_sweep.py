@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from ashc_cli.artefacts import read_artefact
-from ashc_cli.spec import load_spec
-from ashc_cli.sweep import combinations, parse_param
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.problem.spec import load_spec
+from ashc_cli.products.sweep import combinations, parse_param
 from ashc_cli.errors import SpecError
 
 from .conftest import SPECS, ashc
@@ -15,6 +15,7 @@ from .conftest import SPECS, ashc
 BOOST = SPECS / "boost_converter.yaml"
 
 
+@pytest.mark.slow
 def test_local_cluster_sweep_records_failures_and_goes_on(tmp_path):
     # r = 0.05 and 0.1 design; at r = 2 kappa turns inside V (p not injective): recorded, not fatal.
     proc = ashc("sweep", str(BOOST), "--param", "r=0.05:0.1:2", "--param", "R=10:10:1", "--out", str(tmp_path), "--json")

@@ -1,13 +1,13 @@
-"""Tests of ashc_cli.contraction.terms: the Jacobian over the plant's nonlinear terms, and its polytopes."""
+"""Tests of ashc_cli.design.contraction.terms: the Jacobian over the plant's nonlinear terms, and its polytopes."""
 
 import numpy as np
 import pytest
 import sympy as sp
 
-from ashc_cli.contraction import terms, vertex
-from ashc_cli.model import build_model, sparse_jacobian
-from ashc_cli.spec import parse_spec_text
-from ashc_cli.stages import stabilise
+from ashc_cli.design.contraction import terms, vertex
+from ashc_cli.problem.model import build_model, sparse_jacobian
+from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design.stages import stabilise
 
 CSTR = """
 name: cstr_test
@@ -66,6 +66,7 @@ def test_the_arrhenius_term_is_two_terms_with_the_hand_derived_coefficients():
         np.testing.assert_allclose(T.A0 + sum(v * A for v, A in zip(th, T.dense())), np.asarray(Jf(*x, 1.5), dtype=float).reshape(2, 2), rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_reactor_certifies_near_the_supremum_where_the_entry_box_loses_half():
     # The box of four independent entries: 0.93; the box of the two terms: 1.28; terms over sub-boxes refined where
     # the LMI binds: within 5% of the sampled supremum estimate (1.958).
@@ -86,8 +87,9 @@ def test_a_reactor_certifies_near_the_supremum_where_the_entry_box_loses_half():
     assert art.checks["lmi_margin"].evidence == "proved"
 
 
+@pytest.mark.slow
 def test_a_three_node_diode_ladder_certifies_within_ten_percent_of_its_supremum():
-    from ashc_cli.examples import rc_ladder
+    from ashc_cli.problem.examples import rc_ladder
 
     model = build_model(parse_spec_text(rc_ladder(3)))
     art = stabilise.run(model, {})

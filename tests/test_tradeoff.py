@@ -1,13 +1,13 @@
-"""Tests of ashc_cli.tradeoff: time to reach the reference levels against the guaranteed tolerance (docs/guaranteed.md)."""
+"""Tests of ashc_cli.products.tradeoff: time to reach the reference levels against the guaranteed tolerance (docs/guaranteed.md)."""
 
 import numpy as np
 import pytest
 
-from ashc_cli import tradeoff
-from ashc_cli.artefacts import read_artefact
+from ashc_cli.products import tradeoff
+from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.errors import SpecError
-from ashc_cli.spec import load_spec
-from ashc_cli.stages import simulate
+from ashc_cli.problem.spec import load_spec
+from ashc_cli.design.stages import simulate
 
 from .conftest import ROOT, edited
 
@@ -73,7 +73,7 @@ def test_governor_is_faster_and_both_slow_down_with_a_tighter_tolerance(result):
 def test_reach_times_match_the_simulate_run(result, short_spec, tmp_path):
     # The governor's reach-time run and the scenario run of `ashc simulate` start each level from the same settled
     # state, so they must agree (to the coarser sampling of the reach-time run, 5e-4 dwell = 2.5 ms).
-    from ashc_cli.pipeline import run
+    from ashc_cli.design.pipeline import run
     spec = load_spec(edited(short_spec, tmp_path, ("tolerance: 5.0", "tolerance: 10.0"), name="eps10.yaml"))
     sim = run(spec, tmp_path / "out", ("simulate",))["simulate"].values
     gov = np.asarray(result["art"].values["reach_time/governor"])[1]
@@ -93,17 +93,17 @@ def test_frontier_figure_is_one_column_wide(result):
     figure = result["figure"]
     assert figure == result["out"] / "plots" / "tradeoff.png" and figure.exists()
     with Image.open(figure) as image:
-        assert image.size[0] == round(3.5 * 200)       # 3.5 in at 200 dpi, as ashc_cli/plots.py draws
+        assert image.size[0] == round(3.5 * 200)       # 3.5 in at 200 dpi, as ashc_cli/outputs/plots.py draws
 
 
 def test_a_tolerance_the_start_cannot_meet_is_refused_per_mode(result, short_spec, tmp_path):
     # Same design, x0 off the manifold with sqrt(W0 / alpha_h) = 15 V: 10 V is refused by both modes, 20 V is not.
-    from ashc_cli.pipeline import design_model
+    from ashc_cli.design.pipeline import design_model
     arts = result["arts"]
     M = np.asarray(arts["stabilise"].value("M"))
     alpha_h = float(arts["bound"].value("alpha_h"))
     spec0 = load_spec(short_spec)
-    plant = simulate._Plant(design_model(spec0, arts), arts)
+    plant = simulate.DesignTerms(design_model(spec0, arts), arts)
     p0 = plant.p_map(0.6156)[:, 0]
     shift = 15.0 * np.sqrt(alpha_h / M[3, 3])                       # along x4 alone: W0 = shift^2 M44
     x0 = p0 + np.array([0, 0, 0, shift])

@@ -1,11 +1,13 @@
-"""Tests of the Problem 1 verdict (ashc_cli.verdict) and `ashc check` through the real entry point."""
+"""Tests of the Problem 1 verdict (ashc_cli.design.verdict) and `ashc check` through the real entry point."""
 
 import dataclasses
 import json
+
+import pytest
 import re
 
 from ashc_cli.errors import DesignError
-from ashc_cli.verdict import FAILS, PROVED, ROWS, SAMPLED, verdict
+from ashc_cli.design.verdict import FAILS, PROVED, ROWS, SAMPLED, verdict
 
 from .conftest import CUK_PAPER_M, SPECS, ashc
 
@@ -76,6 +78,7 @@ def test_check_cli_proved_and_no(tmp_path):
     assert data["verdict"] == "fails" and data["solved"] is False
 
 
+@pytest.mark.slow
 def test_check_cli_on_samples_only_exits_0_unless_proved_is_required(tmp_path):
     # saturating_spring: p and m are Chebyshev fits, so the PDE residual and the inverse rows are sampled.
     spec = SPECS / "saturating_spring.yaml"

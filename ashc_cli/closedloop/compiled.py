@@ -1,0 +1,635 @@
+"""The two closed loops of ``simulate`` as compiled (numba) code, with one DOP853 integrator.
+
+``simulate.run_tracking`` and ``simulate.run_m_relation`` integrate their loops with scipy's ``solve_ivp`` and
+a Python right-hand side (about 0.03-0.05 ms a call through :class:`~ashc_cli.closedloop.terms.DesignTerms`; 69 000
+calls on the Cuk converter's 30 s tracking run, 40 000 on its 10 s m-relation run).  This module runs the same
+loops in compiled code:
+
+* **the design's expressions** (f_bar, g, h from the model; phi_bar, l; delta, p, dp/dxi delta and kappa
+  from the artefacts) are printed from sympy, common subexpressions eliminated and the parameter values put in
+  as :func:`ashc_cli.problem.model.compile_flat` does, into two small numba functions (the *kernels*)
+  ``eval_xi(xi, phi_bar, delta, l, dp/dxi delta, kappa, p)`` and ``eval_x(x, f_bar, g, h)``; the m-relation
+  adds a *link module*, ``eval_link(x, b, c, m)`` (delta and inverse stages) and ``eval_u([t], u)`` (the spec's
+  ``simulate.m_relation.u``, its time signals triangle, square and step as in :mod:`ashc_cli.problem.expr`).  sympy
+  stays the single source of truth;
+* **the core** (the same for every design) holds the control laws and the integrator.  The tracking law is
+  :func:`ashc_cli.design.stages.simulate.tracking_law` written out in loops (the set-point controller v = clip(delta^+
+  (gain (xi_ref - xi) - phi_bar), -v_max, v_max); the interface u = SAT(l + K (x - p) + q v) with q the
+  least-squares q of eq. egqLS or 0 and SAT as :func:`ashc_cli.problem.model.apply_saturation`; the comparison system
+  w' = -(lambda - eps) w + |L^T r|^2 / eps, r = dp/dxi delta v - g (u - l - K (x - p))); the m-relation's is
+  u = u(t), v = b(x) + c(x) u (eq. mRelateLink), xi' = phi_bar + delta v, x' = f_bar + g u.  The integrator
+  is scipy's DOP853 (scipy's coefficients, from ``scipy.integrate._ivp.dop853_coefficients``) with scipy's
+  initial step, error norm, step-size control and 7th-order dense output at the sample times, and
+  solve_ivp's terminal event (the m-relation run stops where h(x) leaves the certified set, the time found by
+  scipy's brentq on the dense output).  One ``integrate`` runs both loops, which reach it as a first-class
+  function of one signature (an indirect call costs the Cuk tracking run 15 ms of 75; inlining both loops at
+  each call made the core take 2-3 s longer to compile).  The right-hand sides are scipy's to round-off
+  (tests), and a run takes the steps ``solve_ivp`` takes (on the Cuk converter's tracking run the same
+  right-hand-side calls per segment); the samples differ by the round-off of the stage sums (BLAS's order
+  against a plain loop) as the loop amplifies it: 1e-9 of the scale on the Cuk tracking run (v, steeper, 3e-7
+  of v_max).  Where the step sequence depends on the last bit, it does for scipy too: on a stiff loop
+  (unstable_linear, K = [-1168, -484]), and at the kink of the Cuk m-relation's triangle input (t = 2 s), after
+  which the runs differ by the integration's accuracy (4e-11 of the scale, as scipy does from x0 moved by one
+  ulp).  The kernels reach the core as first-class functions (numba ``FunctionType``), so the core is compiled
+  once per machine and a new design compiles only its kernels.
+
+All are written to files in the cache directory (``$ASHC_CACHE/compiled``, else ``~/.cache/ashc/compiled``),
+named by a SHA-256 (of the core's text; of the kernels' sympy input), and imported from there with numba's
+``cache=True``: a later process loads the machine code instead of compiling.  ``ASHC_COMPILED=0`` turns the
+compiled path off (:class:`Unsupported` is raised and the caller uses scipy).
+
+Entry points: :func:`tracking_loop` (the compiled tracking loop of a design) and :meth:`TrackingLoop.run` (the
+tracking scenario's segments, as ``run_tracking``'s loop integrates them); :func:`m_relation_loop` and
+:meth:`MRelationLoop.run` (the m-relation scenario, as ``run_m_relation`` integrates it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sympy as sp
+from sympy.printing.pycode import PythonCodePrinter
+
+from ashc_cli.errors import NumericalError, Unsupported
+from ashc_cli.problem.model import almost_everywhere
+
+__all__ = ["Unsupported", "TrackingLoop", "TrackingRun", "tracking_loop", "MRelationLoop", "MRelationRun", "m_relation_loop", "cache_dir",
+           "available", "kernel_source", "kernel_key", "link_source", "link_key", "load_source", "SIGNAL_IMPORT"]
+
+
+#: Bump when the kernels' printing or the modules they import change (it is part of their cache key; numba keys the
+#: cached machine code of a generated module by its own file only).
+KERNEL_VERSION = 2
+
+
+def available() -> bool:
+    """Whether the compiled path may run: numba can be imported and ``$ASHC_COMPILED`` is not ``0``."""
+    if os.environ.get("ASHC_COMPILED", "1").strip() == "0":
+        return False
+    try:
+        import numba  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def cache_dir() -> Path:
+    """Where the generated modules (and numba's cache of them) live: ``$ASHC_CACHE/compiled``, else
+    ``$XDG_CACHE_HOME/ashc/compiled`` or ``~/.cache/ashc/compiled``; created as needed (a folder under the
+    temporary directory if that one cannot be written)."""
+    root = os.environ.get("ASHC_CACHE")
+    base = Path(root) if root else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ashc"
+    for path in (base / "compiled", Path(tempfile.gettempdir()) / f"ashc-{os.getuid() if hasattr(os, 'getuid') else 'user'}" / "compiled"):
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            if os.access(path, os.W_OK):
+                return path
+        except OSError:
+            pass
+    raise Unsupported(f"no writable cache directory for compiled code ({base / 'compiled'})")
+
+
+# --- the design's kernels, printed from sympy -------------------------------------------------------------
+
+
+class _Printer(PythonCodePrinter):
+    """Python source for numba's nopython mode: ``math`` functions; min and max of floats, two at a time; the
+    spec's time signals (triangle, square, step) as calls of :mod:`ashc_cli.closedloop.signals`."""
+
+    def __init__(self):
+        super().__init__({"fully_qualified_modules": True, "strict": True})
+
+    def _minmax(self, expr, name):
+        args = [f"float({self._print(a)})" for a in expr.args]
+        out = args[0]
+        for a in args[1:]:
+            out = f"{name}({out}, {a})"
+        return out
+
+    def _print_Min(self, expr):
+        return self._minmax(expr, "min")
+
+    def _print_Max(self, expr):
+        return self._minmax(expr, "max")
+
+    # The time signals a spec's simulate.*.u may call (expr.SIGNAL_FUNCTIONS): calls of the numba functions of
+    # ashc_cli.closedloop.signals, which a module printing them must import (the m-relation's link module does).
+    def _print_triangle(self, expr):
+        return f"signal_triangle(float({self._print(expr.args[0])}))"
+
+    def _print_square(self, expr):
+        return f"signal_square(float({self._print(expr.args[0])}))"
+
+    def _print_step(self, expr):
+        return f"signal_step(float({self._print(expr.args[0])}))"
+
+
+_KERNEL_SIGNATURES = {"eval_xi": "types.void(F1, F1, F2, F1, F2, F1, F1)", "eval_x": "types.void(F1, F1, F2, F1)",
+                      "eval_link": "types.void(F1, F1, F2, F1)", "eval_u": "types.void(F1, F1)"}
+
+
+def emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: Sequence[tuple[str, sp.MatrixBase, bool]], values,
+                 signature: str | None = None) -> str:
+    """The numba function ``name(state, *outputs)`` filling its output arrays from the matrices.
+
+    ``outputs``: (array name, matrix, as_vector); a column written to a 1-D array when ``as_vector``.
+    ``signature``: the numba signature (text); by default the one :data:`_KERNEL_SIGNATURES` gives ``name``.
+    """
+    subs = {k: sp.Float(v) for k, v in (values or {}).items()}
+    local = {s: sp.Symbol(f"_{state}{i}", real=True) for i, s in enumerate(symbols)}
+    lines = [f"    _{state}{i} = {state}[{i}]" for i in range(len(symbols))]
+    targets, exprs = [], []
+    for arr, matrix, as_vector in outputs:
+        rows, cols = matrix.shape
+        for i in range(rows):
+            for j in range(cols):
+                targets.append(f"{arr}[{i}]" if as_vector else f"{arr}[{i}, {j}]")
+                exprs.append(almost_everywhere(sp.sympify(matrix[i, j]).xreplace(subs).xreplace(local)))
+    free = set().union(*(e.free_symbols for e in exprs)) - set(local.values())
+    if free:
+        raise Unsupported(f"{name}: the expressions depend on {sorted(map(str, free))}, which are not states")
+    replacements, reduced = sp.cse(exprs, symbols=sp.numbered_symbols("_c"))
+    printer = _Printer()
+    try:
+        lines += [f"    {sym} = {printer.doprint(e)}" for sym, e in replacements]
+        lines += [f"    {target} = {printer.doprint(e)}" for target, e in zip(targets, reduced)]
+    except Exception as exc:  # a function numba cannot run (sympy's PrintMethodNotImplementedError and kin)
+        raise Unsupported(f"{name}: {exc}") from exc
+    args = ", ".join([state] + [a for a, _, _ in outputs])
+    head = f"@njit({signature or _KERNEL_SIGNATURES[name]}, cache=True, error_model='numpy')\ndef {name}({args}):\n"
+    return head + "\n".join(lines) + "\n"
+
+
+def _design_terms(model, up):
+    xi_terms = [("phi", model.phi_bar, True), ("delta", up["delta"].expr("delta"), False), ("l", model.l, True),
+                ("dpd", up["bound"].expr("dp_delta"), False), ("kap", up["kappa"].expr("kappa"), True),
+                ("pm", up["manifold"].expr("p"), True)]
+    x_terms = [("fb", model.f_bar, True), ("g", model.g, False), ("h", model.h, True)]
+    nh, n, m, mh, p = model.n_hat, model.n, model.m, model.m_hat, model.p
+    expected = {"phi": (nh, 1), "delta": (nh, mh), "l": (m, 1), "dpd": (n, mh), "kap": (p, 1), "pm": (n, 1),
+                "fb": (n, 1), "g": (n, m), "h": (p, 1)}
+    for name, matrix, _ in xi_terms + x_terms:
+        if tuple(matrix.shape) != expected[name]:
+            raise Unsupported(f"{name} has shape {tuple(matrix.shape)}, expected {expected[name]}")
+    return xi_terms, x_terms
+
+
+def kernel_source(model, up) -> str:
+    """The numba module of a design's expressions: ``eval_xi`` and ``eval_x`` (Python source).
+
+    The matrices are those ``DesignTerms`` compiles: phi_bar, l and f_bar, g, h from the model; delta
+    (delta stage), p (manifold), dp/dxi delta (bound) and kappa (kappa stage).
+    """
+    xi_terms, x_terms = _design_terms(model, up)
+    parts = [f'"""Generated by ashc_cli.closedloop.compiled (first for design {model.spec.name!r}): the expressions of a design; do not edit."""',
+             "import math", "from numba import njit, types", "", "F1 = types.float64[::1]", "F2 = types.float64[:, ::1]", "", "",
+             emit_kernel("eval_xi", "xi", list(model.xi), xi_terms, model.values), "",
+             emit_kernel("eval_x", "x", list(model.x), x_terms, model.values)]
+    return "\n".join(parts)
+
+
+# --- the m-relation's link and input signal, printed from sympy ----------------------------------------------
+
+#: The line a generated module holds to call the spec's time signals (:mod:`ashc_cli.closedloop.signals`).
+SIGNAL_IMPORT = "from ashc_cli.closedloop.signals import signal_square, signal_step, signal_triangle"
+
+
+def _link_terms(model, up, u):
+    """The m-relation's matrices: b, c (delta stage) and m (inverse stage) of x; u(t) of the spec."""
+    x_terms = [("b", up["delta"].expr("b"), True), ("c", up["delta"].expr("c"), False), ("m", up["inverse"].expr("m"), True)]
+    u_terms = [("u", sp.Matrix(u), True)]
+    expected = {"b": (model.m_hat, 1), "c": (model.m_hat, model.m), "m": (model.n_hat, 1), "u": (model.m, 1)}
+    for name, matrix, _ in x_terms + u_terms:
+        if tuple(matrix.shape) != expected[name]:
+            raise Unsupported(f"{name} has shape {tuple(matrix.shape)}, expected {expected[name]}")
+    return x_terms, u_terms
+
+
+def link_source(model, up, u) -> str:
+    """The numba module of the m-relation's link and input: ``eval_link(x, b, c, m)`` and ``eval_u([t], u)``.
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+        The design's artefacts (b and c from the delta stage, m from the inverse stage).
+    u : sympy Matrix (m, 1)
+        The spec's ``simulate.m_relation.u`` as parsed (``t`` is :data:`ashc_cli.problem.model.TIME`).
+    """
+    from ashc_cli.problem.model import TIME
+
+    x_terms, u_terms = _link_terms(model, up, u)
+    parts = [f'"""Generated by ashc_cli.closedloop.compiled (first for design {model.spec.name!r}): the m-relation link and input; do not edit."""',
+             "import math", "import numpy as np", "from numba import njit, types", "", "F1 = types.float64[::1]", "F2 = types.float64[:, ::1]",
+             SIGNAL_IMPORT, "", "", emit_kernel("eval_link", "x", list(model.x), x_terms, model.values), "",
+             emit_kernel("eval_u", "t", [TIME], u_terms, model.values)]
+    return "\n".join(parts)
+
+
+def link_key(model, up, u) -> str:
+    """What the m-relation's kernels are made from, hashed (as :func:`kernel_key`): b, c, m, u, the states,
+    the parameter values, the signals' import, the generator's version and sympy's."""
+    from ashc_cli.problem.model import TIME
+
+    x_terms, u_terms = _link_terms(model, up, u)
+    digest = hashlib.sha256(f"ashc link {KERNEL_VERSION} sympy {sp.__version__}|{SIGNAL_IMPORT}".encode())
+    for arr, matrix, as_vector in x_terms + u_terms:
+        digest.update(f"|{arr}|{as_vector}|{sp.srepr(matrix)}".encode())
+    digest.update(f"|{sp.srepr(list(model.x))}|{sp.srepr(TIME)}".encode())
+    digest.update("|".join(f"{sp.srepr(k)}={float(v)!r}" for k, v in sorted(model.values.items(), key=lambda kv: str(kv[0]))).encode())
+    return digest.hexdigest()[:24]
+
+
+# --- the core: closed loop, integrator, sampling (the same text for every design) ---------------------------
+
+
+
+_MODULES: dict[str, object] = {}
+
+
+def load_source(source, prefix: str, key: str | None = None):
+    """Import generated source from the cache directory, once per process.
+
+    The file is ``<prefix>_<key>.py``, ``key`` defaulting to the SHA-256 of the text; ``source`` may be a
+    function returning the text, called only when the file is missing (the kernels are keyed by their sympy
+    input, so a second run skips common-subexpression elimination too).  A file is written atomically and never
+    rewritten, since numba's cache is keyed on its time stamp.
+    """
+    if key is None:
+        key = hashlib.sha256(source.encode()).hexdigest()[:24]
+    name = f"{prefix}_{key}"
+    if name in _MODULES:
+        return _MODULES[name]
+    if not available():
+        raise Unsupported("numba is not installed (or ASHC_COMPILED=0)")
+    folder = cache_dir()
+    path = folder / f"{name}.py"
+    if not path.exists():
+        text = source() if callable(source) else source
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception:
+        sys.modules.pop(name, None)
+        raise
+    _MODULES[name] = module
+    return module
+
+
+def kernel_key(model, up) -> str:
+    """What a design's kernels are made from, hashed: the matrices (``srepr``, every digit), the state
+    symbols, the parameter values, the generator's version and sympy's."""
+    xi_terms, x_terms = _design_terms(model, up)
+    digest = hashlib.sha256(f"ashc kernels {KERNEL_VERSION} sympy {sp.__version__}".encode())
+    for arr, matrix, as_vector in xi_terms + x_terms:
+        digest.update(f"|{arr}|{as_vector}|{sp.srepr(matrix)}".encode())
+    digest.update(f"|{sp.srepr(list(model.xi))}|{sp.srepr(list(model.x))}".encode())
+    digest.update("|".join(f"{sp.srepr(k)}={float(v)!r}" for k, v in sorted(model.values.items(), key=lambda kv: str(kv[0]))).encode())
+    return digest.hexdigest()[:24]
+
+
+def _dop853_tables() -> tuple[np.ndarray, ...]:
+    """scipy's DOP853 coefficients: A (16 x 16, the three extra stages of the dense output included), B, E3,
+    E5 and D (4 x 16)."""
+    from scipy.integrate._ivp import dop853_coefficients as c
+
+    return tuple(np.ascontiguousarray(a, dtype=float) for a in (c.A, c.B, c.E3, c.E5, c.D))
+
+
+def _dop853_nodes() -> np.ndarray:
+    """scipy's DOP853 stage nodes C (16, the extra stages included): stage s is evaluated at t + C[s] h."""
+    from scipy.integrate._ivp import dop853_coefficients as c
+
+    return np.ascontiguousarray(c.C, dtype=float)
+
+
+def _integrate(core, rhs, kernels, link, dims, z0, t_bounds, t_eval, offsets, refs, prm, L, K, U, q_ls, sat, edges, rtol, atol, what):
+    """One call of the core's DOP853 ``integrate``; the samples (rows of t_eval) and the event.
+
+    ``link`` holds eval_link and eval_u (the core's no_link and no_signal for the tracking loop); ``edges``
+    is empty or [lo, lo_margin, hi, hi_margin] (the m-relation's event).
+
+    Returns
+    -------
+    status : int
+        0 (every sample written) or 1 (the run left the edges: see ``hit``).
+    out : ndarray (len(t_eval), len(z0))
+        The samples.
+    hit : ndarray (1 + len(z0),)
+        [t, z] where the event stopped the run (NaN when it did not).
+    nfev, steps : int
+
+    Raises
+    ------
+    NumericalError
+        As ``simulate._integrate``: the step size fell below the spacing of floating-point numbers, or a
+        sample is not finite.
+    """
+    z0 = np.ascontiguousarray(z0, dtype=float).reshape(-1)
+    out = np.full((t_eval.size, z0.size), np.nan)
+    hit = np.full(z0.size + 1, np.nan)
+    A, B, E3, E5, D = _dop853_tables()
+    status, written, seg, nfev, steps = core.integrate(rhs, kernels.eval_xi, kernels.eval_x, link[0], link[1], dims, z0, t_bounds, t_eval, offsets, refs,
+                                                       prm, L, K, U, q_ls, sat, np.ascontiguousarray(edges, dtype=float), float(rtol), float(atol),
+                                                       A, B, _dop853_nodes(), E3, E5, D, out, hit)
+    if status < 0:
+        t_bad = t_eval[written - 1] if written > 0 else t_bounds[min(seg, len(t_bounds) - 1), 0]
+        message = "Required step size is less than spacing between numbers." if status == -1 else "a sample is not finite"
+        raise NumericalError(f"simulate.{what}", f"integration failed at t = {t_bad:.6g} s ({message})", "a trajectory that stays finite")
+    return status, out, hit, int(nfev), int(steps)
+
+
+@dataclass
+class TrackingRun:
+    """A compiled tracking run in run_tracking's shapes (N samples, the repeated segment starts dropped).
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Sample times.
+    xi, x : ndarray (n_hat, N), (n, N)
+        Abstract and concrete state.
+    w : ndarray (N,)
+        The comparison system of the a-posteriori bound.
+    v, u : ndarray (m_hat, N), (m, N)
+        Abstract and concrete input (tracking_law at each sample).
+    psi, y : ndarray (p, N)
+        kappa(xi) and h(x).
+    reference_index : ndarray (N,) of int
+        The reference (index into ``refs``) each sample was integrated with.
+    psi_end : ndarray (segments, p)
+        psi at the end of each segment.
+    nfev, steps : int
+        Right-hand-side calls and accepted steps.
+    """
+
+    t: np.ndarray
+    xi: np.ndarray
+    x: np.ndarray
+    w: np.ndarray
+    v: np.ndarray
+    u: np.ndarray
+    psi: np.ndarray
+    y: np.ndarray
+    reference_index: np.ndarray
+    psi_end: np.ndarray
+    nfev: int
+    steps: int
+
+
+_SATURATE = {False: 0, True: 1, "scale": 2}
+
+
+class TrackingLoop:
+    """The compiled tracking closed loop of one design (build it with :func:`tracking_loop`)."""
+
+    def __init__(self, core, kernels, model, up):
+        self.core, self.kernels = core, kernels
+        self.nh, self.n, self.m, self.mh, self.p = model.n_hat, model.n, model.m, model.m_hat, model.p
+        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p], dtype=np.int64)
+        self.L = np.ascontiguousarray(np.asarray(up["bound"].value("L"), dtype=float).reshape(self.n, self.n))
+        K = up["stabilise"].values.get("K", np.zeros((model.m, model.n)))
+        self.K = np.ascontiguousarray(np.asarray(K, dtype=float).reshape(self.m, self.n))
+        self.U = np.ascontiguousarray(np.asarray(model.U, dtype=float).reshape(self.m, 2))
+        self.lam = float(up["bound"].value("lambda"))
+        self.eps = float(up["bound"].value("epsilon"))
+
+    @staticmethod
+    def _flags(q_kind: str, saturate) -> tuple[int, int]:
+        if q_kind not in ("least_squares", "zero"):
+            raise Unsupported(f"interface.q = {q_kind!r}")
+        if not isinstance(saturate, (bool, np.bool_, str)) or saturate not in _SATURATE:
+            raise Unsupported(f"interface.saturate = {saturate!r}")
+        return int(q_kind == "least_squares"), _SATURATE[saturate]
+
+    def _prm(self, gain: float, v_max: float) -> np.ndarray:
+        return np.array([gain, v_max, self.lam, self.eps], dtype=float)
+
+    def law(self, xi, x, xi_ref, gain: float, v_max: float, q_kind: str, saturate, w: float = 0.0):
+        """(v, u, dz) at one point: the compiled tracking_law, dz = [dxi, dx, dw]."""
+        q_ls, sat = self._flags(q_kind, saturate)
+        z = np.ascontiguousarray(np.r_[np.ravel(xi), np.ravel(x), w], dtype=float)
+        v, u, dz = np.empty(self.mh), np.empty(self.m), np.empty(z.size)
+        self.core.closed_loop(self.kernels.eval_xi, self.kernels.eval_x, self.dims, z, np.ascontiguousarray(xi_ref, dtype=float).reshape(self.nh),
+                              self._prm(gain, v_max), self.L, self.K, self.U, q_ls, sat, v, u, dz)
+        return v, u, dz
+
+    def run(self, z0: np.ndarray, segments: Sequence[tuple[float, float, np.ndarray, int]], refs: Sequence[np.ndarray], *,
+            gain: float, v_max: float, q_kind: str, saturate, rtol: float, atol: float, what: str = "tracking") -> TrackingRun:
+        """Integrate the tracking loop segment after segment, as run_tracking's ``while`` loop does.
+
+        Parameters
+        ----------
+        z0 : ndarray (n_hat + n + 1,)
+            [xi0, x0, W0].
+        segments : sequence of (t0, t1, t_eval, i)
+            One per dwell segment, in order: its span, its sample times (``sample_times(t0, t1, SAMPLE_DT)``,
+            starting at t0 and ending at t1) and the index i into ``refs`` of its reference.
+        refs : sequence of ndarray (n_hat,)
+            The reference states xi_ref.
+        gain, v_max : float
+            The set-point controller.
+        q_kind, saturate :
+            ``interface.q`` and ``interface.saturate``.
+        rtol, atol : float
+            The tolerances (``TRACKING_TOL``).
+
+        Raises
+        ------
+        NumericalError
+            As ``simulate._integrate``: the step size fell below the spacing of floating-point numbers, or a
+            sample is not finite.
+        """
+        q_ls, sat = self._flags(q_kind, saturate)
+        evals = [np.asarray(te, dtype=float).reshape(-1) for _, _, te, _ in segments]
+        if not evals or any(te.size == 0 for te in evals):
+            raise ValueError("every segment needs its sample times")
+        offsets = np.cumsum([0] + [te.size for te in evals]).astype(np.int64)
+        t_eval = np.ascontiguousarray(np.concatenate(evals))
+        t_bounds = np.ascontiguousarray(np.array([[float(a), float(b)] for a, b, _, _ in segments], dtype=float))
+        index = np.array([i for *_, i in segments], dtype=np.int64)
+        seg_refs = np.ascontiguousarray(np.stack([np.asarray(refs[i], dtype=float).reshape(self.nh) for i in index]))
+        prm = self._prm(gain, v_max)
+        _, out, _, nfev, steps = _integrate(self.core, self.core.tracking_rhs, self.kernels, (self.core.no_link, self.core.no_signal), self.dims,
+                                            z0, t_bounds, t_eval, offsets, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, np.empty(0),
+                                            rtol, atol, what)
+        keep = np.ones(t_eval.size, dtype=bool)
+        keep[offsets[1:-1]] = False            # each later segment's first sample repeats the previous end
+        seg_of_row = np.repeat(np.arange(len(segments), dtype=np.int64), np.diff(offsets))
+        V, Uo = np.empty((t_eval.size, self.mh)), np.empty((t_eval.size, self.m))
+        PSI, Y = np.empty((t_eval.size, self.p)), np.empty((t_eval.size, self.p))
+        fxi, fx = self.kernels.eval_xi, self.kernels.eval_x
+        self.core.samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y)
+        Z = out[keep].T
+        nh, n = self.nh, self.n
+        return TrackingRun(t=t_eval[keep], xi=Z[:nh].copy(), x=Z[nh:nh + n].copy(), w=Z[-1].copy(), v=V[keep].T.copy(), u=Uo[keep].T.copy(),
+                           psi=PSI[keep].T.copy(), y=Y[keep].T.copy(), reference_index=index[seg_of_row[keep]],
+                           psi_end=PSI[offsets[1:] - 1].copy(), nfev=nfev, steps=steps)
+
+
+def _design_kernels(model, up):
+    """The core and the design's kernels (eval_xi, eval_x), imported (generated and compiled when the cache
+    directory does not hold them)."""
+    if not available():
+        raise Unsupported("numba is not installed (or ASHC_COMPILED=0)")
+    key = kernel_key(model, up)
+    from ashc_cli.closedloop import tracking_core as core   # numba compiles (or loads from its cache) on import
+
+    return core, _load_kernels(lambda: kernel_source(model, up), "ashc_kernels", key, model)
+
+
+def _load_kernels(source, prefix: str, key: str, model):
+    """load_source for generated kernels: a failure of numba on a printed expression is :class:`Unsupported`."""
+    try:
+        return load_source(source, prefix, key)
+    except Unsupported:
+        raise
+    except Exception as exc:   # numba could not type or compile an expression the printer let through
+        raise Unsupported(f"numba could not compile the expressions of {model.spec.name!r}: {type(exc).__name__}: {str(exc)[:500]}") from exc
+
+
+def tracking_loop(model, up) -> TrackingLoop:
+    """The compiled tracking loop of a design (``up``: the artefacts of stabilise .. bound by stage).
+
+    Generates the kernels' source unless the cache directory holds it (keyed by :func:`kernel_key`), writes it
+    (and the core's, once) there and imports both;
+    numba compiles what its cache does not hold (the core once per machine, a few seconds; the kernels once per
+    design, well under a second).
+
+    Raises
+    ------
+    Unsupported
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form: use the scipy path.
+    """
+    core, kernels = _design_kernels(model, up)
+    return TrackingLoop(core, kernels, model, up)
+
+
+@dataclass
+class MRelationRun:
+    """A compiled m-relation run in run_m_relation's shapes (N samples), or where it left the certified set.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Sample times.
+    xi, x : ndarray (n_hat, N), (n, N)
+        Abstract and concrete state.
+    u, v : ndarray (m, N), (m_hat, N)
+        u(t) and v = b(x) + c(x) u.
+    psi, y : ndarray (p, N)
+        kappa(xi) and h(x).
+    m : ndarray (n_hat, N)
+        m(x), whose distance to xi is the invariance residual.
+    left : (float, ndarray) or None
+        (t, [xi, x]) where y = h(x) left the certified interval (the run stopped there, the samples are
+        empty), as solve_ivp's terminal event finds it; None when the run went to the end.
+    nfev, steps : int
+        Right-hand-side calls and accepted steps.
+    """
+
+    t: np.ndarray
+    xi: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    psi: np.ndarray
+    y: np.ndarray
+    m: np.ndarray
+    left: tuple[float, np.ndarray] | None
+    nfev: int
+    steps: int
+
+
+class MRelationLoop:
+    """The compiled m-relation closed loop of one design and input signal (build it with :func:`m_relation_loop`).
+
+    The concrete system runs open loop under u(t); the abstract one receives v = b(x) + c(x) u (eq.
+    mRelateLink): the right-hand side run_m_relation integrates, with the same DOP853 as the tracking loop.
+    """
+
+    def __init__(self, core, kernels, link, model):
+        self.core, self.kernels, self.link = core, kernels, link
+        self.nh, self.n, self.m, self.mh, self.p = model.n_hat, model.n, model.m, model.m_hat, model.p
+        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p], dtype=np.int64)
+
+    def run(self, z0: np.ndarray, t_span: tuple[float, float], t_eval: np.ndarray, *, edges: Sequence[float] | None, rtol: float,
+            atol: float, what: str = "m_relation") -> MRelationRun:
+        """Integrate over t_span and evaluate the run at the sample times, as solve_ivp(fun, t_span, z0, t_eval=t_eval).
+
+        Parameters
+        ----------
+        z0 : ndarray (n_hat + n,)
+            [xi0, x0], xi0 = m(x0).
+        t_span : (float, float)
+            Start and end of the run, t0 < t1.
+        t_eval : ndarray (N,)
+            Increasing sample times in t_span, at least one.
+        edges : [lo, lo_margin, hi, hi_margin] or None
+            Stop where y = h(x) falls to lo + lo_margin or rises to hi - hi_margin (one output; run_m_relation's
+            leaves_certified_set); None: no event.
+        rtol, atol : float
+            The tolerances (``M_RELATION_TOL``).
+
+        Raises
+        ------
+        NumericalError
+            As ``simulate._integrate``.
+        """
+        t0, t1 = float(t_span[0]), float(t_span[1])
+        t_eval = np.ascontiguousarray(t_eval, dtype=float).reshape(-1)
+        if not (t0 < t1 and t_eval.size and np.all(np.diff(t_eval) > 0) and t0 <= t_eval[0] and t_eval[-1] <= t1):
+            raise ValueError("t_span must increase and hold t_eval, increasing and not empty")
+        n, m, nh = self.n, self.m, self.nh
+        status, out, hit, nfev, steps = _integrate(self.core, self.core.link_rhs, self.kernels, (self.link.eval_link, self.link.eval_u), self.dims,
+                                                   z0, np.array([[t0, t1]]), t_eval, np.array([0, t_eval.size], dtype=np.int64),
+                                                   np.zeros((1, nh)), np.zeros(4), np.zeros((n, n)), np.zeros((m, n)), np.zeros((m, 2)), 0, 0,
+                                                   np.empty(0) if edges is None else np.asarray(edges, dtype=float), rtol, atol, what)
+        if status == 1:
+            empty = np.empty((0, 0))
+            return MRelationRun(t=np.empty(0), xi=empty, x=empty, u=empty, v=empty, psi=empty, y=empty, m=empty,
+                                left=(float(hit[0]), hit[1:].copy()), nfev=nfev, steps=steps)
+        N = t_eval.size
+        V, Uo, PSI, Y, MX = np.empty((N, self.mh)), np.empty((N, m)), np.empty((N, self.p)), np.empty((N, self.p)), np.empty((N, nh))
+        self.core.link_samples(self.kernels.eval_xi, self.kernels.eval_x, self.link.eval_link, self.link.eval_u, self.dims, t_eval, out,
+                               V, Uo, PSI, Y, MX)
+        Z = out.T
+        return MRelationRun(t=t_eval, xi=Z[:nh].copy(), x=Z[nh:].copy(), u=Uo.T.copy(), v=V.T.copy(), psi=PSI.T.copy(), y=Y.T.copy(),
+                            m=MX.T.copy(), left=None, nfev=nfev, steps=steps)
+
+
+def m_relation_loop(model, up, u) -> MRelationLoop:
+    """The compiled m-relation loop of a design under the input u(t) (``up``: the design's artefacts by stage).
+
+    Imports the core and the design's kernels as :func:`tracking_loop` does (shared with it), and the link
+    module (b, c and m of x, u of t; keyed by :func:`link_key`), generated and compiled on its first use.
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+    u : sympy Matrix (m, 1)
+        The spec's ``simulate.m_relation.u``, parsed.
+
+    Raises
+    ------
+    Unsupported
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form: use the scipy path.
+    """
+    core, kernels = _design_kernels(model, up)
+    link = _load_kernels(lambda: link_source(model, up, u), "ashc_link", link_key(model, up, u), model)
+    return MRelationLoop(core, kernels, link, model)

@@ -1,0 +1,470 @@
+"""The runs of ``ashc falsify`` in numba: the batch's laws, adversaries and Dormand-Prince 5(4).
+
+Design-independent: the per-design kernels reach these functions as numba first-class functions
+(:mod:`ashc_cli.closedloop.compiled` prints and caches them); numba caches this module's machine code
+(``cache=True``)."""
+import math
+import numpy as np
+from numba import njit, types
+
+from ashc_cli.closedloop.laws import pinv_into, saturate
+
+F1 = types.float64[::1]
+F2 = types.float64[:, ::1]
+F3 = types.float64[:, :, ::1]
+I1 = types.int64[::1]
+I2 = types.int64[:, ::1]
+#: falsify_xi(z, A) and falsify_x(z, B), z = [xi, x]: A = [phi_bar, delta, l, dp/dxi delta, kappa, p, dp/dxi],
+#: B = [f_bar, g, h, dh/dx], matrices row after row (one flat buffer each: few arrays cross a call).
+XI_KERNEL = types.FunctionType(types.void(F1, F1))
+X_KERNEL = types.FunctionType(types.void(F1, F1))
+OPTIONS = dict(cache=True, error_model="numpy")
+
+SETPOINT, TABLE, GREEDY = 0, 1, 2
+#: Dormand-Prince 5(4): the stages (row s: the coefficients of k_0 .. k_{s-1}; row 6 is the 5th-order
+#: solution, FSAL) and the error estimate, as falsify._DP_A and falsify._DP_E.
+DP_A = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                 [1 / 5, 0.0, 0.0, 0.0, 0.0, 0.0],
+                 [3 / 40, 9 / 40, 0.0, 0.0, 0.0, 0.0],
+                 [44 / 45, -56 / 15, 32 / 9, 0.0, 0.0, 0.0],
+                 [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0.0, 0.0],
+                 [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0.0],
+                 [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]])
+DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+
+
+#: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
+#: kernel's, wk the loop's work (row-major matrices).
+O_PHI, O_DEL, O_L, O_DPD, O_KAP, O_PM, O_DP, O_FB, O_G, O_H, O_DH, O_KX, O_Q, O_LTG, O_LTD, O_PG, O_DPLUS, O_CORR, O_VIN = range(19)
+
+
+@njit(**OPTIONS)
+def _pinv_flat(src, so, r, c, dst, do):
+    """dst[do:] = pinv of the r x c matrix src[so:] (:func:`ashc_cli.closedloop.laws.pinv_into` on views)."""
+    pinv_into(src[so:so + r * c].reshape((r, c)), dst[do:do + c * r].reshape((c, r)))
+
+
+@njit(**OPTIONS)
+def _norm(v):
+    s = 0.0
+    for i in range(v.size):
+        s += v[i] * v[i]
+    return math.sqrt(s)
+
+
+@njit(**OPTIONS)
+def _stays(z, dxi, step, lo, hi):
+    """xi + step dxi inside [lo, hi] (falsify._stays), xi = z[:n_hat]."""
+    for i in range(dxi.size):
+        y = z[i] + step * dxi[i]
+        if not (y >= lo[i] and y <= hi[i]):
+            return False
+    return True
+
+
+@njit(**OPTIONS)
+def _terms(exi, ex, z, dims, off, A, B, wk, K, L, q_ls):
+    """The closed loop at z = [xi, x] that does not depend on v (falsify._interface): the kernels into A and B;
+    kx = K (x - p) and q = pinv(L^T g) L^T dp/dxi delta (eq. egqLS) or 0 into wk."""
+    nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
+    exi(z, A)
+    ex(z, B)
+    o_pm, o_g, o_dpd = off[O_PM], off[O_G], off[O_DPD]
+    o_kx, o_q, o_ltg, o_ltd, o_pg = off[O_KX], off[O_Q], off[O_LTG], off[O_LTD], off[O_PG]
+    for j in range(m):
+        s = 0.0
+        for i in range(n):
+            s += (z[nh + i] - A[o_pm + i]) * K[j, i]
+        wk[o_kx + j] = s
+    if q_ls == 1:
+        for i in range(n):
+            for j in range(m):
+                s = 0.0
+                for k in range(n):
+                    s += L[k, i] * B[o_g + k * m + j]
+                wk[o_ltg + i * m + j] = s
+            for a in range(mh):
+                s = 0.0
+                for k in range(n):
+                    s += L[k, i] * A[o_dpd + k * mh + a]
+                wk[o_ltd + i * mh + a] = s
+        _pinv_flat(wk, o_ltg, n, m, wk, o_pg)
+        for j in range(m):
+            for a in range(mh):
+                s = 0.0
+                for i in range(n):
+                    s += wk[o_pg + j * n + i] * wk[o_ltd + i * mh + a]
+                wk[o_q + j * mh + a] = s
+    else:
+        for k in range(m * mh):
+            wk[o_q + k] = 0.0
+
+
+@njit(**OPTIONS)
+def _apply(dims, off, A, B, wk, U, sat, v, u, dxi, dx):
+    """u = SAT(l + K (x - p) + q v) (model.apply_saturation), xi' = phi_bar + delta v, x' = f_bar + g u."""
+    nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
+    o_l, o_kx, o_q, o_c = off[O_L], off[O_KX], off[O_Q], off[O_CORR]
+    for j in range(m):
+        s = 0.0
+        for a in range(mh):
+            s += wk[o_q + j * mh + a] * v[a]
+        wk[o_c + j] = wk[o_kx + j] + s
+    saturate(A[o_l:o_l + m], wk[o_c:o_c + m], U, sat, u)
+    o_phi, o_del = off[O_PHI], off[O_DEL]
+    for i in range(nh):
+        s = 0.0
+        for a in range(mh):
+            s += A[o_del + i * mh + a] * v[a]
+        dxi[i] = A[o_phi + i] + s
+    o_fb, o_g = off[O_FB], off[O_G]
+    for i in range(n):
+        s = 0.0
+        for j in range(m):
+            s += B[o_g + i * m + j] * u[j]
+        dx[i] = B[o_fb + i] + s
+
+
+@njit(**OPTIONS)
+def _setpoint_v(z, dims, off, A, wk, ref, gain, noise, v_limit, v):
+    """The random strategy's law: v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped to v_limit."""
+    nh, mh = dims[0], dims[3]
+    o_dp = off[O_DPLUS]
+    _pinv_flat(A, off[O_DEL], nh, mh, wk, o_dp)
+    o_phi = off[O_PHI]
+    for a in range(mh):
+        s = 0.0
+        for i in range(nh):
+            s += wk[o_dp + a * nh + i] * (gain * (ref[i] - z[i]) - A[o_phi + i])
+        v[a] = s + noise[a]
+    shrink = min(1.0, v_limit / max(_norm(v), 1e-300))
+    for a in range(mh):
+        v[a] *= shrink
+
+
+@njit(**OPTIONS)
+def _isclose(a, b, rtol, atol):
+    """numpy.isclose for two floats."""
+    if a == b:
+        return True
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return False
+    return abs(a - b) <= atol + rtol * abs(b)
+
+
+@njit(**OPTIONS)
+def _nan_to_num(v):
+    big = 1.7976931348623157e308
+    for a in range(v.size):
+        if v[a] != v[a]:
+            v[a] = 0.0
+        elif v[a] == np.inf:
+            v[a] = big
+        elif v[a] == -np.inf:
+            v[a] = -big
+
+
+@njit(**OPTIONS)
+def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
+            xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
+            fout, iout, vused, recZ, recE, recB, recV):
+    """Run r, hold by hold: falsify._simulate for one run, with its own step-size control.
+
+    fout[r] = [ratio, ratio_late, max_error, vsup, at_limit, largest_bound];
+    iout[r] = [k_at, left_V, diverged, forced, accepted steps, rejected steps].
+    """
+    nh, n, m, mh, p, H, S, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7], dims[8]
+    q_ls, sat = iprm[0], iprm[1]
+    dt, v_limit, lam, eps, alpha_h, G, floor, rtol, diverge, lookahead = (fprm[0], fprm[1], fprm[2], fprm[3], fprm[4],
+                                                                          fprm[5], fprm[6], fprm[7], fprm[8], fprm[9])
+    d = nh + n
+    A = np.empty(off[19])
+    B = np.empty(off[20])
+    wk = np.empty(off[21])
+    o_kap, o_pm, o_dp, o_h, o_dh, o_vin = off[O_KAP], off[O_PM], off[O_DP], off[O_H], off[O_DH], off[O_VIN]
+    v = np.empty(mh)
+    u = np.empty(m)
+    dxi = np.empty(nh)
+    dx = np.empty(n)
+    dxi_r = np.empty(nh)
+    Z = np.empty(d)
+    Zs = np.empty(d)
+    zs = np.empty(d)
+    ks = np.empty((7, d))
+    v_plan = np.empty(mh)
+    plan0 = np.empty(mh)
+    neg = np.empty(mh)
+    v_now = np.zeros(mh)
+    prev = np.zeros(mh)
+    vc = np.empty(mh)
+    choice = np.empty(mh)
+    ee = np.empty(n)
+    for i in range(nh):
+        Z[i] = xi0[r, i]
+    for i in range(n):
+        Z[nh + i] = x0[r, i]
+    md = mode[r]
+    held = md != SETPOINT
+    greedy = md == GREEDY
+    setpoint = md == SETPOINT
+    guarded = guard[r] != 0
+    w0 = W0[r]
+    gain = gains[r]
+    active = True
+    left = 0
+    diverged = 0
+    ratio = 0.0
+    ratio_late = 0.0
+    k_at = 0
+    max_err = 0.0
+    vsup = 0.0
+    at_limit = 0.0
+    forced = 0
+    accepted = 0
+    rejected = 0
+    last_switch = -(10 ** 9)
+    largest_bound = 0.0
+    h_step = dt
+    h_min = dt / 4096.0
+    for k in range(H + 1):
+        seg = min(k * S // H, S - 1)
+        ref = refs[r, seg]
+        nz = noise[r, seg]
+        finite = True
+        for i in range(d):
+            if not (math.isfinite(Z[i]) and abs(Z[i]) <= diverge * scale[i]):
+                finite = False
+        if active and not finite:
+            diverged = 1
+        active = active and finite
+        for i in range(d):
+            Zs[i] = Z[i] if math.isfinite(Z[i]) else 0.0
+        _terms(exi, ex, Zs, dims, off, A, B, wk, K, L, q_ls)
+        inside = True
+        for i in range(nh):
+            if not (Z[i] >= lo[i] - 1e-9 and Z[i] <= hi[i] + 1e-9):
+                inside = False
+        if active and not inside:
+            left = 1
+        active = active and inside
+        err = 0.0
+        for i in range(p):
+            err += (A[o_kap + i] - B[o_h + i]) ** 2
+        err = math.sqrt(err)
+
+        for a in range(mh):
+            v_now[a] = 0.0
+        if k < H:
+            if held:
+                for a in range(mh):
+                    v_plan[a] = vtab[r, k, a]
+                if greedy:
+                    if not (active and k - last_switch >= dwell[r]):
+                        for a in range(mh):
+                            v_plan[a] = prev[a]
+                    else:
+                        # The candidate that maximises the one-hold look-ahead of
+                        # rho W / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x; ties keep the previous input.
+                        best = -np.inf
+                        for a in range(mh):
+                            choice[a] = 0.0
+                        for c in range(cand.shape[0]):
+                            for a in range(mh):
+                                vc[a] = cand[c, a] * (v_limit * amp[r])
+                            _apply(dims, off, A, B, wk, U, sat, vc, u, dxi, dx)
+                            for i in range(n):
+                                s = 0.0
+                                for j in range(nh):
+                                    s += A[o_dp + i * nh + j] * dxi[j]
+                                ee[i] = (A[o_pm + i] - Z[nh + i]) + dt * (s - dx[i])
+                            quad = 0.0
+                            for i in range(n):
+                                s = 0.0
+                                for j in range(n):
+                                    s += M[i, j] * ee[j]
+                                quad += ee[i] * s
+                            out2 = 0.0
+                            for i in range(p):
+                                s = 0.0
+                                for j in range(n):
+                                    s += B[o_dh + i * n + j] * ee[j]
+                                out2 += s * s
+                            J = rho[r] * quad / alpha_h + (1 - rho[r]) * out2
+                            if guarded and not _stays(Z, dxi, lookahead * dt, lo, hi):
+                                J = -np.inf
+                            thr = best
+                            if math.isfinite(best):
+                                thr = best + 1e-12 * abs(best)
+                            tie = _isclose(J, best, 1e-9, 0.0)
+                            if tie:
+                                for a in range(mh):
+                                    if not _isclose(vc[a], prev[a], 1e-5, 1e-8):
+                                        tie = False
+                            if J > thr or tie:
+                                best = J
+                                for a in range(mh):
+                                    choice[a] = vc[a]
+                        none = not math.isfinite(best)
+                        if none:
+                            for a in range(mh):
+                                choice[a] = 0.0
+                        for a in range(mh):
+                            if choice[a] != prev[a]:
+                                last_switch = k
+                        for a in range(mh):
+                            v_plan[a] = np.nan if none else choice[a]
+                # Guard: a held input that would carry xi out of V is reversed, else turned to V's centre.
+                if guarded and active:
+                    any_nan = False
+                    for a in range(mh):
+                        plan0[a] = v_plan[a]
+                        if v_plan[a] != v_plan[a]:
+                            any_nan = True
+                    _nan_to_num(plan0)
+                    _apply(dims, off, A, B, wk, U, sat, plan0, u, dxi, dx)
+                    if any_nan or not _stays(Z, dxi, lookahead * dt, lo, hi):
+                        nonzero = False
+                        for a in range(mh):
+                            neg[a] = -plan0[a]
+                            if plan0[a] != 0:
+                                nonzero = True
+                        _apply(dims, off, A, B, wk, U, sat, neg, u, dxi_r, dx)
+                        if nonzero and _stays(Z, dxi_r, lookahead * dt, lo, hi):
+                            for a in range(mh):
+                                v_plan[a] = neg[a]
+                        else:
+                            o_dplus, o_del = off[O_DPLUS], off[O_DEL]
+                            _pinv_flat(A, o_del, nh, mh, wk, o_dplus)
+                            nin = 0.0
+                            for a in range(mh):
+                                s = 0.0
+                                for i in range(nh):
+                                    s += wk[o_dplus + a * nh + i] * (centre[i] - Z[i])
+                                wk[o_vin + a] = s
+                                nin += s * s
+                            nin = math.sqrt(nin)
+                            for a in range(mh):
+                                v_plan[a] = wk[o_vin + a] * (v_limit * amp[r] / max(nin, 1e-300))
+                _nan_to_num(v_plan)
+                if greedy:
+                    for a in range(mh):
+                        prev[a] = v_plan[a]
+                for a in range(mh):
+                    v_now[a] = v_plan[a]
+            if setpoint:
+                _setpoint_v(Zs, dims, off, A, wk, ref, gain, nz, v_limit, v_now)
+            if keep_v:
+                for a in range(mh):
+                    vused[r, k, a] = v_now[a]
+        elif setpoint:
+            _setpoint_v(Zs, dims, off, A, wk, ref, gain, nz, v_limit, v_now)
+        vn = _norm(v_now)
+        if active:
+            vsup = max(vsup, vn)
+            if vn >= v_limit * (1 - 1e-9):
+                at_limit += 1.0
+        bound = math.sqrt(w0 * math.exp(-(lam - eps) * tgrid[k]) / alpha_h) + G * vsup
+        rk = 0.0
+        if active and err > floor:
+            rk = (err - floor) / max(bound, 1e-300) if bound > 0 else np.inf
+        if rk > ratio:
+            ratio = rk
+            k_at = k
+        if k > 0:
+            ratio_late = max(ratio_late, rk)
+        if active:
+            max_err = max(max_err, err if math.isfinite(err) else 0.0)
+            largest_bound = max(largest_bound, bound)
+        if record:
+            for i in range(d):
+                recZ[r, k, i] = Z[i]
+            recE[r, k] = err
+            recB[r, k] = bound
+            for a in range(mh):
+                recV[r, k, a] = v_now[a]
+        if k == H:
+            break
+        if not active:
+            continue
+
+        # Hold k: Dormand-Prince 5(4) steps, this run's error against rtol and atol.  Stage 0 (the slope at the
+        # start) is evaluated at the start of the hold, later taken from the last stage (FSAL).
+        t = tgrid[k]
+        t_end = tgrid[k + 1]
+        first = 0
+        while t < t_end - 1e-14 * max(1.0, t_end):
+            h_nat = h_step
+            h_step = min(h_step, t_end - t)
+            for s in range(first, 7):
+                for i in range(d):
+                    acc = 0.0
+                    for j in range(s):
+                        if DP_A[s, j] != 0.0:
+                            acc += DP_A[s, j] * ks[j, i]
+                    zs[i] = Z[i] + h_step * acc
+                # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.
+                _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
+                if setpoint:
+                    _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)
+                else:
+                    for a in range(mh):
+                        v[a] = v_now[a]
+                _apply(dims, off, A, B, wk, U, sat, v, u, dxi, dx)
+                for i in range(nh):
+                    ks[s, i] = dxi[i] if math.isfinite(dxi[i]) else 0.0
+                for i in range(n):
+                    ks[s, nh + i] = dx[i] if math.isfinite(dx[i]) else 0.0
+            first = 1
+            e2 = 0.0
+            for i in range(d):
+                acc = 0.0
+                for j in range(7):
+                    if DP_E[j] != 0.0:
+                        acc += DP_E[j] * ks[j, i]
+                sc = atol[i] + rtol * max(abs(Z[i]), abs(zs[i]))
+                e2 += (h_step * acc / sc) ** 2
+            E = math.sqrt(e2 / d)
+            if not math.isfinite(E):
+                E = 0.0
+            if E <= 1.0 or h_step <= h_min:
+                if E > 1.0:
+                    forced += 1
+                accepted += 1
+                for i in range(d):
+                    Z[i] = zs[i]
+                    ks[0, i] = ks[6, i]
+                t += h_step
+                if E > 0:
+                    h_step = h_step * min(5.0, max(0.2, 0.9 * E ** -0.2))
+                else:
+                    h_step = h_step * 5.0
+                restore = h_nat if (h_step < h_nat and E <= 0.5) else 0.0
+                h_step = min(max(h_step, h_min, restore), dt)
+            else:
+                rejected += 1
+                h_step = max(h_min, h_step * max(0.2, 0.9 * E ** -0.2))
+    fout[r, 0] = ratio
+    fout[r, 1] = ratio_late
+    fout[r, 2] = max_err
+    fout[r, 3] = vsup
+    fout[r, 4] = at_limit
+    fout[r, 5] = largest_bound
+    iout[r, 0] = k_at
+    iout[r, 1] = left
+    iout[r, 2] = diverged
+    iout[r, 3] = forced
+    iout[r, 4] = accepted
+    iout[r, 5] = rejected
+
+
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, I1, F1, I1, F2, F2, F2, F2, F1, F1, F1, F1, F1, F2, F1, I1,
+                 F2, F2, I1, F3, F1, I1, F1, I1, F3, F1, F3, F1,
+                 F2, I2, F3, F3, F2, F2, F3), nogil=True, **OPTIONS)
+def run_batch(exi, ex, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid, rows,
+              xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
+              fout, iout, vused, recZ, recE, recB, recV):
+    """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs."""
+    for j in range(rows.size):
+        run_one(exi, ex, rows[j], dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
+                xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
+                fout, iout, vused, recZ, recE, recB, recV)

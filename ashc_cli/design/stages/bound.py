@@ -1,0 +1,656 @@
+"""Stage 6: the simulation function's error bound (Section V, eqs. egConditionB, iota, egErrorBound).
+
+With W(xi, x) = (p(xi) - x)^T M (p(xi) - x) (eq. egSimuFunc) and the interface u_w = l(xi) + q(xi, x) v:
+
+* alpha_h: the largest c with M >= c C^T C for h(x) = C x, i.e. 1 / lambda_max(C M^-1 C^T) (eq. SimuFuncCondi1
+  with alpha_h(r) = c r^2; the paper rounds it to 0.52, ERRATA item 4); for a nonlinear h,
+  lambda_min(M) / L_h^2 with L_h the Lipschitz constant of Assumption 1, computed over ``concrete.state_box``;
+* epsilon = lambda / 2, which maximises (lambda - epsilon) epsilon;
+* theta(xi, x) = sqrt(M) (dp/dxi delta(xi) - g(x) q(xi, x)) (eq. iota, the paper's vartheta);
+* dbar = sup over V of ||theta|| with q = 0 (a plain norm, as in Section V; Proposition condB's dbar is its
+  square, stored as ``dbar_q0_squared``, ERRATA item 10), for the spec's delta and for delta = I;
+* dbar_ls: the same with the least-squares q of eq. egqLS, on the manifold x = p(xi).  Off the manifold
+  g(x) can vanish (the converter's g is zero at x2 = 0, x3 = x1) and theta is then the q = 0 value, so only
+  dbar_q0 bounds theta uniformly on V x R^n;
+* the gain of eq. egErrorBound, G = sqrt(2 / (alpha_h (lambda - epsilon) epsilon)) dbar_q0, so that
+  |psi - y| <= G ||v||_inf when W(xi0, x0) = 0.  This keeps the factor 2 of Theorem ErrorBound's max-form
+  (the paper's form); ``gain_comparison`` = G / sqrt(2) is what the comparison lemma gives for linear eta
+  (ERRATA item 7).
+
+What the interface does to that argument (:func:`interface_dbar`, :func:`certified_region`):
+
+* the saturated interface applies u - l = S (K e + q v) with e = x - p(xi).  Clipping channel by channel
+  (``saturate: true``) gives S = diag(s), s in [0, 1]^m; ``saturate: scale`` gives S = s I.  For identity
+  feedback theta_S = sqrt(M) (dp/dxi delta - g S q) is affine in S, so its norm is largest at a vertex:
+  with one input or ``scale`` the vertices are q = 0 and the least-squares q, and the least-squares q never
+  does worse than q = 0, so dbar_q0 bounds every S; with several inputs clipped channel by channel the
+  vertices are the 2^m clipping patterns, whose theta can be far larger (one channel clipped, another
+  applied in full).  For a constant g that sup over V and the patterns is computed (``dbar_saturation``);
+  for a state-dependent g it is not bounded on V x R^n and no uniform bound is certified;
+* with ``feedback: linear_gain`` a clipped K e turns the certified A + B K back into A, so the certificate
+  is local: it holds while no channel clips, i.e. on the sublevel set {W <= c} for which
+  |K_i e| + |q_i v| <= the room of l_i(xi) in U_i on V.  With a state box (a Jacobian LMI or a nonlinear h)
+  it holds while x stays in the box: on {W <= c} with p(V) + {e : e^T M e <= c} inside it.  Both sets are
+  forward invariant when ||v|| <= v_c = sqrt(c eps (lambda - eps)) / dbar, since then W(t) <= max(W0, c).
+  ``w0_max_certified`` = c and ``v_max_certified`` = v_c (inf when the bound is global).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.optimize as sopt
+import sympy as sp
+
+from ashc_cli.numerics import proofs
+from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.numerics.proofs import PROVED, SAMPLED
+from ashc_cli.errors import DesignError
+from ashc_cli.problem.grids import domain_grid
+from ashc_cli.problem.model import Model, sparse_jacobian
+from ashc_cli.design.upstream import dp_function, p_function
+from ashc_cli.numerics.linalg import sqrt_M_times
+
+#: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
+MAX_PATTERN_INPUTS = 12
+
+NAME = "bound"
+UPSTREAM = ("stabilise", "manifold", "delta")
+
+GRID_POINTS = 20001
+
+#: The checks every number of the published bound rests on (lambda and M; p and l; L_h, alpha_h, dbar and the
+#: region): the bound is *proved* only when each of them is, and printed with "(sampled)" otherwise.
+BOUND_CHECKS = (("stabilise", "lmi_margin"), ("stabilise", "M_positive"), ("manifold", "pde_residual"), ("manifold", "l_in_U"),
+                ("bound", "h_lipschitz"), ("bound", "alpha_h"), ("bound", "condition_B"), ("bound", "certified_region"))
+
+
+def alpha_h_linear(M: np.ndarray, C: np.ndarray) -> float:
+    """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4)."""
+    return float(1.0 / np.linalg.eigvalsh(C @ np.linalg.solve(M, C.T)).max())
+
+
+def alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
+    """alpha_h for a nonlinear h with Lipschitz constant L_h (Assumption 1, proof of Theorem SimuDesign).
+
+    W = (p - x)^T M (p - x) >= lambda_min(M) |p - x|^2 >= (lambda_min(M) / L_h^2) |h(p) - h(x)|^2.
+    """
+    return float(np.linalg.eigvalsh(M).min() / lipschitz_h**2)
+
+
+def error_bound_gain(alpha_h: float, lam: float, eps: float, dbar: float) -> float:
+    """The factor G of eq. egErrorBound: alpha_h^-1(eta^-1(2 gamma(|v|))) = G |v|.
+
+    With eta(r) = (lambda - eps) r, gamma(r) = dbar^2 r^2 / eps and alpha_h(r) = alpha_h r^2,
+    G = sqrt(2 / (alpha_h (lambda - eps) eps)) dbar (the paper's form, with Theorem ErrorBound's factor 2).
+    """
+    return float(np.sqrt(2.0 / (alpha_h * (lam - eps) * eps)) * dbar)
+
+
+def theta_norms(L: np.ndarray, dpd: np.ndarray, g: np.ndarray | None) -> np.ndarray:
+    """||theta|| (2-norm) at each point, theta = L^T (dp/dxi delta - g q) with M = L L^T (eq. iota).
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        Cholesky factor of M, so ||L^T w|| = sqrt(w^T M w) = ||sqrt(M) w|| (ERRATA item 8).
+    dpd : ndarray (n, m_hat, N)
+        dp/dxi delta at N points.
+    g : ndarray (n, m, N) or None
+        g(x) at the same points for the least-squares q (eq. egqLS); None for q = 0.
+    """
+    A = sqrt_M_times(L, dpd)                                     # sqrt(M) dp/dxi delta, (N, n, m_hat)
+    if g is not None:
+        B = sqrt_M_times(L, g)                                   # sqrt(M) g, (N, n, m)
+        # q = argmin ||A - B q|| = (g^T M g)^+ g^T M dp delta; theta = A - B q (pinv: q = 0 where g = 0).
+        A = A - B @ (np.linalg.pinv(B) @ A)
+    return np.linalg.norm(A, ord=2, axis=(1, 2)) if A.shape[2] > 1 else np.linalg.norm(A[:, :, 0], axis=1)
+
+
+def sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, float]:
+    """Refine the largest of ``values`` on a 1-D grid by a bounded search in the neighbouring cells."""
+    k = int(np.nanargmax(values))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    best_x, best = grid[k], float(values[k])
+    if hi > lo:
+        res = sopt.minimize_scalar(lambda s: -fun(np.array([s]))[0], bounds=(lo, hi), method="bounded", options={"xatol": 1e-12})
+        if res.success and -res.fun > best:
+            best_x, best = float(res.x), float(-res.fun)
+    return best, float(best_x)
+
+
+def constant_g(model: Model) -> np.ndarray | None:
+    """g as a number matrix (n, m) when it does not depend on x, else None."""
+    if model.g.free_symbols & set(model.x):
+        return None
+    return np.asarray(model.numeric(model.g, list(model.x))(*np.zeros(model.n)), dtype=float).reshape(model.n, model.m)
+
+
+def least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """q = (sqrt(M) g)^+ sqrt(M) dp/dxi delta (eq. egqLS) for a constant g at N points: (N, m, m_hat)."""
+    A = sqrt_M_times(L, dpd)
+    return np.linalg.pinv(L.T @ g)[None] @ A
+
+
+def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """max over the clipping patterns s in {0, 1}^m of ||sqrt(M) (dp/dxi delta - g diag(s) q)|| at N points.
+
+    The sup of ||theta|| over every per-channel clipping factor s in [0, 1]^m (``saturate: true``): theta is
+    affine in s, so its norm (convex) is largest at a vertex of the cube.
+    """
+    m = g.shape[1]
+    A = sqrt_M_times(L, dpd)                                     # (N, n, m_hat)
+    q = least_squares_q(L, g, dpd)                               # (N, m, m_hat)
+    B = L.T @ g                                                  # (n, m)
+    best = np.zeros(A.shape[0])
+    for k in range(2 ** m):
+        s = np.array([(k >> i) & 1 for i in range(m)], dtype=float)
+        theta = A - (B * s[None, :])[None] @ q
+        best = np.maximum(best, np.linalg.norm(theta, ord=2, axis=(1, 2)))
+    return best
+
+
+def interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: float) -> tuple[float, str]:
+    """The sup of ||theta|| over V, the states and every factor the saturated interface can apply.
+
+    Returns
+    -------
+    dbar : float
+        dbar_q0 where it bounds every saturation factor; the sup over the clipping patterns for several
+        inputs clipped channel by channel with a constant g; inf where no uniform bound exists.
+    how : str
+        Why (shown in the artefact and by ``ashc check``).
+    """
+    itf = model.spec.interface
+    feedback = model.spec.stabilisability.feedback
+    if itf.q == "zero" or itf.saturate is not True or model.m == 1 or feedback == "linear_gain":
+        return dbar_q0, ("q = 0 value: bounds the least-squares q pointwise and every saturation factor of one input, "
+                         "of the scaled correction (saturate: scale) and of the unsaturated region of a feedback design")
+    g = constant_g(model)
+    if g is None or model.m > MAX_PATTERN_INPUTS:
+        why = "g depends on x" if g is None else f"more than {MAX_PATTERN_INPUTS} inputs"
+        return np.inf, (f"interface.saturate: true clips the {model.m} channels of the least-squares correction separately and {why}: "
+                        "||theta|| over the clipping patterns is not bounded uniformly")
+    dbar = float(pattern_theta_norms(L, g, dpd_grid).max())
+    return max(dbar, dbar_q0), f"sup over V and the 2^{model.m} per-channel clipping patterns of ||sqrt(M)(dp/dxi delta - g diag(s) q)|| (grid)"
+
+
+def _balls(A):
+    """A float matrix (or a nested list of arb balls) as a flint ``arb_mat``."""
+    from flint import arb_mat
+
+    return arb_mat([[proofs.arb(v) if not isinstance(v, proofs.arb) else v for v in row] for row in (A.tolist() if isinstance(A, np.ndarray) else A)])
+
+
+def constant_dp_delta(model: Model, dp_delta: sp.Matrix | None) -> list[list] | None:
+    """dp/dxi delta as a ball matrix when it does not depend on xi (an affine p with a constant delta), else None."""
+    if dp_delta is None or dp_delta.free_symbols & set(model.xi):
+        return None
+    try:
+        return proofs.BoxFunction(model, {"w": dp_delta}, list(model.xi))([proofs.arb(0)] * model.n_hat)["w"]
+    except proofs.interval.UnsupportedExpression:
+        return None
+
+
+def least_squares_q_balls(M: np.ndarray, g: np.ndarray, w: list[list]):
+    """q = (g^T M g)^-1 g^T M w (eq. egqLS, g of full column rank) as an arb_mat (m x m_hat), or None."""
+    Mb, gb, wb = _balls(M), _balls(g), _balls(w)
+    G = gb.transpose() * Mb * gb
+    try:
+        return G.inv() * (gb.transpose() * Mb * wb)
+    except ZeroDivisionError:
+        return None
+
+
+def prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp.Matrix | None) -> float:
+    """A proved upper bound of max over the 2^m clipping patterns S of ||sqrt(M) (dp/dxi delta - g S q)|| for a
+    constant dp/dxi delta and a constant g (then theta does not depend on xi), or inf where not proved.
+
+    q is the exact least-squares correction, enclosed in ball arithmetic; the norm of each pattern's theta is
+    bounded by :func:`proofs.norm_sqrt_M` (exact for one abstract input, Gershgorin on the Gram matrix else).
+    """
+    w = constant_dp_delta(model, dp_delta)
+    if w is None or model.n > proofs.MAX_PROOF_STATES:
+        return np.inf
+    q = least_squares_q_balls(M, g, w)
+    if q is None:
+        return np.inf
+    gb, wb = _balls(g), _balls(w)
+    worst = 0.0
+    for k in range(2 ** model.m):
+        S = _balls(np.diag([(k >> i) & 1 for i in range(model.m)]).astype(float))
+        theta = wb - gb * S * q
+        bound = proofs.upper(proofs.norm_sqrt_M(M, [[theta[i, j] for j in range(theta.ncols())] for i in range(theta.nrows())]))
+        worst = max(worst, bound)
+    return float(worst)
+
+
+def prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dbar: float, eta_eps: float,
+                 p_expr: sp.Matrix | None, dp_delta: sp.Matrix | None) -> tuple[float, float] | None:
+    """Proved lower bounds of the certified region's c and v_c (:func:`certified_region`), or None where not proved.
+
+    Each limit of :func:`certified_region` is bounded in ball arithmetic over V: the room of l_i in U_i by
+    branch and bound (inf over V of l_i - lo_i and hi_i - l_i), K_i M^-1 K_i^T with M^-1 enclosed (arb), the
+    least-squares q for a constant dp/dxi delta and g (or q = 0); the distance of p(xi) to the state box by
+    branch and bound on p's formula, and (M^-1)_jj enclosed.  c is the smallest of those lower bounds and
+    v_c = sqrt(c eps (lambda - eps)) / dbar is rounded down.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return None
+    stab = upstream["stabilise"]
+    K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
+    try:
+        Minv = _balls(M).inv()
+    except ZeroDivisionError:
+        return None
+    bounds = []
+    try:
+        if input_must_stay_in_U(model, upstream):
+            Kb = _balls(K)
+            KMK = Kb * Minv * Kb.transpose()
+            g = constant_g(model)
+            qn = [proofs.arb(0)] * model.m
+            if model.spec.interface.q == "least_squares" and g is not None:
+                w = constant_dp_delta(model, dp_delta)
+                q = least_squares_q_balls(M, g, w) if w is not None else None
+                if q is None:
+                    return None
+                qn = [sum((q[i, j] ** 2 for j in range(q.ncols())), proofs.arb(0)).sqrt() for i in range(model.m)]
+            lf = proofs.compile_claims(model, _rooms(model.l, model.U), list(model.xi))
+            factor = (proofs.arb(eta_eps).sqrt() / proofs.arb(dbar))
+            for i in range(model.m):
+                room_lo, ok_lo = proofs.inf_on_box(lf, model.V, index=2 * i)
+                room_hi, ok_hi = proofs.inf_on_box(lf, model.V, index=2 * i + 1)
+                if not (ok_lo and ok_hi):
+                    return None
+                room = max(0.0, min(room_lo, room_hi))
+                denom = KMK[i, i].sqrt() + qn[i] * factor
+                if not denom.is_finite():
+                    return None
+                if proofs.upper(denom) > 0:
+                    bounds.append(proofs.arb(room) / proofs.arb(proofs.upper(denom)))
+        box_used = "state_box" in stab.meta or model.C is None
+        if box_used and model.state_box is not None:
+            if p_expr is None:
+                return None
+            pf = proofs.compile_claims(model, _rooms(p_expr, model.state_box), list(model.xi))
+            for j in range(model.n):
+                d_lo, ok_lo = proofs.inf_on_box(pf, model.V, index=2 * j)
+                d_hi, ok_hi = proofs.inf_on_box(pf, model.V, index=2 * j + 1)
+                if not (ok_lo and ok_hi):
+                    return None
+                dist = max(0.0, min(d_lo, d_hi))
+                bounds.append(proofs.arb(dist) / Minv[j, j].sqrt())
+    except proofs.interval.UnsupportedExpression:
+        return None
+    if not bounds:
+        return np.inf, np.inf
+    root = min(proofs.lower(b) for b in bounds)            # sqrt(c) <= every bound
+    c_low = proofs.lower(proofs.arb(root) ** 2)
+    v_low = proofs.lower((proofs.arb(c_low) * proofs.arb(eta_eps)).sqrt() / proofs.arb(dbar))
+    return float(c_low), float(v_low)
+
+
+def _rooms(exprs, box: np.ndarray) -> list[sp.Expr]:
+    """[e_0 - lo_0, hi_0 - e_0, e_1 - lo_1, ...]: how far each expression is inside its interval (the ends exact doubles)."""
+    out = []
+    for e, (lo, hi) in zip(exprs, np.asarray(box, dtype=float)):
+        out += [e - sp.Float(float(lo)), sp.Float(float(hi)) - e]
+    return out
+
+
+def input_must_stay_in_U(model: Model, upstream: dict[str, Artefact]) -> bool:
+    """Whether the certificate needs the applied u inside U: a clipped K (x - p) loses A + B K (saturating feedback),
+    and without clipping (``saturate: false``) an A(u) or a Jacobian that depends on u is certified on U only."""
+    itf, st = model.spec.interface, model.spec.stabilisability
+    if itf.saturate is not False:
+        return st.feedback == "linear_gain"
+    A = upstream["stabilise"].exprs.get("A")
+    return A is not None and any(e.free_symbols & set(model.u) for e in A)
+
+
+def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray, dbar: float, eta_eps: float,
+                     grid: np.ndarray, l_grid: np.ndarray, p_grid: np.ndarray, dpd_grid: np.ndarray) -> tuple[float, float, list[str]]:
+    """The sublevel set {W <= c} on which the bound is certified, and the largest ||v|| that keeps it invariant.
+
+    Parameters
+    ----------
+    eta_eps : float
+        (lambda - eps) eps.
+    l_grid, p_grid, dpd_grid : ndarray
+        l(xi) (m, 1, N), p(xi) (n, 1, N) and dp/dxi delta (n, m_hat, N) on ``grid``.
+
+    Returns
+    -------
+    c : float
+        ``w0_max_certified`` (inf when the bound is global).
+    v_c : float
+        ``v_max_certified`` = sqrt(c eps (lambda - eps)) / dbar (inf when global).
+    reasons : list of str
+        What limits the region.
+    """
+    M = L @ L.T
+    Minv = np.linalg.inv(M)
+    c, reasons = np.inf, []
+    stab = upstream["stabilise"]
+    K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
+    # interface_dbar leaves the clipping patterns out for linear_gain, so the region must exclude clipping
+    # whatever K came out as (even a zero K); without clipping, an A(u) certified on U needs u to stay in U.
+    if input_must_stay_in_U(model, upstream) and model.spec.interface.saturate is False and constant_g(model) is None:
+        raise DesignError("interface.saturate", "false with a g that depends on x: eq. egLMI holds for u in U only (A(u) depends on u "
+                          "through dg/dx u), and without clipping u = l + K (x - p) + q v leaves U for large v, with a q that grows "
+                          "where g(x) is small, so no region of W0 and v keeps u in U", "interface.saturate: true or scale (u stays in U)",
+                          check="certified_region")
+    if input_must_stay_in_U(model, upstream):
+        # No channel clips while |K_i e| + |q_i v| <= room_i(xi): |K_i e| <= sqrt(c K_i M^-1 K_i^T) on {W <= c}
+        # and |q_i v| <= ||q_i|| v_c with v_c = sqrt(c eta_eps) / dbar, so sqrt(c) <= room / (k_i + ||q_i|| sqrt(eta_eps) / dbar).
+        k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
+        g = constant_g(model)
+        if model.spec.interface.q == "least_squares" and g is not None:
+            qn = np.linalg.norm(least_squares_q(L, g, dpd_grid), axis=2).T            # (m, N)
+        else:
+            qn = np.zeros((model.m, grid.shape[1]))
+        l = l_grid[:, 0, :]
+        room = np.minimum(l - model.U[:, 0:1], model.U[:, 1:2] - l)                   # (m, N)
+        denom = k[:, None] + qn * np.sqrt(eta_eps) / dbar
+        with np.errstate(divide="ignore", invalid="ignore"):
+            root = np.where(denom > 0, np.maximum(room, 0.0) / denom, np.inf)
+        c_sat = float(np.min(root) ** 2)
+        c = min(c, c_sat)
+        reasons.append(f"feedback K (x - p) does not clip (c <= {c_sat:.6g})" if model.spec.interface.saturate is not False
+                        else f"u = l + K (x - p) + q v stays in U, where A(u) is certified (c <= {c_sat:.6g})")
+    box_used = "state_box" in stab.meta or model.C is None
+    if box_used and model.state_box is not None:
+        # p(xi) + e stays in the box for every e^T M e <= c: |e_j| <= sqrt(c (M^-1)_jj).
+        p = p_grid[:, 0, :]
+        dist = np.minimum(p - model.state_box[:, 0:1], model.state_box[:, 1:2] - p)    # (n, N)
+        c_box = float(np.min(np.maximum(dist, 0.0) ** 2 / np.diag(Minv)[:, None]))
+        c = min(c, c_box)
+        reasons.append(f"x stays in concrete.state_box (c <= {c_box:.6g})")
+    v_c = float(np.sqrt(c * eta_eps) / dbar) if np.isfinite(c) and dbar > 0 else np.inf
+    return c, v_c, reasons
+
+
+def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, float, str] | None:
+    """alpha_h and L_h proved (eq. SimuFuncCondi1, Assumption 1), and how, or None where no proof is found.
+
+    Linear h = C x: alpha' = alpha_h (1 - 1e-9) with M - alpha' C^T C >= 0 proved by an arb Cholesky (C
+    formed in ball arithmetic); when M is diagonal and every output reads one state (C^T C diagonal), the
+    matrix is diagonal and its entries are checked one by one, at any n (the Cholesky is skipped above
+    ``proofs.MAX_PROOF_STATES`` states).  Nonlinear h (any number of outputs): L_h = a proved upper bound of
+    sup ||dh/dx||_2 over ``concrete.state_box`` (:func:`jacobian_norm_expr`) and alpha' = (proved lower bound of
+    lambda_min(M)) / L_h^2.
+    """
+    diagonal = model.C is not None and not np.any(M - np.diag(np.diag(M))) and np.all(np.count_nonzero(model.C, axis=1) <= 1)
+    if model.n > proofs.MAX_PROOF_STATES and not diagonal:
+        return None
+    jac = sparse_jacobian(model.h, list(model.x))
+    try:
+        proof = _prove_alpha_h_diagonal(model, M, alpha_h, jac) if diagonal else None
+        if proof is None and model.n <= proofs.MAX_PROOF_STATES:
+            proof = _prove_alpha_h(model, M, alpha_h, jac)
+        return proof
+    except proofs.interval.UnsupportedExpression:
+        return None
+
+
+def _prove_alpha_h_diagonal(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) -> tuple[float, float, str] | None:
+    """M - alpha' C^T C >= 0 for a diagonal M and a C with at most one non-zero per row (both exactly, C in ball
+    arithmetic): C^T C is then diagonal, so is the matrix, and it is PSD iff each diagonal entry is >= 0."""
+    f = proofs.BoxFunction(model, {"C": jac}, list(model.x))
+    Cb = f([proofs.arb(0)] * model.n)["C"]
+    if any(sum(not c.is_zero() for c in row) > 1 for row in Cb):
+        return None
+    a = proofs.arb(alpha_h * (1.0 - 1e-9))
+    for i in range(model.n):
+        column = sum((row[i] ** 2 for row in Cb), proofs.arb(0))
+        if not proofs.arb(float(M[i, i])) - a * column >= 0:
+            return None
+    return alpha_h * (1.0 - 1e-9), float(np.linalg.norm(model.C, 2)), "M diagonal and C^T C diagonal: each diagonal entry of M - alpha_h C^T C >= 0 in ball arithmetic"
+
+
+def _prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) -> tuple[float, float, str] | None:
+    if model.C is not None:
+        f = proofs.BoxFunction(model, {"C": jac}, list(model.x))
+        a = alpha_h * (1.0 - 1e-9)
+        Cb = f([proofs.arb(0)] * model.n)["C"]
+        CtC = proofs.quadratic_form_terms(np.eye(len(Cb)), Cb)
+        Mb = proofs.matrix_balls(M)
+        S = [[Mb[i][j] - proofs.arb(a) * CtC[i][j] for j in range(model.n)] for i in range(model.n)]
+        return (a, float(np.linalg.norm(model.C, 2)), "M - alpha_h C^T C >= 0 proved by an arb Cholesky") if proofs.psd_lower_bound_balls(S) >= 0 else None
+    if model.state_box is None:
+        return None
+    norm, how = jacobian_norm_expr(jac)
+    lip, ok, _ = proofs.sup_on_box(proofs.compile_claims(model, [norm], list(model.x)), model.state_box)
+    m_low = proofs.lambda_min_lower(M)
+    if not ok or not m_low > 0:
+        return None
+    return float(m_low / lip**2), float(lip), f"lambda_min(M) and L_h = sup ||dh/dx||_2 ({how}) bounded by ball arithmetic"
+
+
+def jacobian_norm_expr(jac: sp.Matrix) -> tuple[sp.Expr, str]:
+    """An expression >= ||dh/dx||_2 everywhere, for any number of outputs, and what it is.
+
+    One output: the gradient's Euclidean norm (exact).  Two outputs or two states: sqrt of the largest
+    eigenvalue of the 2 x 2 Gram matrix in closed form (exact).  Otherwise the Frobenius norm, an upper bound
+    within a factor sqrt(min(p, n)).
+    """
+    p, n = jac.shape
+    if p == 1:
+        return sp.sqrt(sum(e**2 for e in jac)), "the gradient's norm"
+    if min(p, n) <= 2:
+        w = jac.T if p <= 2 else jac           # two columns: ||w||_2 = ||dh/dx||_2
+        return proofs.norm_expr(np.eye(w.shape[0]), w), "closed-form 2 x 2 Gram eigenvalue"
+    return sp.sqrt(sum(e**2 for e in jac)), "Frobenius norm, >= the 2-norm"
+
+
+def prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
+    """A proved upper bound of sup over V of ||sqrt(M) dp/dxi delta|| (dbar with q = 0, eq. iota), inf if none.
+
+    Branch and bound over V in ball arithmetic, seeded with the grid maximum; ||sqrt(M) w||_2 is the square
+    root of the largest eigenvalue of the Gram matrix w^T M w, in closed form for one or two abstract inputs,
+    bounded through Gershgorin's discs for more.
+    """
+    if model.n > proofs.MAX_PROOF_STATES:
+        return np.inf
+    try:
+        if dp_delta.shape[1] <= 2:
+            fun = proofs.compile_claims(model, [proofs.norm_expr(M, dp_delta)], list(model.xi))
+        else:
+            f = proofs.BoxFunction(model, {"w": dp_delta}, list(model.xi))
+            fun = lambda b: [proofs.norm_sqrt_M(M, f(b)["w"])]   # noqa: E731 (Gershgorin on the Gram matrix)
+        upper_bound, ok, _ = proofs.sup_on_box(fun, V, seeds=seed.reshape(1, -1))
+    except proofs.interval.UnsupportedExpression:
+        return np.inf
+    return upper_bound if ok else np.inf
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. egErrorBound.
+
+    Returns
+    -------
+    Artefact
+        Values alpha_h, epsilon, dbar_q0, dbar_q0_identity, dbar_ls, gain, gain_comparison, the theta
+        norm curves on V; expressions dp_delta and g (for theta).
+
+    Raises
+    ------
+    DesignError
+        If theta is unbounded on V.
+    SpecError
+        If h is nonlinear and the spec gives no ``concrete.state_box`` to compute L_h on.
+    """
+    st, man, dl = upstream["stabilise"], upstream["manifold"], upstream["delta"]
+    M = np.asarray(st.value("M"), dtype=float)
+    lam = float(st.value("lambda"))
+    C = model.C
+    lipschitz_h, lipschitz_at = model.h_jacobian_bound()
+    alpha_h = alpha_h_linear(M, C) if C is not None else alpha_h_lipschitz(M, lipschitz_h)
+    eps = lam / 2.0
+    L = np.linalg.cholesky(M)
+
+    delta = dl.expr("delta")
+    xi_args = list(model.xi)
+    if "dp_dxi" in man.series and not delta.free_symbols & set(model.xi):
+        # p kept numeric and delta constant: dp/dxi delta is a series too, evaluated by numpy (no formula built).
+        dpd_series = man.series["dp_dxi"].right(np.array(model.substitute(delta), dtype=float))
+        dp_delta, dpd_num = None, dpd_series
+    else:
+        dp_delta = man.expr("dp_dxi") * delta
+        dpd_num = model.numeric(dp_delta, xi_args)
+    dp_num, p_num = dp_function(man, model), p_function(man, model)
+    g_num = model.numeric(model.g, list(model.x))
+
+    grid = domain_grid(model.V, GRID_POINTS)
+    dpd_grid, p_grid = dpd_num(*grid), p_num(*grid)          # evaluated once, used by every sup below
+    norm_q0 = theta_norms(L, dpd_grid, None)
+    norm_q0_identity = theta_norms(L, dp_num(*grid), None)
+    norm_ls = theta_norms(L, dpd_grid, g_num(*p_grid[:, 0, :]))
+    if not np.all(np.isfinite(norm_q0)):
+        raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)",
+                          "p continuously differentiable and delta continuous on V (Proposition condB)", check="condition_B")
+
+    alpha_h_sampled, lipschitz_h_sampled = alpha_h, lipschitz_h
+    alpha_proof, alpha_how = prove_alpha_h(model, M, alpha_h), "numpy"
+    if alpha_proof is not None:
+        alpha_h, lipschitz_h, alpha_how = alpha_proof
+
+    if model.n_hat == 1:
+        xs = grid[0]
+        dbar_q0, at_q0 = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, norm_q0)
+        dbar_id, at_id = sup_on_interval(lambda s: theta_norms(L, dp_num(s), None), xs, norm_q0_identity)
+        dbar_ls, at_ls = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), g_num(*p_num(s)[:, 0, :])), xs, norm_ls)
+        at = [[at_q0], [at_id], [at_ls]]
+    else:
+        dbar_q0, dbar_id, dbar_ls = float(norm_q0.max()), float(norm_q0_identity.max()), float(norm_ls.max())
+        at = [grid[:, np.argmax(v)].tolist() for v in (norm_q0, norm_q0_identity, norm_ls)]
+
+    dbar_q0_sampled = dbar_q0
+    dbar_q0_proved = np.inf
+    if model.n <= proofs.MAX_PROOF_STATES:   # the proof works on the formula (the one readers get)
+        dbar_q0_proved = prove_dbar(model, M, dp_delta if dp_delta is not None else dpd_series.to_sympy(xi_args), model.V, np.asarray(at[0], dtype=float))
+    if np.isfinite(dbar_q0_proved):
+        dbar_q0 = max(dbar_q0, dbar_q0_proved)
+    # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
+    dbar, dbar_how = interface_dbar(model, L, dpd_grid, dbar_q0)
+    dbar_evidence = PROVED if np.isfinite(dbar_q0_proved) and dbar == dbar_q0 else SAMPLED
+    if np.isfinite(dbar) and dbar != dbar_q0 and np.isfinite(dbar_q0_proved):
+        # The clipping patterns of several inputs: proved where theta does not depend on xi (affine p, constant delta and g).
+        g_const = constant_g(model)
+        pattern_proved = prove_pattern_dbar(model, M, g_const, dp_delta) if g_const is not None else np.inf
+        if np.isfinite(pattern_proved):
+            dbar = max(dbar, pattern_proved, dbar_q0)
+            dbar_how = dbar_how.replace("(grid)", "(proved in ball arithmetic: theta is constant on V)")
+            dbar_evidence = PROVED
+    if not np.isfinite(dbar):
+        raise DesignError("interface.saturate", f"no uniform bound is certified: {dbar_how} (condition (B) fails for this interface)",
+                          "interface.saturate: scale (one factor for the whole correction), q: zero, or a constant g", check="condition_B")
+    gain = error_bound_gain(alpha_h, lam, eps, dbar)
+    l_num = model.numeric(model.l, xi_args)
+    w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_grid, dpd_grid)
+    # A global region rests on the structural argument of interface_dbar and on dbar itself; a local one on the
+    # proved lower bounds of its limits (then the region published is the proved one, a little smaller).
+    region_evidence = dbar_evidence if not np.isfinite(w0_max) else SAMPLED
+    w0_max_sampled, v_max_sampled = w0_max, v_max
+    if np.isfinite(w0_max):
+        p_expr = man.exprs["p"] if "p" in man.exprs else (man.series["p"].to_sympy(xi_args) if "p" in man.series else None)
+        proved_region = prove_region(model, upstream, M, dbar, (lam - eps) * eps, p_expr, dp_delta)
+        if proved_region is not None and proved_region[0] > 0:
+            w0_max, v_max = min(w0_max, proved_region[0]), min(v_max, proved_region[1])
+            region_evidence = dbar_evidence
+    art = Artefact(stage=NAME, meta={
+        "grid_points": int(grid.shape[1]), "sup_method": "grid maximum refined by bounded scalar search",
+        "sqrt_M": "Cholesky factor L of M, ||L^T w|| = ||sqrt(M) w|| (ERRATA item 8)",
+        "gain_form": "paper (Theorem ErrorBound max-form, factor 2 kept, ERRATA item 7)",
+        "dbar_ls_where": "on the manifold x = p(xi); not a uniform bound off it",
+        "interface_q": model.spec.interface.q,
+    })
+    if dp_delta is None:
+        art.set_series("dp_delta", dpd_series, model.xi)
+    else:
+        art.exprs["dp_delta"] = dp_delta
+    art.exprs["g"] = model.g
+    art.values.update({
+        "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C if C is not None else np.zeros((0, model.n)),
+        "dbar_q0": dbar_q0, "dbar_q0_squared": dbar_q0**2, "dbar_q0_identity": dbar_id, "dbar_ls": dbar_ls,
+        "dbar_argmax": np.array(at, dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
+        "dbar": dbar, "dbar_how": dbar_how, "dbar_q0_sampled": dbar_q0_sampled, "dbar_q0_proved": dbar_q0_proved,
+        "alpha_h_sampled": alpha_h_sampled, "lipschitz_h_sampled": lipschitz_h_sampled, "w0_max_certified": w0_max, "v_max_certified": v_max,
+        "w0_max_sampled": w0_max_sampled, "v_max_sampled": v_max_sampled,
+        "region_limits": "; ".join(limits) if limits else "none: the bound holds on V x R^n for every v",
+        "xi_grid": grid, "theta_norm_q0": norm_q0, "theta_norm_q0_identity": norm_q0_identity, "theta_norm_ls_manifold": norm_ls,
+    })
+    how = "proved upper bound by ball arithmetic over V" if dbar_evidence == PROVED else "grid of V"
+    art.checks["condition_B"] = Check(dbar, bool(np.isfinite(dbar) and 0 < eps < lam),
+                                      "Proposition condB: sup of ||theta|| over V, the states and the interface's saturation finite and 0 < epsilon < lambda "
+                                      f"(dbar = {dbar_how}; {how})", dbar_evidence)
+    region = "global (every W0, every v)" if not np.isfinite(w0_max) else f"W(xi0, x0) <= {w0_max:.6g} and ||v||_inf <= {v_max:.6g} ({'; '.join(limits)})"
+    art.checks["certified_region"] = Check(w0_max, bool(w0_max > 0),
+                                           f"where |psi - y| <= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf is certified: {region} (non-empty)",
+                                           region_evidence)
+    alpha_evidence = PROVED if alpha_proof is not None else SAMPLED
+    art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, f"alpha_h with W >= alpha_h |kappa(xi) - h(x)|^2 (> 0, eq. SimuFuncCondi1; {alpha_how})", alpha_evidence)
+    art.values.update({"lipschitz_h": lipschitz_h, "lipschitz_h_at": lipschitz_at})
+    where = "||C||_2 of the linear output map" if C is not None else f"sup of ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (grid + L-BFGS-B)"
+    art.meta["alpha_h_form"] = "1 / lambda_max(C M^-1 C^T)" if C is not None else "lambda_min(M) / L_h^2 (Assumption 1)"
+    if C is None and alpha_proof is not None:
+        where = f"proved upper bound of sup ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (ball arithmetic)"
+    # A linear h is Lipschitz with the constant ||C||_2 by definition: nothing is sampled.
+    h_evidence = PROVED if C is not None or alpha_proof is not None else SAMPLED
+    art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)", h_evidence)
+    # How each number that enters G and the region was established (proved or sampled), for `ashc summary`.
+    lmi = [upstream["stabilise"].checks[k].evidence for k in ("lmi_margin", "M_positive") if k in upstream["stabilise"].checks]
+    art.values.update({"evidence_lambda": PROVED if lmi and all(e == PROVED for e in lmi) else SAMPLED,
+                       "evidence_alpha_h": PROVED if alpha_evidence == PROVED and h_evidence == PROVED else SAMPLED,
+                       "evidence_dbar": dbar_evidence, "evidence_region": region_evidence})
+    sampled = bound_sampled({**upstream, NAME: art})
+    art.values["bound_evidence"] = PROVED if not sampled else SAMPLED
+    art.values["bound_sampled"] = ", ".join(sampled) if sampled else "none"
+    return art
+
+
+def bound_sampled(arts: dict[str, Artefact]) -> list[str]:
+    """The checks of :data:`BOUND_CHECKS` that are not proved (``stage.check``; a missing one counts as not proved)."""
+    out = []
+    for stage, name in BOUND_CHECKS:
+        chk = arts[stage].checks.get(name) if stage in arts else None
+        if chk is None or chk.evidence != PROVED:
+            out.append(f"{stage}.{name}")
+    return out
+
+
+def gain_text(v: dict, fmt: str = ".5g") -> str:
+    """G as printed wherever the bound is published: with "(sampled)" when a number it rests on is only sampled."""
+    text = format(float(v["gain"]), fmt)
+    return text + (" (sampled)" if str(v.get("bound_evidence", SAMPLED)) != PROVED else "")
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    v = art.values
+    return {
+        "alpha_h": float(v["alpha_h"]), "epsilon": float(v["epsilon"]), "dbar_q0": float(v["dbar_q0"]),
+        "dbar_q0_identity": float(v["dbar_q0_identity"]), "dbar_ls": float(v["dbar_ls"]), "gain": float(v["gain"]),
+        "gain_comparison": float(v["gain_comparison"]), "gain_form": art.meta.get("gain_form"),
+        "dbar": float(v.get("dbar", v["dbar_q0"])), "dbar_how": v.get("dbar_how", ""),
+        "w0_max_certified": float(v.get("w0_max_certified", np.inf)), "v_max_certified": float(v.get("v_max_certified", np.inf)),
+        "region_limits": v.get("region_limits", ""),
+        "bound_evidence": str(v.get("bound_evidence", SAMPLED)), "bound_sampled": str(v.get("bound_sampled", "")),
+        "evidence": {k: str(v.get(f"evidence_{k}", SAMPLED)) for k in ("lambda", "alpha_h", "dbar", "region")},
+        "dbar_argmax": {"q0": np.asarray(v["dbar_argmax"])[0].tolist(), "q0_identity": np.asarray(v["dbar_argmax"])[1].tolist(),
+                        "ls": np.asarray(v["dbar_argmax"])[2].tolist()},
+    }
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    v = art.values
+    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf {region_text(v)})"
+
+
+def region_text(v: dict) -> str:
+    """Where the uniform bound holds, in words: 'for every W0 and v' or 'when W0 <= c and ||v||_inf <= v_c'."""
+    w0, vm = float(v.get("w0_max_certified", np.inf)), float(v.get("v_max_certified", np.inf))
+    if not np.isfinite(w0) and not np.isfinite(vm):
+        return "when W(xi0, x0) = 0; region: global"
+    return f"when W(xi0, x0) = 0; region: W0 <= {w0:.4g}, ||v||_inf <= {vm:.4g}"

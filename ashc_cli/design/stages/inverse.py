@@ -1,0 +1,1001 @@
+"""Stage 4: the left inverse m of p, and the conditions that tie it to the output (Section IV-C).
+
+m solves kappa(m(x)) = h(x) (eq. mRelatSuffiOut); of the branches sympy finds, the one with m(p(xi)) = xi
+on V is kept (eq. egm for the Cuk converter).  The stage checks, each with a stored number:
+
+* p is injective on V: a left inverse exists (m(p(xi)) = xi on a grid of V), and kappa is strictly monotone;
+* V covers Y (eq. SimuLocalRequire): kappa(V) contains the output box Y;
+* condition (i) of Theorem mCondi: p(m(x)) = x on Im(p), i.e. p(m(p(xi))) = p(xi);
+* condition (ii) of Theorem mCondi, through Corollary mRelateGeo for linear h: x - p(m(x)) in Ker(h),
+  i.e. h(x) = kappa(m(x)) on random samples of X_y = {x : h(x) in Y} (and symbolically where sympy can);
+* where m is real: the output interval on which every radicand of m is non-negative (eq. mEquation:
+  |x4| <= E / (2 sqrt(R_i G_L)) = 126.91 V for the converter), which must contain Y.
+
+Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m_domain_set`` names the set and
+``meta/m_domain`` says why).  m is only used (``ashc eval``, the m-relation run) for states x with h(x) in it:
+
+* scalar output, m = kappa^-1(h(x)): kappa(V), intersected with the interval where m is real.  Outside kappa(V)
+  the value m(x) lies outside V, where nothing is certified; a Chebyshev interpolant of kappa^-1 is a
+  polynomial fitted on kappa(V) only and extrapolates beyond it (its ``m_real_interval`` is kappa(V) too:
+  that is where kappa^-1 is known to exist);
+* affine p with one abstract state and one output: kappa(V) (m(x) lies in V exactly when h(x) is in kappa(V));
+  other affine shapes and the closed form for several outputs: Y, the set the checks cover (X_y = h^-1(Y)).
+
+``m_real_interval`` has an infinite end only where that is proved: symbolically (no radicand, or a radicand
+that stays non-negative), or because m is linear.
+
+When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = K (x - p0) for any
+numbers of abstract states and outputs: p is injective iff P has full column rank, m is real everywhere, and
+kappa(V) covers Y iff every vertex of the box Y is reached from V (a linear program per vertex, since kappa(V)
+is a convex polytope).  K is chosen in the family of left inverses of P, K = P^+ + Z (I - P P^+), with
+condition (ii) in view: for a linear h = C x, h(x - p(m(x))) = C (I - P K)(x - p0) vanishes for every x iff
+C (I - P K) = 0.  K = P^+ when it satisfies that; otherwise the least-norm K with K P = I and C P K = C (one
+linear system in vec(K), solved by least squares); when no K does, P^+ is kept and condition (ii) fails with
+that reason.  ``meta/construction`` names the construction used: ``pseudo-inverse``, ``least-norm left
+inverse with C(I - P K) = 0``, ``kappa^-1(h(x))`` (the nonlinear paths, m = kappa^-1(h(x)), which satisfies
+(ii) by construction) or ``explicit (spec)``.
+
+A spec may give m itself (``abstract.m``, n_hat expressions in the concrete states): it is checked, not
+trusted: m(p(xi)) = xi on a grid of V (and symbolically when sympy reduces it to 0), condition (ii) on samples
+of X_y (and symbolically), m real and finite there, and kappa(V) covering Y; any failure is refused (exit 3).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import scipy.optimize as sopt
+import sympy as sp
+
+from ashc_cli.numerics import proofs
+from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.errors import DesignError
+from ashc_cli.numerics import chebyshev
+from ashc_cli.problem.grids import domain_grid, sample_states_with_output
+from ashc_cli.problem.model import Model, sparse_jacobian, tidy, within_budget
+from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
+
+NAME = "inverse"
+UPSTREAM = ("manifold", "kappa")
+
+#: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
+LEFT_INVERSE_TOL = 1e-9
+#: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
+CONDITION_II_RTOL = 1e-9
+SAMPLES = 2000
+#: A left inverse K of an affine p satisfies condition (ii) exactly when max |C (I - P K)| is below this (relative to max |C|).
+CONDITION_II_MATRIX_RTOL = 1e-10
+#: The names of the constructions of m (``meta/construction``).
+PSEUDO_INVERSE = "pseudo-inverse"
+LEAST_NORM = "least-norm left inverse with C(I - P K) = 0"
+KAPPA_INVERSE = "kappa^-1(h(x))"
+EXPLICIT = "explicit (spec)"
+
+
+def output_symbol() -> sp.Symbol:
+    """The symbol standing for the output value y while solving kappa(mu) = y."""
+    return sp.Symbol("_y", real=True)
+
+
+def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, float, list[str]]:
+    """The interval of y on which every square-root argument of m(y) is non-negative.
+
+    Returns
+    -------
+    lo, hi : float
+        The interval (-inf / inf where unbounded).
+    radicands : list of str
+        The radicands, as formulas in y.
+    """
+    lo, hi, texts = -np.inf, np.inf, []
+    for power in m_of_y.atoms(sp.Pow):
+        if power.exp.is_Rational and power.exp.q % 2 == 0:
+            radicand = power.base
+            texts.append(str(radicand))
+            numeric = model.substitute(radicand)
+            region = sp.solve_univariate_inequality(numeric >= 0, y, relational=False)
+            hull = sp.Interval(region.inf, region.sup)
+            if region != hull:
+                raise DesignError("abstract", f"m is real on a union of intervals {region}", "a left inverse real on one interval of outputs")
+            lo, hi = max(lo, float(region.inf)), min(hi, float(region.sup))
+    return lo, hi, texts
+
+
+def format_interval(lo: float, hi: float) -> str:
+    """``[lo, hi]``, ``y >= lo``, ``y <= hi`` or ``every y`` (infinite ends only as words)."""
+    lo, hi = float(lo) + 0.0, float(hi) + 0.0   # + 0.0: no "-0"
+    if np.isfinite(lo) and np.isfinite(hi):
+        return f"y in [{lo:.6g}, {hi:.6g}]"
+    if np.isfinite(lo):
+        return f"y >= {lo:.6g}"
+    if np.isfinite(hi):
+        return f"y <= {hi:.6g}"
+    return "every y"
+
+
+def _certify(art: Artefact, model: Model, box: np.ndarray, name: str, meaning: str) -> None:
+    """Store where m is certified (values/m_domain, meta/m_domain_set, meta/m_domain) and h, to evaluate y = h(x)."""
+    box = np.asarray(box, dtype=float).reshape(model.p, 2) + 0.0
+    if not np.all(np.isfinite(box)) or np.any(box[:, 0] > box[:, 1]):
+        raise DesignError("abstract.domain", f"the outputs where m is certified, {box.tolist()}, are not a bounded box", "a bounded V and Y")
+    art.values["m_domain"] = box
+    art.meta.update({"m_domain_set": name, "m_domain": meaning, "m_domain_rtol": DOMAIN_RTOL})
+    art.exprs["h"] = model.h
+
+
+def x_y_samples(model: Model, p_grid: np.ndarray) -> np.ndarray:
+    """The ``SAMPLES`` random states of X_y = {x : h(x) in Y} (seed 0) on which condition (ii) is measured."""
+    h_num = model.numeric(model.h, list(model.x))
+    return sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
+
+
+def condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray) -> float:
+    """max |h(x) - h(p(m(x)))| / |Y| over the samples of X_y (inf without samples, NaN where m is not real).
+
+    ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).
+    """
+    if not samples.size:
+        return np.inf
+    h_num = model.numeric(model.h, list(model.x))
+    m_val = np.broadcast_to(model.numeric(m, list(model.x))(*samples)[:, 0, :], (model.n_hat, samples.shape[1]))
+    x_proj = np.broadcast_to(p_num(*m_val)[:, 0, :], samples.shape)
+    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
+    return float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
+
+
+def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.ndarray,
+                   failure: tuple[str, str] | None = None) -> None:
+    """Conditions (i) and (ii) of Theorem mCondi, measured the same way on every path.
+
+    ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).  ``failure`` (what, expected)
+    replaces the generic explanation when condition (ii) fails (the affine path knows why: no left inverse of
+    P satisfies C (I - P K) = 0).
+    """
+    m_num = model.numeric(m, list(model.x))
+    m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
+    p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
+    cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
+    cond_ii = condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
+    if not cond_ii <= CONDITION_II_RTOL:   # NaN (m not real at a sample) fails too
+        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
+        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
+    art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
+    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
+    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+
+
+def p_is_affine(man: Artefact, model: Model) -> bool:
+    """Whether p is affine in xi: dp/dxi free of xi (for a series, of degree 0 in its chopped power basis, as
+    its formula reads)."""
+    if "dp_dxi" in man.series:
+        coeffs = man.series["dp_dxi"].coeffs
+        power = np.abs(chebyshev.power_coefficients(coeffs)).reshape(len(coeffs), -1)   # column 0: the constant term
+        return bool(np.all(power[:, 1:].max(axis=1, initial=0.0) <= chebyshev.CHOP_RTOL * power.max(axis=1)))
+    return not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi"))
+
+
+def affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[np.ndarray, np.ndarray]:
+    """(J, c) with expr(xi) = J xi + c numerically, for an expression affine in xi and its stored Jacobian."""
+    J = np.array(model.substitute(jacobian), dtype=float).reshape(expr.shape[0], model.n_hat)
+    c = np.array(model.substitute(expr.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+    return J, c
+
+
+def choose_left_inverse(P: np.ndarray, C: np.ndarray | None) -> dict:
+    """The left inverse K of P (K P = I) used for m(x) = K (x - p0), chosen with condition (ii) in view.
+
+    Every left inverse of a P of full column rank is K = P^+ + Z (I - P P^+).  With a linear h = C x,
+    condition (ii) holds for every x iff C (I - P K) = 0, i.e. C P K = C.  P^+ is kept when it satisfies
+    that (it is then the least-norm solution anyway); otherwise the least-norm K of the linear system
+    K P = I, C P K = C (in vec(K), Frobenius norm) is taken from ``numpy.linalg.lstsq``, and used when its
+    residual shows the system is solvable.  When it is not (or h is not linear), K = P^+.
+
+    Returns
+    -------
+    dict
+        K (n_hat x n); construction (``PSEUDO_INVERSE`` or ``LEAST_NORM``); residual_pinv and residual:
+        max |C (I - P K)| / max(1, max |C|) for P^+ and for K (NaN for a nonlinear h); solvable (whether some
+        left inverse satisfies C (I - P K) = 0; None for a nonlinear h); system_residual (of the least-squares
+        solve, NaN if not needed).
+    """
+    n, n_hat = P.shape
+    P_plus = np.linalg.pinv(P)
+    out = {"K": P_plus, "construction": PSEUDO_INVERSE, "residual_pinv": np.nan, "residual": np.nan, "solvable": None, "system_residual": np.nan}
+    if C is None:
+        return out
+    scale = max(1.0, float(np.abs(C).max()))
+    r_plus = float(np.abs(C @ (np.eye(n) - P @ P_plus)).max()) / scale
+    out.update(residual_pinv=r_plus, residual=r_plus)
+    if r_plus <= CONDITION_II_MATRIX_RTOL:
+        out["solvable"] = True
+        return out
+    # vec (column-major): vec(K P) = (P^T kron I_nhat) vec K and vec(C P K) = (I_n kron C P) vec K.
+    system = np.vstack([np.kron(P.T, np.eye(n_hat)), np.kron(np.eye(n), C @ P)])
+    rhs = np.concatenate([np.eye(n_hat).ravel(order="F"), C.ravel(order="F")])
+    vec, *_ = np.linalg.lstsq(system, rhs, rcond=None)
+    K = vec.reshape(n_hat, n, order="F")
+    out["system_residual"] = float(np.abs(system @ vec - rhs).max())
+    r_K = float(np.abs(C @ (np.eye(n) - P @ K)).max()) / scale
+    left_K = float(np.abs(K @ P - np.eye(n_hat)).max())
+    out["solvable"] = bool(r_K <= CONDITION_II_MATRIX_RTOL and left_K <= CONDITION_II_MATRIX_RTOL)
+    if out["solvable"]:
+        out.update(K=K, construction=LEAST_NORM, residual=r_K)
+    return out
+
+
+def _cover_affine(model: Model, kap: Artefact) -> tuple[list, np.ndarray]:
+    """eq. SimuLocalRequire for an affine kappa: the vertices of Y no xi in V reaches (a linear program per vertex,
+    kappa(V) being a convex polytope), and the box of kappa over the corners of V."""
+    K, k0 = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+    missing = []
+    for vertex in itertools.product(*[(lo, hi) for lo, hi in model.Y]):
+        lp = sopt.linprog(np.zeros(model.n_hat), A_eq=K, b_eq=np.array(vertex) - k0, bounds=[tuple(b) for b in model.V], method="highs")
+        if lp.status != 0:
+            missing.append(list(vertex))
+    corners = np.array(list(itertools.product(*[(lo, hi) for lo, hi in model.V]))).T
+    k_corners = K @ corners + k0[:, None]
+    return missing, np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
+
+
+def output_states_map(model: Model) -> np.ndarray:
+    """T with rows e_j for the states x_j that h names: h(x) = H(T x) (every state if h names none)."""
+    named = [j for j, xj in enumerate(model.x) if any(xj in e.free_symbols for e in model.h)]
+    rows = named or list(range(model.n))
+    return np.eye(model.n)[rows]
+
+
+def _cover_nonlinear(model: Model, kap: Artefact) -> tuple[float, str, str, bool]:
+    """eq. SimuLocalRequire for a nonlinear kappa: kappa(V) is the interval of kappa's extremes on V for one
+    abstract state and one output (continuity), else a bounded search per point of a grid of Y.
+
+    Returns (value, description, failure text, covers)."""
+    Y = model.Y
+    k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+    if model.n_hat == 1 and model.p == 1:
+        value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
+        return (value, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)",
+                f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}", value <= 0)
+    value = _cover_by_search(model, kap)
+    return (value, f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)",
+            f"some outputs of Y are not kappa(xi) for any xi in V (residual {value:.3g})", value <= 1e-9)
+
+
+#: Exact (rational) proofs of the affine inverse are attempted up to this many unknowns n_hat x n of K.
+EXACT_MAX_UNKNOWNS = 64
+
+
+def prove_affine_inverse(model: Model, man: Artefact, kap: Artefact, T: np.ndarray, K: np.ndarray, kappa_affine: bool) -> dict:
+    """Prove the inverse stage's claims for an affine p(xi) = P xi + p0 in exact rational arithmetic.
+
+    P and p0 are p's stored formula with every parameter and number the exact rational of its double.  Then:
+
+    * p injective: rank P = n_hat (exact);
+    * a left inverse K_ex with K_ex P = I and T (I - P K_ex) = 0 exactly, found from the rationals (the
+      pseudo-inverse (P^T P)^-1 P^T, or the least-norm solution of both equations): m(x) = K_ex (x - p0) gives
+      m(p(xi)) = xi (the left-inverse row, and condition (i): p(m(p(xi))) = p(xi)) and, since h reads x only
+      through T x (T = C for a linear h), h(p(m(x))) = h(x) for every x (condition (ii));
+    * m is linear, hence real everywhere;
+    * eq. (10) for an affine kappa = C P xi + C p0: for one output the exact range of kappa over V's corners
+      contains Y; otherwise each vertex of Y is reached from V (an exact linear program, sympy's simplex).
+
+    Returns
+    -------
+    dict
+        ``K`` (the doubles nearest K_ex, or the given K if not proved), booleans ``injective``, ``left_inverse``,
+        ``condition_ii``, ``covers`` (None when not decided exactly), ``K_deviation`` (max |K - K_ex| of the
+        given K) and ``how``.
+    """
+    out = {"K": K, "injective": False, "left_inverse": False, "condition_ii": False, "covers": None, "K_deviation": np.nan, "how": "not proved"}
+    n, n_hat = model.n, model.n_hat
+    if n * n_hat > EXACT_MAX_UNKNOWNS:
+        out["how"] = f"not attempted: n_hat x n = {n * n_hat} unknowns (exact rational proofs up to {EXACT_MAX_UNKNOWNS})"
+        return out
+    p = man.expr("p")
+    P = proofs.exact(model, man.expr("dp_dxi"))
+    if P.free_symbols & set(model.xi):
+        out["how"] = "not proved: dp/dxi is not constant in exact arithmetic"
+        return out
+    p0 = proofs.exact(model, p.xreplace({s: 0 for s in model.xi}))
+    if P.rank() < n_hat:
+        out["how"] = "not proved: P has exact rank below n_hat"
+        return out
+    out["injective"] = True
+    Tq = sp.Matrix([[proofs.exact_number(t) for t in row] for row in np.asarray(T, dtype=float)])
+    I_n, I_hat = sp.eye(n), sp.eye(n_hat)
+    K_ex = (P.T * P).inv() * P.T
+    if Tq * (I_n - P * K_ex) != sp.zeros(*Tq.shape):
+        # The least-norm solution of K P = I, T P K = T in vec(K) (column-major), exactly.
+        unknowns = sp.symbols(f"k0:{n_hat * n}")
+        Ks = sp.Matrix(n_hat, n, lambda i, j: unknowns[i + j * n_hat])
+        eqs = list(Ks * P - I_hat) + list(Tq * P * Ks - Tq)
+        A, b = sp.linear_eq_to_matrix(eqs, unknowns)
+        try:
+            sol = A.pinv() * b
+        except (ValueError, ZeroDivisionError):
+            sol = None
+        if sol is None or A * sol != b:
+            out["how"] = "not proved: no left inverse K of P with T (I - P K) = 0 exists in exact arithmetic"
+            return out
+        K_ex = Ks.xreplace(dict(zip(unknowns, sol)))
+    assert K_ex * P == I_hat
+    out.update(left_inverse=True, condition_ii=True)
+    K_float = np.array(K_ex.evalf(17).tolist(), dtype=float)
+    out["K_deviation"] = float(np.abs(np.asarray(K, dtype=float) - K_float).max())
+    out["K"] = K_float
+    how = "exact rationals: rank P = n_hat, K_ex P = I and T (I - P K_ex) = 0 with m = K_ex (x - p0) rounded to doubles"
+    if kappa_affine:
+        Cq = proofs.exact(model, sparse_jacobian(model.h, model.x))
+        Kk, k0 = Cq * P, Cq * p0
+        if Kk.free_symbols or k0.free_symbols:
+            out["how"] = how
+            return out
+        corners = list(itertools.product(*[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]))
+        Yq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.Y]
+        if model.p == 1:
+            vals = [(Kk * sp.Matrix(c) + k0)[0] for c in corners]
+            out["covers"] = bool(min(vals) <= Yq[0][0] and max(vals) >= Yq[0][1])
+            gap = max(min(vals) - Yq[0][0], Yq[0][1] - max(vals))
+            out["covers_gap"] = float(gap)
+            out["kappa_V_exact"] = [float(min(vals)), float(max(vals))]
+        else:
+            from sympy.solvers.simplex import InfeasibleLPError, linprog
+
+            covers = True
+            # xi = lo + z with 0 <= z <= hi - lo (sympy's simplex keeps its variables non-negative)
+            Vq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]
+            lo_vec = sp.Matrix([lo for lo, _ in Vq])
+            A_in, b_in = sp.eye(n_hat), sp.Matrix([hi - lo for lo, hi in Vq])
+            for vertex in itertools.product(*Yq):
+                try:
+                    linprog(sp.zeros(1, n_hat), A_in, b_in, Kk, sp.Matrix(vertex) - k0 - Kk * lo_vec)
+                except InfeasibleLPError:
+                    covers = False
+                    break
+            out["covers"] = covers
+        how += "; eq. (10) decided exactly (" + ("kappa's range at the corners of V" if model.p == 1 else "a rational linear program per vertex of Y") + ")"
+    out["how"] = how
+    return out
+
+
+def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """The left inverse m(x) = K (x - p0) of an affine p(xi) = P xi + p0 (K from :func:`choose_left_inverse`), and its checks."""
+    p = man.expr("p")
+    P, p0 = affine_parts(model, p, man.expr("dp_dxi"))
+    sv = np.linalg.svd(P, compute_uv=False)
+    if sv.min() <= 1e-12 * max(1.0, sv.max()):
+        raise DesignError("abstract", f"p(xi) = P xi + p0 is not injective: P has rank {int(np.sum(sv > 1e-12 * sv.max()))} < n_hat = {model.n_hat}",
+                          "P of full column rank (Thm. mCondi)", check="left_inverse")
+    C = model.C
+    # A nonlinear h reads the states it names: h(x) = H(T x) with T the rows e_j of those states.  Condition (ii)
+    # h(x) = h(p(m(x))) then holds for every x when T (I - P K) = 0, the linear case with C replaced by T.
+    T = C if C is not None else output_states_map(model)
+    choice = choose_left_inverse(P, T)
+    kappa_affine = C is not None or proofs.affine_in(kap.expr("kappa"), list(model.xi))
+    proof = prove_affine_inverse(model, man, kap, T, choice["K"], kappa_affine)
+    K_m = proof["K"]             # the doubles nearest the exact left inverse where it is proved
+    m = sp.Matrix(K_m.tolist()) * (model.x - sp.Matrix(p0.tolist()))
+    grid = np.asarray(man.value("xi_grid"))
+    p_grid = np.asarray(man.value("p_grid"))
+    left_residual = float(np.abs(K_m @ (p_grid - p0[:, None]) - grid).max())
+
+    # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope when
+    # kappa is affine; for a nonlinear h, kappa = h o p is not, and the cover is checked as for an explicit m).
+    if kappa_affine:
+        missing, k_range = _cover_affine(model, kap)
+        K_kappa, _ = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+        covers = not missing
+        cover_value, cover_text = float(len(missing)), "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
+        failure = f"no xi in V reaches the output(s) {missing}"
+        min_dkappa = float(np.linalg.svd(K_kappa, compute_uv=False).min())
+    else:
+        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+        cover_value, cover_text, failure, covers = _cover_nonlinear(model, kap)
+        grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*np.asarray(man.value("xi_grid"))),
+                                              (model.p, model.n_hat, grid.shape[1])), -1, 0)
+        min_dkappa = float(np.linalg.svd(grid_dk, compute_uv=False).min())
+    if proof["covers"] is False:
+        # Decided exactly (rationals): the linear program's tolerance may have let a small gap pass.
+        covers = False
+        if "kappa_V_exact" in proof:
+            lo, hi = proof["kappa_V_exact"]
+            y_text = "[" + ", ".join(repr(float(v)) for v in model.Y[0]) + "]"
+            failure = (f"kappa(V) = [{lo!r}, {hi!r}] (exactly, in rationals) misses Y = {y_text} by {proof['covers_gap']:.3g}"
+                       + (" (at the level of rounding: widen V or shrink Y by that much)" if proof["covers_gap"] <= 1e-12 * max(1.0, np.abs(model.Y).max()) else ""))
+        else:
+            failure = "an exact rational linear program finds a vertex of Y that no xi in V reaches (the gap is below the floating-point program's tolerance)"
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}",
+                          "a larger domain V, or a smaller output_set", check="V_covers_Y")
+
+    least_norm = choice["construction"] == LEAST_NORM
+    method = ("linear: m(x) = K (x - p0), K the least-norm left inverse of P with C (I - P K) = 0 (P^+ fails condition (ii))" if least_norm
+              else "linear: m(x) = P^+ (x - p0)")
+    art = Artefact(stage=NAME, meta={"method": method, "construction": choice["construction"], "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL,
+                                      "condition_ii_matrix_rtol": CONDITION_II_MATRIX_RTOL})
+    art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
+    symbolic_ii = bool(np.abs(T @ (np.eye(model.n) - P @ K_m)).max() < 1e-12)
+    art.values.update({
+        "V": model.V, "Y": model.Y, "kappa_range": k_range, "m_real_interval": np.array([-np.inf, np.inf]), "radicands": ["none"],
+        "left_inverse_residual": left_residual, "condition_ii_symbolic": symbolic_ii,
+        "min_abs_dkappa": min_dkappa,
+        "left_inverse_matrix": K_m,
+        # max |C (I - P K)| / max(1, max |C|) for P^+ and for the K used (NaN for a nonlinear h)
+        "condition_ii_matrix_pinv": choice["residual_pinv"], "condition_ii_matrix": choice["residual"],
+    })
+    if least_norm:
+        samples = x_y_samples(model, p_grid)
+        pinv_m = sp.Matrix(np.linalg.pinv(P).tolist()) * (model.x - sp.Matrix(p0.tolist()))
+        art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p_function(man, model), pinv_m, samples)
+    art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["V_covers_Y"] = Check(cover_value, covers, cover_text)
+    art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
+    which = "m = K (x - p0)" if least_norm else "m = P^+ (x - p0)"
+    if model.n_hat == 1 and model.p == 1 and symbolic_ii and kappa_affine:
+        # kappa(m(x)) = h(x) for every x and kappa is a bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
+        _certify(art, model, k_range, "kappa(V)", f"kappa(V): {which} is linear and real everywhere, and m(x) lies in V "
+                 "(where the abstraction is certified) exactly when h(x) lies in kappa(V)")
+    else:
+        _certify(art, model, model.Y, "Y", f"Y: {which} is linear and real everywhere; conditions (i), (ii) are certified on "
+                 "X_y = h^-1(Y), and kappa(V) is not an interval of one output here")
+    failure = None
+    if choice["solvable"] is False:
+        failure = (f"; no left inverse K of P satisfies C (I - P K) = 0 (with K = P^+, max |C (I - P P^+)| = {choice['residual_pinv']:.3g}; "
+                   f"least-squares residual of K P = I, C P K = C: {choice['system_residual']:.3g})",
+                   "an abstraction whose kappa = C P has full row rank (at least as many abstract states as independent outputs), "
+                   "or C^T in the range of P: change abstract.states, phi_bar or l, or the outputs h")
+    _checks_common(art, model, p_function(man, model), m, p_grid, failure)
+    art.meta["proof"] = proof["how"]
+    art.values["left_inverse_exact_deviation"] = proof["K_deviation"]
+    if proof["left_inverse"]:
+        for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y"):
+            _relabel_proved(art, name, proof["how"])
+    if proof["covers"]:
+        _relabel_proved(art, "V_covers_Y", proof["how"])
+    return art
+
+
+#: kappa is handed to sympy.solve only when it is this small (a fitted polynomial of high degree is not).
+SOLVE_MAX_OPS = 300
+#: Highest degree of the Chebyshev interpolant of kappa^-1 (one abstract state, no closed form).
+MAX_INVERSE_DEGREE = 80
+
+
+def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) -> list[list[sp.Expr]]:
+    """The solutions mu(y) of kappa(mu) = y that sympy finds (each a list, one entry per abstract state)."""
+    def solvable(e: sp.Expr) -> bool:
+        if sp.count_ops(e) > SOLVE_MAX_OPS:
+            return False
+        if not e.atoms(sp.Float):
+            return True
+        # A fitted (float) kappa: only a polynomial of low degree; sympy.solve stalls on the rest.
+        return e.is_polynomial(*model.xi) and sp.Poly(e, *model.xi).total_degree() <= 4
+
+    if not all(solvable(e) for e in kappa):
+        return []
+    mus = [sp.Dummy(f"mu{k}", real=True) for k in range(model.n_hat)]
+    equations = [sp.Eq(e.xreplace(dict(zip(model.xi, mus))), yk) for e, yk in zip(kappa, ys)]
+    rational = all(sp.sympify(e).is_rational_function(*model.xi) for e in kappa)
+    try:
+        # check=False: every branch is verified numerically below (m(p(xi)) = xi on V), and sympy's own
+        # check (checksol) took 0.7 of the 0.8 s of this stage on the Cuk converter.  A transcendental kappa
+        # (tanh, exp of xi) gets a time budget: sympy may search for minutes without an answer.
+        if rational:
+            solutions = sp.solve(equations, mus, dict=True, check=False)
+        else:
+            solutions = within_budget(_solve_all, equations, mus)
+    except (NotImplementedError, ValueError, TypeError, TimeoutError):
+        return []
+    return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
+
+
+def _solve_all(equations: list, unknowns: list) -> list[dict]:
+    """sympy.solve of the equations for the unknowns, every solution as a dict (:func:`within_budget` runs it)."""
+    return sp.solve(equations, unknowns, dict=True, check=False)
+
+
+def branch_residuals(model: Model, branches: list[list[sp.Expr]], ys: list[sp.Symbol], y_grid: np.ndarray, grid: np.ndarray) -> list[float]:
+    """max |m(kappa(xi)) - xi| over the grid of V for each candidate m(y) (inf where it is not finite there).
+
+    ``y_grid`` (p, N) holds kappa at the grid points ``grid`` (n_hat, N).
+    """
+    residuals = []
+    for branch in branches:
+        values = np.broadcast_to(model.numeric(branch, ys)(*y_grid)[:, 0, :], grid.shape)
+        residuals.append(float(np.abs(values - grid).max()) if np.all(np.isfinite(values)) else np.inf)
+    return residuals
+
+
+def numeric_inverse(model: Model, kappa: sp.Matrix, xs: np.ndarray, y_grid: np.ndarray, y: sp.Symbol) -> tuple[sp.Expr, float, int] | None:
+    """kappa^-1 as a Chebyshev interpolant on kappa(V), for one abstract state with kappa strictly monotone.
+
+    kappa(xi) = y is solved by Brent's method at Chebyshev nodes of kappa(V); the degree is raised until
+    max |m(kappa(xi)) - xi| on the grid of V is below ``LEFT_INVERSE_TOL``.
+
+    Returns
+    -------
+    (m_of_y, residual, degree), or None if kappa is not strictly monotone on V.
+    """
+    dk = np.diff(y_grid)
+    if not (np.all(dk > 0) or np.all(dk < 0)):
+        return None
+    k_num = model.numeric(kappa, list(model.xi))
+    lo, hi = float(xs[0]), float(xs[-1])
+    box = np.array([[y_grid.min(), y_grid.max()]])
+    nodes = chebyshev.nodes(box, MAX_INVERSE_DEGREE + 1)[0]
+    roots = np.array([sopt.brentq(lambda s, target=t: float(k_num(s)[0, 0]) - target, lo, hi, xtol=1e-15, rtol=1e-15) for t in nodes])
+    best = (None, np.inf, 0)
+    for degree in range(1, MAX_INVERSE_DEGREE + 1):
+        coeffs = chebyshev.fit(roots[None, :], box, nodes[None, :], degree)
+        residual = float(np.abs(chebyshev.evaluate(coeffs, box, y_grid[None, :])[0] - xs).max())
+        if residual < best[1]:
+            best = (coeffs, residual, degree)
+        if residual <= LEFT_INVERSE_TOL / 100:   # well inside the tolerance: condition (ii) inherits the error
+            break
+    coeffs, residual, degree = best
+    return chebyshev.to_sympy(coeffs, box, [y])[0], residual, degree
+
+
+def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """The left inverse m(x) = kappa^-1(h(x)) for several abstract states and as many outputs (closed form).
+
+    Checks as the scalar path: m(p(xi)) = xi on V; m finite on a grid of Y with kappa(m(y)) = y and m(y) in V
+    there (so kappa(V) covers Y, eq. SimuLocalRequire); conditions (i) and (ii) of Theorem mCondi.
+    """
+    kappa = kap.expr("kappa")
+    ys = [sp.Symbol(f"_y{k}", real=True) for k in range(model.p)]
+    grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
+    h_num = model.numeric(model.h, list(model.x))
+    y_grid = h_num(*p_grid)[:, 0, :]
+    branches = closed_form_branches(model, kappa, ys)
+    residuals = branch_residuals(model, branches, ys, y_grid, grid)
+    best, best_residual = (branches[int(np.argmin(residuals))], min(residuals)) if branches else (None, np.inf)
+    if best is None or best_residual > LEFT_INVERSE_TOL:
+        raise DesignError("abstract", f"no closed-form solution m(y) of kappa(m) = y is a left inverse of p on V (best residual {best_residual:.3g})",
+                          "a kappa sympy can invert on V (e.g. triangular), or an affine p", check="left_inverse")
+    m_of_y = tidy(sp.Matrix(best))
+    m = m_of_y.xreplace(dict(zip(ys, model.h)))
+    Y, V = model.Y, model.V
+    y_box = domain_grid(Y, 4001)
+    m_on_Y = np.broadcast_to(model.numeric(m_of_y, ys)(*y_box)[:, 0, :], (model.n_hat, y_box.shape[1]))
+    finite = bool(np.all(np.isfinite(m_on_Y)))
+    excursion = float(np.max(np.r_[V[:, :1] - m_on_Y, m_on_Y - V[:, 1:]])) if finite else np.inf
+    covers = finite and excursion <= 1e-12
+    if not finite:
+        raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y", "Y inside the outputs where kappa^-1 is defined", check="m_real_on_Y")
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): kappa^-1(Y) leaves V by {excursion:.4g}",
+                          "a larger domain V, or a smaller output_set", check="V_covers_Y")
+    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": sparse_jacobian(m, model.x)})
+    dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
+    smin = float(np.linalg.svd(dkappa, compute_uv=False).min())
+    # Without radicands m is real for every y (proved); with them, only checked on a grid of Y: no interval to
+    # state (NaN ends), the radicands are listed.
+    radicands = sorted({str(pw.base) for e in m_of_y for pw in e.atoms(sp.Pow) if pw.exp.is_Rational and pw.exp.q % 2 == 0})
+    real = np.array([-np.inf, np.inf]) if not radicands else np.array([np.nan, np.nan])
+    art.values.update({
+        "V": V, "Y": Y, "kappa_range": np.c_[y_grid.min(axis=1), y_grid.max(axis=1)], "m_real_interval": real,
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
+    })
+    art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["V_covers_Y"] = Check(excursion, covers, "eq. SimuLocalRequire: largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
+    art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
+    _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
+    _checks_common(art, model, p_function(man, model), m, p_grid)
+    proof = prove_multi_inverse(model, kappa, m_of_y, ys)
+    art.meta["proof"] = proof["how"]
+    _mark_proved(art, proof)
+    return art
+
+
+#: Points of the grid of Y on which kappa(V) covering Y is checked for an explicit m with a nonlinear kappa of
+#: several abstract states (a bounded least-squares solve of kappa(xi) = y per point).
+COVER_POINTS = 400
+
+
+def _cover_by_search(model: Model, kap: Artefact) -> float:
+    """eq. SimuLocalRequire on a grid of Y: the largest |kappa(xi) - y| left by a bounded least-squares search
+    for xi in V (from the nearest point of kappa's grid), relative to the size of Y (0 when covered)."""
+    kappa_num = model.numeric(kap.expr("kappa"), list(model.xi))
+    jac_num = model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
+    xs, ks = np.asarray(kap.value("xi_grid")), np.asarray(kap.value("kappa_grid"))
+    ys = domain_grid(model.Y, COVER_POINTS)
+    lo, hi = model.V[:, 0], model.V[:, 1]
+    worst = 0.0
+    for y in ys.T:
+        start = xs[:, int(np.argmin(np.abs(ks - y[:, None]).sum(axis=0)))]
+        fit = sopt.least_squares(lambda z: kappa_num(*z)[:, 0] - y, start, jac=lambda z: np.asarray(jac_num(*z), dtype=float).reshape(model.p, model.n_hat),
+                                 bounds=(lo, hi), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        worst = max(worst, float(np.abs(fit.fun).max()))
+    return worst / max(1.0, float(np.ptp(model.Y, axis=1).max()))
+
+
+def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """Check the left inverse the spec gives (``abstract.m``) and store it like the constructed ones.
+
+    Checked, not trusted: m(p(xi)) = xi on the grid of V (symbolically when sympy reduces m(p(xi)) - xi to
+    0), m real and finite on samples of X_y, condition (ii) on them (symbolically: h(p(m(x))) - h(x) = 0),
+    condition (i), and kappa(V) covering Y (linear programs for an affine kappa, kappa's range on V for one
+    abstract state and one output, else a bounded search per point of a grid of Y).
+
+    Raises
+    ------
+    DesignError
+        If m is not a left inverse of p on V (check ``left_inverse``), is not real and finite on X_y
+        (``m_real_on_Y``), fails condition (ii) (``condition_ii``), or kappa(V) does not cover Y (``V_covers_Y``).
+    """
+    p, kappa = man.expr("p"), kap.expr("kappa")
+    m = model.m_given
+    grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
+    m_num = model.numeric(m, list(model.x))
+
+    # m(p(xi)) = xi on V (Thm. mCondi, step 1: p is injective on V with m as its left inverse).
+    back = np.broadcast_to(m_num(*p_grid)[:, 0, :], grid.shape)
+    errors = np.abs(back - grid).max(axis=0)
+    left_residual = float(errors.max()) if np.all(np.isfinite(back)) else np.inf
+    if not left_residual <= LEFT_INVERSE_TOL:
+        worst = int(np.argmax(np.where(np.isfinite(errors), errors, np.inf)))
+        raise DesignError("abstract.m", f"the given m is not a left inverse of p on V: max |m(p(xi)) - xi| = {left_residual:.3g} (at xi = {np.round(grid[:, worst], 6).tolist()})",
+                          f"m(p(xi)) = xi for every xi in V (Thm. mCondi), to {LEFT_INVERSE_TOL:g}; or leave abstract.m out to have m constructed", check="left_inverse")
+    polynomial = all(e.is_polynomial(*model.x) for e in m)
+    symbolic_left = proofs.symbolic_zero(list(m.xreplace(dict(zip(model.x, p))) - model.xi))
+
+    # m real and finite where it is used: on the samples of X_y (everywhere when m is a polynomial).
+    samples = x_y_samples(model, p_grid)
+    m_on_samples = np.asarray(m_num(*samples)) if samples.size else np.zeros((model.n_hat, 1, 0))
+    finite = bool(samples.size and np.all(np.isfinite(m_on_samples)))
+    if not finite:
+        raise DesignError("abstract.m", "the given m is not real and finite on the samples of X_y = {x : h(x) in Y}", "an m real and finite wherever h(x) is in Y", check="m_real_on_Y")
+    radicands = sorted({str(pw.base) for e in m for pw in e.atoms(sp.Pow) if pw.exp.is_Rational and pw.exp.q % 2 == 0})
+
+    # Condition (ii): h(p(m(x))) = h(x), symbolically when sympy can; sampled in _checks_common.
+    composed = model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h
+    symbolic_ii = proofs.symbolic_zero(list(composed))
+    cond_ii = condition_ii_measure(model, p_function(man, model), m, samples)
+    if not cond_ii <= CONDITION_II_RTOL:
+        raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
+                          "x - p(m(x)) in Ker(h) for x in X_y (Corollary mRelateGeo): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
+
+    # eq. SimuLocalRequire: kappa(V) covers Y.
+    Y, V = model.Y, model.V
+    kappa_affine = proofs.affine_in(kappa, list(model.xi))
+    if kappa_affine:
+        missing, k_range = _cover_affine(model, kap)
+        cover_value, covers = float(len(missing)), not missing
+        cover_text = "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
+        failure = f"no xi in V reaches the output(s) {missing}"
+    else:
+        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+        if model.n_hat == 1 and model.p == 1:
+            # kappa is continuous and V an interval: kappa(V) is the interval between its extremes on V.
+            cover_value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
+            cover_text = "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)"
+            failure = f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}"
+            covers = cover_value <= 0
+        else:
+            cover_value = _cover_by_search(model, kap)
+            cover_text = f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)"
+            failure = f"some outputs of Y are not kappa(xi) for any xi in V (residual {cover_value:.3g})"
+            covers = cover_value <= 1e-9
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
+
+    grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
+    art = Artefact(stage=NAME, meta={"method": "explicit m from the spec (abstract.m), checked", "construction": EXPLICIT, "samples": SAMPLES, "sample_seed": 0,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
+    art.values.update({
+        "V": V, "Y": Y, "kappa_range": k_range,
+        # A polynomial m is real everywhere; otherwise it is only checked real and finite on samples (NaN ends).
+        "m_real_interval": np.array([-np.inf, np.inf]) if polynomial else np.array([np.nan, np.nan]),
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
+        "condition_ii_symbolic": bool(symbolic_ii), "min_abs_dkappa": float(np.linalg.svd(grid_dk, compute_uv=False).min()),
+    })
+    # Proved only for a polynomial m (defined everywhere); sympy's identities may hold only where m is real.
+    proved_left, proved_ii = bool(polynomial and symbolic_left), bool(polynomial and symbolic_ii)
+    left_text = f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V, with the spec's m as left inverse"
+    art.checks["left_inverse"] = Check(left_residual, True, left_text + ("; proved (m(p(xi)) - xi simplifies to 0, sympy)" if proved_left else ""),
+                                       proofs.PROVED if proved_left else proofs.SAMPLED)
+    art.checks["V_covers_Y"] = Check(cover_value, True, cover_text)
+    if polynomial:
+        art.checks["m_real_on_Y"] = Check(0.0, True, "m is a polynomial in x, hence real everywhere", proofs.PROVED)
+    else:
+        art.checks["m_real_on_Y"] = Check(0.0, True, f"m real and finite on {samples.shape[1]} samples of X_y")
+    if model.n_hat == 1 and model.p == 1 and kappa_affine and symbolic_ii:
+        # kappa(m(x)) = h(x) for every x and kappa is an affine bijection of R: m(x) is in V exactly when h(x) is in kappa(V).
+        _certify(art, model, k_range, "kappa(V)", "kappa(V): the spec's m satisfies kappa(m(x)) = h(x) for every x (sympy) and kappa is affine, "
+                 "so m(x) lies in V (where the abstraction is certified) exactly when h(x) lies in kappa(V)")
+    else:
+        _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
+    _checks_common(art, model, p_function(man, model), m, p_grid)
+    if proved_left:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
+        _relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
+    if proved_ii:
+        _relabel_proved(art, "condition_ii", "h(p(m(x))) - h(x) simplifies to 0, sympy")
+    return art
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
+
+    Returns
+    -------
+    Artefact
+        Expressions m (n_hat x 1, in x) and h; values V, Y, m_real_interval, m_domain (where m is certified),
+        kappa_range and the residuals.
+
+    Raises
+    ------
+    DesignError
+        If the shapes are not supported, no branch of m is a left inverse on V (p not injective),
+        kappa(V) does not cover Y, or m is not real on all of Y; for an explicit ``abstract.m``, if it is not
+        a left inverse of p on V or fails condition (ii).
+    """
+    man, kap = upstream["manifold"], upstream["kappa"]
+    kappa = kap.expr("kappa")
+    if model.m_given is not None:
+        return run_explicit(model, man, kap)
+    if p_is_affine(man, model):
+        return run_linear(model, man, kap)
+    if model.n_hat != model.p:
+        raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
+                          "a square kappa, or an affine p (m = P^+ (x - p0))")
+    if model.n_hat > 1:
+        return run_multi(model, man, kap)
+    xi = model.xi[0]
+    y = output_symbol()
+    grid = np.asarray(man.value("xi_grid"))
+    p_grid = np.asarray(man.value("p_grid"))
+    h_num = model.numeric(model.h, list(model.x))
+    y_grid = h_num(*p_grid)[0, 0]
+    candidates = closed_form_branches(model, kappa, [y])
+    residuals = branch_residuals(model, candidates, [y], y_grid[None, :], grid)
+    branches = [b[0] for b in candidates]
+    method = "closed form (sympy.solve of kappa(m) = y)"
+    if not branches or min(residuals) > LEFT_INVERSE_TOL:
+        numeric = numeric_inverse(model, kappa, grid[0], y_grid, y)
+        if numeric is not None:
+            branches, residuals = [numeric[0]], [numeric[1]]
+            method = f"Chebyshev interpolant of kappa^-1 on kappa(V), degree {numeric[2]} (no closed form)"
+    if not branches:
+        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V", "a kappa that is invertible on V", check="left_inverse")
+    best = int(np.argmin(residuals))
+    left_residual = residuals[best]
+    if left_residual > LEFT_INVERSE_TOL:
+        dk = np.diff(y_grid)
+        turns = grid[0, 1:-1][np.sign(dk[1:]) != np.sign(dk[:-1])]
+        where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
+        if not turns.size and method.startswith("Chebyshev"):
+            raise DesignError("abstract.m", f"kappa is strictly monotone on V = {model.V.tolist()} (so p is injective), but sympy finds no closed form "
+                              f"of m and its Chebyshev interpolant of degree <= {MAX_INVERSE_DEGREE} reaches only max |m(p(xi)) - xi| = "
+                              f"{left_residual:.3g} (kappa is too steep in places for one polynomial)",
+                              "abstract.m written by hand (it is checked, not trusted), or a smaller abstract.domain", check="left_inverse")
+        raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
+                          "a domain V on which kappa is strictly monotone", check="left_inverse")
+    m_of_y = tidy(sp.Matrix([branches[best]]))[0]
+    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
+
+    # Where m is real, and whether that covers Y.
+    Y = model.Y
+    real_lo, real_hi, radicands = real_interval(m_of_y, y, model)
+    real_covers_Y = bool(real_lo <= Y[0, 0] and Y[0, 1] <= real_hi)
+    m_on_Y = model.numeric([m_of_y], [y])(np.linspace(Y[0, 0], Y[0, 1], 20001))[0, 0]
+    finite_on_Y = bool(np.all(np.isfinite(m_on_Y)))
+    if not (real_covers_Y and finite_on_Y):
+        k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
+        reach = f"kappa(V) = {format_box(np.array([[k_lo, k_hi]]))} on V = {format_box(model.V)}"
+        if not real_covers_Y:
+            what = (f"Y = {format_box(Y)} reaches outputs where m is not real (m is real only for y in "
+                    f"{format_box(np.array([[real_lo, real_hi]]))}); {reach}")
+        else:
+            bad = np.linspace(Y[0, 0], Y[0, 1], 20001)[~np.isfinite(m_on_Y)]
+            what = f"m is not finite at y = {bad[0]:.6g} in Y = {format_box(Y)}; {reach}"
+        raise DesignError("concrete.output_set", what,
+                          f"an output_set inside {format_box(np.array([[max(real_lo, k_lo), min(real_hi, k_hi)]]))} "
+                          "(where m is real and kappa reaches), or a larger domain V if kappa(V) is the limit", check="m_real_on_Y")
+
+    # eq. SimuLocalRequire: kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
+    k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
+    covers = bool(k_lo <= Y[0, 0] and Y[0, 1] <= k_hi)
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) = [{k_lo:.6g}, {k_hi:.6g}] does not cover Y = {Y[0].tolist()} (eq. SimuLocalRequire)",
+                          "a larger domain V, or a smaller output_set", check="V_covers_Y")
+    dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
+    monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
+
+    symbolic_ii = bool(method.startswith("closed") and sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0)
+
+    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method, "construction": KAPPA_INVERSE,
+                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+    art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": sparse_jacobian(m, model.x)})
+    if method.startswith("Chebyshev"):
+        # The interpolant is a polynomial, real for every y, but it stands for kappa^-1 only on kappa(V), the
+        # interval it was fitted on; beyond it, it extrapolates (and kappa^-1 need not exist).
+        real_lo, real_hi = k_lo, k_hi
+        certified = ([[k_lo, k_hi]], "kappa(V)", "kappa(V): the interval the Chebyshev interpolant of kappa^-1 was fitted on; outside it "
+                     "the polynomial extrapolates and kappa^-1 need not exist")
+    else:
+        dom = [max(k_lo, real_lo), min(k_hi, real_hi)]
+        whole = dom == [k_lo, k_hi]
+        real_text = "m has no radicands, so it is real for every y" if not radicands else f"m is real for {format_interval(real_lo, real_hi)}"
+        name = "kappa(V)" if whole else "kappa(V) where m is real"
+        certified = ([dom], name, f"{name}: {real_text}; outside kappa(V) the value m(x) lies outside V, where nothing is certified")
+    art.values.update({
+        "V": model.V, "Y": Y, "kappa_range": np.array([[k_lo, k_hi]]), "m_real_interval": np.array([real_lo, real_hi]),
+        "radicands": radicands if radicands else ["none"], "left_inverse_residual": left_residual,
+        "condition_ii_symbolic": bool(symbolic_ii),
+        "min_abs_dkappa": float(np.abs(dkappa).min()),
+    })
+    art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    art.checks["kappa_monotone"] = Check(float(np.abs(dkappa).min()), monotone, "min |dkappa/dxi| on V (kappa strictly monotone, so p is injective)")
+    art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
+    art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
+    _certify(art, model, *certified)
+    _checks_common(art, model, p_function(man, model), m, p_grid)
+    proof = prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii)
+    art.meta["proof"] = proof["how"]
+    _mark_proved(art, proof)
+    return art
+
+
+def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: sp.Expr, y: sp.Symbol, symbolic_ii: bool) -> dict:
+    """Prove the inverse stage's claims for one abstract state and one output, in ball arithmetic over V and Y.
+
+    * kappa strictly monotone on V: dkappa/dxi enclosed away from 0 on V (so p is injective on V);
+    * eq. SimuLocalRequire: kappa(V) = [kappa(a), kappa(b)] (monotone) with the end values enclosed, Y inside;
+    * m real and finite on Y: the enclosure of m over Y is finite (a square root of a ball reaching below 0,
+      or a division by a ball containing 0, is not);
+    * conditions (i) and (ii): kappa(m(y)) = y simplifies to 0 (sympy) wherever m is defined, so
+      h(p(m(x))) = kappa(m(h(x))) = h(x) on X_y; and m maps kappa(V) into an interval V' around V on which
+      kappa is strictly monotone, so m(kappa(xi)) is the only preimage of kappa(xi) in V', xi itself:
+      m(p(xi)) = xi on V.
+
+    Returns
+    -------
+    dict
+        Booleans monotone, covers, real_on_Y, left_inverse, condition_ii; min_abs_dkappa (proved lower
+        bound); covers_margin (proved); how (text).
+    """
+    V, Y = model.V, model.Y
+    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
+    try:
+        dk = proofs.compile_claims(model, [dkappa], [model.xi[0]])
+        k = proofs.compile_claims(model, [kappa], [model.xi[0]])
+        mf = proofs.compile_claims(model, [m_of_y], [y])
+    except proofs.interval.UnsupportedExpression as exc:
+        out["how"] = f"not proved: {exc}"
+        return out
+    lo, hi, ok = proofs.range_on_box(dk, V)
+    sign = 1 if ok and lo > 0 else (-1 if ok and hi < 0 else 0)
+    if sign == 0:
+        out["how"] = "not proved: the enclosure of dkappa/dxi on V contains 0"
+        return out
+    out.update(monotone=True, min_abs_dkappa=float(lo if sign > 0 else -hi))
+    ka, kb = k([proofs.arb(float(V[0, 0]))])[0], k([proofs.arb(float(V[0, 1]))])[0]
+    first, last = (ka, kb) if sign > 0 else (kb, ka)
+    kV = np.array([[proofs.lower(first), proofs.upper(last)]])        # contains kappa(V)
+    margin = max(proofs.upper(first) - Y[0, 0], Y[0, 1] - proofs.lower(last))
+    out.update(covers=bool(margin <= 0), covers_margin=float(margin))
+    m_lo, m_hi, m_ok = proofs.range_on_box(mf, Y)
+    out["real_on_Y"] = bool(m_ok)
+    out["condition_ii"] = bool(symbolic_ii and m_ok)
+    if symbolic_ii:
+        r_lo, r_hi, r_ok = proofs.range_on_box(mf, kV, rtol=1e-12)
+        if r_ok:
+            wider = np.array([[min(V[0, 0], r_lo), max(V[0, 1], r_hi)]])
+            w_lo, w_hi, w_ok = proofs.range_on_box(dk, wider)
+            out["left_inverse"] = bool(w_ok and (w_lo > 0 if sign > 0 else w_hi < 0))
+    out["how"] = ("ball arithmetic: dkappa/dxi " + ("> 0" if sign > 0 else "< 0") + " on V, kappa at the ends of V, m enclosed over Y"
+                  + ("; kappa(m(y)) = y symbolically and m(kappa(V)) inside an interval where kappa is monotone" if out["left_inverse"] else ""))
+    return out
+
+
+def prove_multi_inverse(model: Model, kappa: sp.Matrix, m_of_y: sp.Matrix, ys: list[sp.Symbol]) -> dict:
+    """Prove the inverse stage's claims for several abstract states and as many outputs (m = kappa^-1 in closed form).
+
+    * m real and finite on Y: each component's ball-arithmetic enclosure over the box Y is finite;
+    * eq. (10): those enclosures lie inside V, and kappa(m(y)) - y simplifies to 0 (sympy): every y in Y is
+      kappa(m(y)) with m(y) in V;
+    * condition (ii): h(p(m(x))) = kappa(m(h(x))) = h(x) for h(x) in Y, by the same identity;
+    * p injective on V with m as left inverse (and condition (i)): m(kappa(xi)) - xi simplifies to 0 and
+      m(kappa(xi)) is enclosed finite over V (so the identity holds at every xi of V).
+
+    Returns
+    -------
+    dict
+        Booleans covers, real_on_Y, left_inverse, condition_ii; covers_margin (proved); how (text).
+    """
+    V, Y = model.V, model.Y
+    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
+    try:
+        mf = proofs.compile_claims(model, list(m_of_y), ys)
+        composed = [e.xreplace(dict(zip(ys, kappa))) for e in m_of_y]
+        mk = proofs.compile_claims(model, composed, list(model.xi))
+    except proofs.interval.UnsupportedExpression as exc:
+        out["how"] = f"not proved: {exc}"
+        return out
+    margin, finite = -np.inf, True
+    for i in range(model.n_hat):
+        lo, hi, ok = proofs.range_on_box(mf, Y, index=i)
+        finite = finite and ok
+        margin = max(margin, V[i, 0] - lo, hi - V[i, 1]) if ok else np.inf
+    if not finite:
+        out["how"] = "not proved: the enclosure of m over Y is not finite"
+        return out
+    right = proofs.symbolic_zero(list(proofs.exact(model, kappa.xreplace(dict(zip(model.xi, m_of_y))) - sp.Matrix(ys))))
+    left = proofs.symbolic_zero(list(proofs.exact(model, sp.Matrix(composed) - model.xi)))
+    left_finite = all(proofs.range_on_box(mk, V, index=i)[2] for i in range(model.n_hat)) if left else False
+    out.update(real_on_Y=True, covers=bool(right and margin <= 0), covers_margin=float(margin), condition_ii=bool(right),
+               left_inverse=bool(left and left_finite))
+    out["how"] = ("ball arithmetic: m enclosed finite over Y" + (f" and inside V (margin {margin:.3g})" if margin <= 0 else "")
+                  + ("; kappa(m(y)) = y symbolically" if right else "") + ("; m(kappa(xi)) = xi symbolically, defined on all of V" if out["left_inverse"] else ""))
+    return out
+
+
+def _mark_proved(art: Artefact, proof: dict) -> None:
+    """Re-label the checks the proof covers as "proved" (their descriptions say how)."""
+    how = proof["how"]
+    values = {"kappa_monotone": proof.get("min_abs_dkappa"), "V_covers_Y": proof.get("covers_margin")}
+    relabel = {"kappa_monotone": proof["monotone"], "V_covers_Y": proof["covers"], "m_real_on_Y": proof["real_on_Y"],
+               "left_inverse": proof["left_inverse"], "condition_i": proof["left_inverse"], "condition_ii": proof["condition_ii"]}
+    for name, proved in relabel.items():
+        if proved:
+            _relabel_proved(art, name, how, values.get(name))
+
+
+def _relabel_proved(art: Artefact, name: str, how: str, value: float | None = None) -> None:
+    """Mark a passed check as proved, saying how (and with the proved number, when the proof gives one)."""
+    chk = art.checks.get(name)
+    if chk is not None and chk.passed:
+        art.checks[name] = replace(chk, value=chk.value if value is None else value, description=f"{chk.description}; proved ({how})",
+                                   evidence=proofs.PROVED)
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    v = art.values
+    out = {
+        "V": np.asarray(v["V"]).tolist(), "m": [str(e) for e in art.exprs["m"]],
+        "left_inverse_residual": float(v["left_inverse_residual"]), "condition_i": float(v["condition_i"]),
+        "condition_ii": float(v["condition_ii"]), "condition_ii_symbolic": bool(v["condition_ii_symbolic"]),
+        "m_real_interval": [float(b) if np.isfinite(b) else None for b in np.asarray(v["m_real_interval"])],
+        "kappa_range": np.asarray(v["kappa_range"]).tolist(), "method": art.meta.get("method", "closed form (sympy.solve of kappa(m) = y)"),
+    }
+    if "construction" in art.meta:
+        out["construction"] = art.meta["construction"]
+    if "condition_ii_pseudo_inverse" in v:
+        out["condition_ii_pseudo_inverse"] = float(v["condition_ii_pseudo_inverse"])
+    if "m_domain" in v:
+        out.update({"m_domain": (np.asarray(v["m_domain"], dtype=float) + 0.0).tolist(), "m_domain_set": art.meta.get("m_domain_set"),
+                    "m_domain_meaning": art.meta.get("m_domain")})
+    return out
+
+
+def _real_text(art: Artefact) -> str:
+    """Where m is real, in words; infinite ends only where they are proved (see the module docstring)."""
+    lo, hi = np.asarray(art.values["m_real_interval"], dtype=float)
+    method = str(art.meta.get("method", ""))
+    if np.isnan(lo) or np.isnan(hi):
+        return "m real and finite on a grid of Y"
+    if np.isinf(lo) and np.isinf(hi):
+        radicands = [str(r) for r in np.atleast_1d(art.values.get("radicands", ["none"]))]
+        why = "linear" if method.startswith("linear") else "no radicands" if radicands in (["none"], []) else "every radicand is non-negative"
+        m_of_y = art.exprs.get("m_of_y")
+        poles = m_of_y is not None and not all(e.is_polynomial(*e.free_symbols) for e in m_of_y)
+        return f"m real for every y{' where it is finite' if poles else ''} ({why})"
+    return f"m real for {format_interval(lo, hi)}"
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    residual = f"m(p(xi)) - xi = {art.values['left_inverse_residual']:.2g}"
+    if "m_domain" not in art.values:   # an artefact of an older ashc
+        return f"{residual}; where m is certified is not recorded (an artefact of an older ashc: rerun with --force)"
+    box, name, _ = certified_set(art)
+    if str(art.meta.get("method", "")).startswith("Chebyshev"):
+        return f"{residual}, m (Chebyshev interpolant of kappa^-1) certified for y in {name} = {format_box(box)}"
+    return f"{residual}, {_real_text(art)}; certified for y in {name} = {format_box(box)}"

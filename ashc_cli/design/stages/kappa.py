@@ -1,0 +1,103 @@
+"""Stage 3: the abstract output map kappa = h o p (eq. SimuDesignCond2).
+
+kappa(xi) = h(p(xi)) makes the abstract system's output equal the concrete one on the manifold x = p(xi).
+For the Cuk converter this is eq. egKappa.  The stage stores kappa, its values on V (Fig. kappa_xi) and
+checks that it is finite there.  When the manifold stage kept p numeric (a Chebyshev series) and h(x) = C x,
+kappa = C p is kept as a series too, without building p's formula.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ashc_cli.numerics import proofs
+from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.errors import NumericalError
+from ashc_cli.problem.model import Model, tidy
+
+NAME = "kappa"
+UPSTREAM = ("manifold",)
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Compose kappa = h o p and tabulate it on V.
+
+    Returns
+    -------
+    Artefact
+        Expressions kappa (p x 1) and dkappa_dxi (p x n_hat); values xi_grid, kappa_grid, kappa_range.
+
+    Raises
+    ------
+    NumericalError
+        If kappa is not finite somewhere on the grid of V.
+    """
+    man = upstream["manifold"]
+    if model.C is None and model.state_box is not None:
+        # A jump of h inside the box breaks Assumption 1 before anything is built on h (the inverse stage would
+        # meet it as a failure of condition (ii)).
+        proofs.refuse_jumps(model, [(f"concrete.h[{i}]", e) for i, e in enumerate(model.h)], list(model.x), model.state_box,
+                            "h is not Lipschitz on concrete.state_box (Assumption 1), so alpha_h does not exist",
+                            "a continuous output map", check="h_lipschitz")
+    grid = np.asarray(man.value("xi_grid"))
+    series = man.series["p"].left(model.C) if "p" in man.series and model.C is not None else None
+    if series is not None:
+        # p kept numeric and h = C x: kappa = C p is a series too (its formula has one row per output, not n).
+        kappa_grid = series.at(grid)[:, 0, :]
+    else:
+        kappa = tidy(model.h.xreplace(dict(zip(model.x, man.expr("p")))), lambda e: sp.factor(sp.simplify(e)))
+        dkappa = kappa.jacobian(model.xi)
+        kappa_grid = model.numeric(kappa, list(model.xi))(*grid)[:, 0, :]
+    finite = bool(np.all(np.isfinite(kappa_grid)))
+    if not finite:
+        bad = grid[:, ~np.all(np.isfinite(kappa_grid), axis=0)][:, 0]
+        raise NumericalError(NAME, f"kappa = h(p(xi)) is not finite at xi = {bad.tolist()}", "kappa finite on V")
+    art = Artefact(stage=NAME, meta={"grid_points": int(grid.shape[1])})
+    if series is not None:
+        art.set_series("kappa", series, model.xi)
+        art.set_series("dkappa_dxi", series.jacobian(), model.xi)
+        kappa = art.expr("kappa")
+    else:
+        art.exprs.update({"kappa": kappa, "dkappa_dxi": dkappa})
+    art.values.update({"xi_grid": grid, "kappa_grid": kappa_grid,
+                       "kappa_range": np.c_[kappa_grid.min(axis=1), kappa_grid.max(axis=1)]})
+    if series is not None:   # how far kappa's formula (read by simulate, eval) is from the series (round-off)
+        art.values["kappa_formula_deviation"] = float(np.abs(series.formula_at(grid)[:, 0, :] - kappa_grid).max())
+    bound = prove_finite(model, kappa, np.asarray(man.value("V"), dtype=float), small=series is not None)
+    if np.isfinite(bound):
+        art.checks["kappa_finite"] = Check(bound, True, "proved bound of |kappa| on V (ball arithmetic: finite)", proofs.PROVED)
+    else:
+        art.checks["kappa_finite"] = Check(float(np.abs(kappa_grid).max()), finite, "largest |kappa| on the grid of V (finite)")
+    return art
+
+
+def prove_finite(model: Model, kappa: sp.Matrix, V: np.ndarray, small: bool = False) -> float:
+    """A proved upper bound of max_i |kappa_i| over V (inf where ball arithmetic cannot bound it).
+
+    Skipped above ``proofs.MAX_PROOF_STATES`` states, where h(p) can be a large formula, unless ``small``
+    (kappa the formula of a series, one polynomial per output whatever n).
+    """
+    if model.n > proofs.MAX_PROOF_STATES and not small:
+        return np.inf
+    try:
+        f = proofs.compile_claims(model, list(kappa), list(model.xi))
+    except proofs.interval.UnsupportedExpression:
+        return np.inf
+    worst = 0.0
+    for i in range(len(kappa)):
+        lo, hi, ok = proofs.range_on_box(f, V, index=i, rtol=1e-3)
+        if not ok:
+            return np.inf
+        worst = max(worst, abs(lo), abs(hi))
+    return float(worst)
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    return {"kappa": [str(e) for e in art.exprs["kappa"]], "range_on_V": np.asarray(art.values["kappa_range"]).tolist()}
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    return f"kappa(V) = {np.round(np.asarray(art.values['kappa_range']), 4).tolist()}"

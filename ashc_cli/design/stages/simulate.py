@@ -1,0 +1,1072 @@
+"""Stage 7: closed-loop simulation of the two scenarios of Section V-D.
+
+**Tracking** (Figs. Example_BoundedIn/Out).  The abstract system xi' = phi_bar(xi) + delta(xi) v is driven by
+the spec's set-point controller v = clip(delta^+(xi) (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max),
+where xi_ref is the least-norm point of V with kappa(xi_ref) = the current reference level.  The concrete
+system receives the interface u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, egInterfaceSat) with
+q = 0 or the least-squares q of eq. egqLS.  The run records psi = kappa(xi), y = h(x), their error and the
+uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x0 = p(xi0)).
+
+**Guaranteed controller** (``abstract_controller.kind: guaranteed``, docs/guaranteed.md): the tracking run meets
+|psi - y| <= EPS by construction (eq. TrackConst).  Budget mode: the set-point law with the largest uniform
+v_max = (EPS - sqrt(W0 / alpha_h)) / G (Theorem ErrorBound, eq. egErrorBound).  Governor mode: v = s v_sp with
+the largest s in [0, 1] keeping the comparison system w' = -(lambda - eps) w + |L^T r|^2 / eps below
+EPS^2 alpha_h (:func:`governor_law`); it runs on solve_ivp (the compiled loop knows only the set-point law).  The
+run also reports the time each level is reached within EPS, deadlines of timed levels and, for the governor,
+its speed-up over the budget (:func:`reach_times`).
+
+**m-relation** (Figs. Example_mRelationIn/Out).  The concrete system runs open loop under the spec's u(t);
+the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
+mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
+
+Both integrate with DOP853 at the tolerances recorded in the artefact (meta ``tracking_integrator`` and
+``m_relation_integrator``, with the implementation that ran): with a compiled closed loop (ashc_cli/closedloop/compiled.py:
+numba, scipy's DOP853 and solve_ivp's terminal event ported step for step; ``tracking/compiled`` and
+``m_relation/compiled`` say so), and with scipy's solve_ivp, the reference, where numba is missing, an
+expression has no numba form, or ASHC_COMPILED=0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cvxpy as cp
+import numpy as np
+import scipy.integrate as sint
+import scipy.optimize as sopt
+import sympy as sp
+
+from ashc_cli.closedloop import compiled
+from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.numerics.proofs import SIMULATED
+from ashc_cli.errors import DesignError, NumericalError
+from ashc_cli.problem.expr import parse_expression
+from ashc_cli.problem.grids import domain_grid
+from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
+from ashc_cli.numerics.linalg import pinv
+from ashc_cli.problem.model import TIME, Model, apply_saturation, compile_flat
+from ashc_cli.problem.spec import TimedLevel
+
+NAME = "simulate"
+UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
+
+TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
+M_RELATION_TOL = {"method": "DOP853", "rtol": 1e-11, "atol": 1e-11}
+SAMPLE_DT = 1e-3
+#: The measured error may exceed the a-posteriori bound by this fraction of the output span (integration error).
+POSTERIOR_FLOOR_RTOL = 1e-7
+#: psi must end each dwell within this fraction of the output span of its level.
+SETTLE_RTOL = 1e-4
+#: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
+M_RELATION_TOL_ABS = 1e-6
+#: Governor: the design constant c of its invariance condition |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w),
+#: as a multiple of lambda - eps (docs/guaranteed.md).  Any c >= 0 keeps w <= W_max; a larger c spends the room
+#: below W_max faster.
+GOVERNOR_RATE = 1.0
+#: Governor: the level it keeps invariant is (1 - GOVERNOR_MARGIN) tolerance^2 alpha_h, so that the integrator's
+#: error on w (rtol, atol 1e-9) cannot carry the simulated w over tolerance^2 alpha_h, the level the proof needs.
+GOVERNOR_MARGIN = 1e-6
+#: Budget refusal: the least tolerance quoted is sqrt(W0 / alpha_h) (1 + BUDGET_MARGIN), which leaves a v_max > 0.
+BUDGET_MARGIN = 1e-2
+#: Bisection steps of the governor's search for s where the interface is not piecewise affine in s.
+GOVERNOR_BISECTIONS = 60
+#: Relative steps back from a root of the governor's quadratic tried before bisecting (rounding puts it a few
+#: ulps either side of the boundary).
+GOVERNOR_BACKOFF = (0.0, 1e-13, 1e-11)
+#: Grid of s in [0, 1] searched first where the interface is not piecewise affine in s (saturate: scale, K e != 0).
+GOVERNOR_GRID = 64
+#: Reach-time runs (``reach_times``): a level is held in chunks of the spec's dwell until it is reached, at most
+#: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
+REACH_HORIZON_DWELLS = 1000
+REACH_SAMPLE_DWELLS = 5e-4
+#: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
+#: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
+EDGE_MARGIN = 1e-3
+
+
+def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: int, kappa: sp.Matrix) -> np.ndarray:
+    """The least-norm xi in V with kappa(xi) = level.
+
+    Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
+    Scalar abstraction: the roots of kappa - level on a fine grid of V, refined, the smallest kept.
+    """
+    where = f"simulate.tracking.reference_levels[{index}]"
+    if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
+        K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
+        k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+        xi = cp.Variable(model.n_hat)
+        problem = cp.Problem(cp.Minimize(cp.sum_squares(xi)), [K @ xi + k0 == level, xi >= model.V[:, 0], xi <= model.V[:, 1]])
+        problem.solve(solver=cp.CLARABEL)
+        if xi.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+            raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V ({problem.status})", "levels inside kappa(V)")
+        return np.asarray(xi.value, dtype=float)
+    if model.n_hat != 1:
+        return _reference_state_nonlinear(model, plant, level, where)
+    lo, hi = model.V[0]
+    grid = np.linspace(lo, hi, 20001)
+    err = plant.kappa(grid)[0, 0] - level[0]
+    roots = [grid[k] for k in np.flatnonzero(err == 0)]
+    for k in np.flatnonzero(np.sign(err[:-1]) * np.sign(err[1:]) < 0):
+        roots.append(sopt.brentq(lambda s: plant.kappa(s)[0, 0] - level[0], grid[k], grid[k + 1], xtol=1e-14))
+    if not roots:
+        k_lo, k_hi = float(np.min(err + level[0])), float(np.max(err + level[0]))
+        raise DesignError(where, f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
+                          "levels inside kappa(V)")
+    return np.array([min(roots, key=abs)])
+
+
+def _reference_state_nonlinear(model: Model, plant: DesignTerms, level: np.ndarray, where: str) -> np.ndarray:
+    """Several abstract states, nonlinear kappa: bounded least squares on kappa(xi) = level from the points
+    of a coarse grid of V; of the exact solutions found, the least-norm one."""
+    starts = domain_grid(model.V, 5 ** model.n_hat)
+    bounds = (model.V[:, 0], model.V[:, 1])
+    found = []
+    for start in starts.T:
+        fit = sopt.least_squares(lambda s: plant.kappa(*s)[:, 0] - level, start, bounds=bounds, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if np.abs(fit.fun).max() <= 1e-10 * max(1.0, np.abs(level).max()):
+            found.append(fit.x)
+    if not found:
+        raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V", "levels inside kappa(V)")
+    return min(found, key=np.linalg.norm)
+
+
+def tracking_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
+                 q_kind: str, saturate: bool | str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed loop at one point: abstract input, interface output, both state derivatives and theta v.
+
+    Returns
+    -------
+    v : ndarray (m_hat,)
+        clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max).
+    u : ndarray (m,)
+        u_w = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (eqs. Interface, egInterface, egInterfaceSat; q = 0 or
+        eq. egqLS; K = 0 unless feedback linear_gain).
+    dxi, dx : ndarray
+        phi_bar(xi) + delta(xi) v and f_bar(x) + g(x) u.
+    r : ndarray (n,)
+        dp/dxi delta v - g(x) (u - l(xi) - K (x - p(xi))): what drives W away from decay in
+        W' <= -lambda W + 2 (p - x)^T M r (eq. iota; r = theta v through sqrt(M)^-1 when u is not clipped).
+    """
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v = np.clip(pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
+    feedback = plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) - l(xi) of eq. Interface (0 for identity feedback)
+    u_nominal = l[:, 0] + feedback
+    correction = feedback
+    if q_kind == "least_squares":
+        q = pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. egqLS
+        correction = correction + q @ v
+    u = apply_saturation(l[:, 0], correction, plant.U, saturate)
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
+
+
+# --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Law:
+    """The abstract controller that closes a tracking run.
+
+    Attributes
+    ----------
+    kind : str
+        ``setpoint`` (the set-point law, also the budget mode) or ``governor``.
+    gain : float
+        The set-point gain.
+    v_max : float
+        Elementwise clip of the set-point law (the governor's v_sp: v_max_certified / sqrt(m_hat), inf when the
+        bound is global).
+    w_level : float
+        Governor: the level W_max that it keeps w below.
+    rate : float
+        Governor: the design constant c.
+    """
+
+    kind: str
+    gain: float
+    v_max: float
+    w_level: float = np.inf
+    rate: float = 0.0
+
+
+@dataclass(frozen=True)
+class GuaranteedPlan:
+    """What a guaranteed controller can certify for one run (eq. TrackConst, docs/guaranteed.md).
+
+    Attributes
+    ----------
+    tolerance : float
+        The spec's EPS.
+    mode : str
+        The mode that runs: ``budget`` or ``governor`` (``auto`` resolved).
+    requested : str
+        The spec's mode (``auto``, ``budget`` or ``governor``).
+    W0, alpha_h, gain_G : float
+        W(xi0, x0), alpha_h and the gain G of eq. egErrorBound.
+    budget_v_max : float
+        The largest |v| (2-norm) with sqrt(W0 / alpha_h) + G |v| <= EPS, capped by v_max_certified; NaN when
+        none exists.
+    budget_tolerance : float
+        sqrt(W0 / alpha_h) + G budget_v_max: what the budget mode proves (<= EPS).
+    budget_refusal : str or None
+        Why the budget mode cannot run (None when it can).
+    governor_level : float
+        W_max = (1 - GOVERNOR_MARGIN) min(EPS^2 alpha_h, w0_max_certified), the level the governor keeps w below
+        (the margin absorbs the integrator's error on w).
+    governor_tolerance : float
+        sqrt(min(EPS^2 alpha_h, w0_max_certified) / alpha_h): what the governor proves (<= EPS).
+    governor_refusal : str or None
+        Why the governor cannot run (None when it can).
+    """
+
+    tolerance: float
+    mode: str
+    requested: str
+    W0: float
+    alpha_h: float
+    gain_G: float
+    budget_v_max: float
+    budget_tolerance: float
+    budget_refusal: str | None
+    governor_level: float
+    governor_tolerance: float
+    governor_refusal: str | None
+
+    @property
+    def guaranteed_tolerance(self) -> float:
+        """The EPS proved for the run of ``mode``."""
+        return self.budget_tolerance if self.mode == "budget" else self.governor_tolerance
+
+    def law(self, mode: str, gain: float, m_hat: int, v_certified: float, lam: float, eps: float) -> Law:
+        """The :class:`Law` of ``mode`` (budget: the set-point law with v_max = budget_v_max / sqrt(m_hat), so that
+        the elementwise clip keeps the 2-norm of v below budget_v_max; governor: v_sp clipped at
+        v_max_certified / sqrt(m_hat))."""
+        root = np.sqrt(m_hat)
+        if mode == "budget":
+            return Law("setpoint", gain, self.budget_v_max / root)
+        return Law("governor", gain, v_certified / root, self.governor_level, GOVERNOR_RATE * (lam - eps))
+
+
+def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict[str, Artefact]) -> GuaranteedPlan:
+    """Budget and governor of a guaranteed controller for a start with W(xi0, x0) = W0.
+
+    Budget (eq. TrackConst with the uniform bound of Theorem ErrorBound, eq. egErrorBound): the largest v_max with
+    sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max <= EPS for all t >= 0; the left side is largest at t = 0,
+    so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).
+    Governor: the level W_max = min(EPS^2 alpha_h, w0_max_certified), kept invariant (less GOVERNOR_MARGIN); it
+    needs W0 <= W_max.
+
+    Parameters
+    ----------
+    tolerance : float
+        EPS.
+    mode : str
+        ``auto``, ``budget`` or ``governor``.
+    W0 : float
+        W(xi0, x0).
+    up : dict
+        The design's artefacts (``bound`` is read).
+
+    Returns
+    -------
+    GuaranteedPlan
+
+    Raises
+    ------
+    DesignError
+        Naming ``simulate.tracking.abstract_controller.tolerance`` (exit 3), with the least tolerance that
+        can be met, when the mode asked for (``auto``: either) cannot certify EPS from this start.
+    """
+    bd = up["bound"].values
+    alpha_h, G = float(bd["alpha_h"]), float(bd["gain"])
+    w0_max = float(bd.get("w0_max_certified", np.inf))
+    v_cert = float(bd.get("v_max_certified", np.inf))
+    start = float(np.sqrt(max(W0, 0.0) / alpha_h))          # sqrt(W0 / alpha_h), the first term of eq. TrackConst at t = 0
+    least = start * (1.0 + BUDGET_MARGIN)
+    region = "" if not np.isfinite(w0_max) else f", W0 <= w0_max_certified = {w0_max:.6g}"
+    budget_refusal = governor_refusal = None
+    if W0 > w0_max:
+        budget_refusal = governor_refusal = (f"W(xi0, x0) = {W0:.6g} is outside the region where the bound is certified (W0 <= {w0_max:.6g}): "
+                                             "no tolerance is certified from this start")
+    elif not tolerance > start:
+        budget_refusal = (f"the start alone takes sqrt(W0 / alpha_h) = {start:.6g} of the tolerance {tolerance:g} (W0 = {W0:.6g}, "
+                          f"alpha_h = {alpha_h:.6g}), which leaves no v (eq. TrackConst at t = 0)")
+    budget_v = min((tolerance - start) / G, v_cert) if budget_refusal is None else np.nan
+    budget_tol = start + G * budget_v if budget_refusal is None else np.nan
+    proved = min(tolerance**2 * alpha_h, w0_max)                # w <= proved gives |psi - y| <= sqrt(proved / alpha_h) <= EPS
+    level = (1.0 - GOVERNOR_MARGIN) * proved
+    if governor_refusal is None and not W0 <= level:
+        governor_refusal = (f"W(xi0, x0) = {W0:.6g} is above the level the governor keeps, W_max = {level:.6g} "
+                            f"(tolerance^2 alpha_h less {GOVERNOR_MARGIN:g}{region})")
+    chosen = mode
+    if mode == "auto":
+        # The governor allows every v the budget allows, and more (docs/guaranteed.md): it runs whenever it can.
+        chosen = "governor" if governor_refusal is None else "budget"
+    why = budget_refusal if chosen == "budget" else governor_refusal
+    if why is not None:
+        if W0 > w0_max:
+            raise DesignError("simulate.tracking.x0", why, f"a start with W(xi0, x0) <= {w0_max:.6g} (bound.w0_max_certified)")
+        raise DesignError("simulate.tracking.abstract_controller.tolerance", f"{tolerance:g} cannot be guaranteed ({chosen} mode): {why}",
+                          f"a tolerance of at least {least:.6g} (sqrt(W0 / alpha_h) = {start:.6g} plus a margin), or a start nearer the manifold")
+    return GuaranteedPlan(tolerance=float(tolerance), mode=chosen, requested=mode, W0=float(W0), alpha_h=alpha_h, gain_G=G,
+                          budget_v_max=float(budget_v), budget_tolerance=float(budget_tol), budget_refusal=budget_refusal,
+                          governor_level=float(level), governor_tolerance=float(np.sqrt(proved / alpha_h)), governor_refusal=governor_refusal)
+
+
+def _interface_r(s: np.ndarray, L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray,
+                 g: np.ndarray, U: np.ndarray, saturate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u(s), r(s) and |L^T r(s)|^2 for v = s v_sp, at each s of an array (one point (xi, x)).
+
+    u(s) = SAT(l + K e + s q v_sp) (the actual interface, eqs. Interface, egInterfaceSat) and
+    r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) (eq. iota: what drives W in W' <= -(lambda - eps) W + |L^T r|^2 / eps).
+    """
+    s = np.atleast_1d(np.asarray(s, dtype=float))
+    u = apply_saturation(l, feedback + s[:, None] * qv, U, saturate)          # (N, m)
+    r = s[:, None] * dv - (u - l - feedback) @ g.T                            # (N, n)
+    return u, r, np.sum((r @ L) ** 2, axis=1)
+
+
+def _breakpoints(l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, U: np.ndarray, saturate) -> tuple[list[float], bool]:
+    """The s in (0, 1) where the interface changes form, and whether r(s) is affine between them.
+
+    ``saturate: true`` clips each channel of l + K e + s q v_sp, an affine function of s: the pieces end where a
+    channel meets a bound.  ``scale`` with K e = 0 applies min(s, s_c) q v_sp: one end, s_c.  ``false``: no end.
+    ``scale`` with K e != 0 is not piecewise affine in s (the factor divides the whole correction).
+    """
+    if saturate is False:
+        return [], True
+    if saturate == "scale" and np.any(feedback):
+        return [], False
+    ends, s_c = set(), np.inf
+    for j in range(qv.size):                        # a few channels: plain floats are faster than arrays here
+        d = float(qv[j])
+        if d == 0.0:
+            continue
+        lo = (float(U[j, 0]) - float(l[j]) - float(feedback[j])) / d
+        hi = (float(U[j, 1]) - float(l[j]) - float(feedback[j])) / d
+        if saturate is True:
+            ends.update(e for e in (lo, hi) if 0.0 < e < 1.0)
+        else:
+            s_c = min(s_c, hi if d > 0 else lo)
+    if saturate == "scale" and 0.0 < s_c < 1.0:
+        ends.add(s_c)
+    return sorted(ends), True
+
+
+def governor_scale(L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray, g: np.ndarray,
+                   U: np.ndarray, saturate, bound: float) -> tuple[float, np.ndarray, np.ndarray, bool]:
+    """The largest s in [0, 1] with |L^T r(s)|^2 <= bound, r(s) through the actual interface (:func:`_interface_r`).
+
+    Where r is piecewise affine in s (every ``saturate`` but ``scale`` with K e != 0), |L^T r(s)|^2 is a convex
+    quadratic on each piece, and the largest admissible s of a piece is a root found in closed form; the pieces
+    are searched from s = 1 down.  Elsewhere a grid of GOVERNOR_GRID + 1 values of s, then bisection between the
+    largest admissible one and the next.  Every s returned has been evaluated and found admissible: a root that
+    rounding puts just outside is bisected back inside.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        M = L L^T.
+    l, feedback, qv : ndarray (m,)
+        l(xi), K (x - p(xi)) and q(xi, x) v_sp.
+    dv : ndarray (n,)
+        dp/dxi delta(xi) v_sp.
+    g : ndarray (n, m)
+        g(x).
+    U : ndarray (m, 2)
+        The input box.
+    saturate : bool or str
+        ``interface.saturate``.
+    bound : float
+        eps ((lambda - eps) W_max + c (W_max - w)).
+
+    Returns
+    -------
+    s : float
+    u, r : ndarray
+        u(s) and r(s), as evaluated when s was accepted.
+    admissible : bool
+        False only when not even s = 0 is admissible (r(0) != 0: K e clipped, outside the region of the proof);
+        s = 0 is returned then.
+    """
+    def at(s_values):
+        return _interface_r(s_values, L, l, feedback, qv, dv, g, U, saturate)
+
+    def largest_verified(lo: float, hi: float):
+        """The largest s in [lo, hi] found admissible by evaluation: hi, or hi a few roundings lower (a root in
+        closed form is accurate to a few ulps), else bisection from lo."""
+        for back in GOVERNOR_BACKOFF:
+            s_try = max(lo, hi * (1.0 - back))
+            u, r, q2 = at(s_try)
+            if q2[0] <= bound:
+                return s_try, u[0], r[0]
+        u, r, q2 = at(lo)
+        if not q2[0] <= bound:
+            return None
+        good = (lo, u[0], r[0])
+        for _ in range(GOVERNOR_BISECTIONS):
+            mid = 0.5 * (good[0] + hi)
+            if not good[0] < mid < hi:
+                break
+            u, r, q2 = at(mid)
+            if q2[0] <= bound:
+                good = (mid, u[0], r[0])
+            else:
+                hi = mid
+        return good
+
+    ends, affine = _breakpoints(l, feedback, qv, U, saturate)
+    grid = np.array([0.0, *ends, 1.0]) if affine else np.linspace(0.0, 1.0, GOVERNOR_GRID + 1)
+    u, r, q2 = at(grid)
+    ok = q2 <= bound
+    if ok[-1]:
+        return 1.0, u[-1], r[-1], True
+    if affine:
+        R = r @ L
+        for k in range(grid.size - 2, -1, -1):
+            s0, s1 = grid[k], grid[k + 1]
+            if ok[k + 1]:
+                return float(s1), u[k + 1], r[k + 1], True
+            h = s1 - s0
+            D = (R[k + 1] - R[k]) / h
+            a, b, c0 = float(D @ D), float(R[k] @ D), float(R[k] @ R[k]) - bound
+            if a <= 0.0:
+                continue                                    # constant on the piece and inadmissible at its end
+            disc = b * b - a * c0
+            if disc < 0.0:
+                continue
+            root = np.sqrt(disc)
+            upper = -c0 / (b + root) if b > 0 else (root - b) / a         # the larger root, without cancellation
+            lower = (-b - root) / a if b > 0 else (c0 / (a * upper) if upper != 0 else (-b - root) / a)
+            if upper < 0.0 or lower > h:
+                continue
+            found = largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    else:
+        k = np.flatnonzero(ok)
+        if k.size:
+            found = largest_verified(float(grid[k[-1]]), float(grid[k[-1] + 1]))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    return 0.0, u[0], r[0], bool(ok[0])
+
+
+def governor_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, w: float, xi_ref: np.ndarray, law: Law, q_kind: str, saturate,
+                 lam: float, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """The governed closed loop at one point (docs/guaranteed.md).
+
+    v = s v_sp, v_sp = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max), with the largest s in [0, 1]
+    such that |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w) (:func:`governor_scale`): then the comparison
+    system w' = -(lambda - eps) w + |L^T r|^2 / eps satisfies w' <= (lambda - eps + c) (W_max - w), so w <= W_max
+    is invariant.
+
+    Returns
+    -------
+    v, u, dxi, dx, r : ndarray
+        As :func:`tracking_law`.
+    s : float
+        The scale applied to v_sp.
+    slack : float
+        (lambda - eps) W_max + c (W_max - w) - |L^T r|^2 / eps (>= 0 where the condition holds).
+    """
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v_sp = np.clip(pinv(delta) @ (law.gain * (xi_ref - xi) - phi[:, 0]), -law.v_max, law.v_max)
+    feedback = plant.K @ (x - p[:, 0])
+    q = pinv(plant.L.T @ g) @ (plant.L.T @ dpd) if q_kind == "least_squares" else np.zeros((g.shape[1], v_sp.size))
+    room = (lam - eps) * law.w_level + law.rate * (law.w_level - w)
+    s, u, r, _ = governor_scale(plant.L, l[:, 0], feedback, q @ v_sp, dpd @ v_sp, g, plant.U, saturate, eps * room)
+    v = s * v_sp
+    slack = room - float(np.sum((plant.L.T @ r) ** 2)) / eps
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, r, s, slack
+
+
+def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
+    """Sample times t0, t0 + dt, ... strictly below t1, then t1: increasing, never outside [t0, t1].
+
+    (np.arange can overshoot t1 by rounding, which solve_ivp refuses as "not within t_span".)
+    """
+    n = int(np.floor((t1 - t0) / dt)) + 1
+    inner = t0 + dt * np.arange(max(n, 1))
+    inner = inner[inner < t1 - 1e-12 * max(1.0, abs(t1))]
+    return np.r_[inner, t1]
+
+
+def _integrate(rhs, t_span, z0, t_eval, tol, what, events=None):
+    """solve_ivp with the given tolerances; a failure or a non-finite state is a NumericalError.
+
+    A terminal event (status 1) is returned to the caller, which says what it means.
+    """
+    with np.errstate(all="ignore"):  # non-finite values are detected below and reported with their time
+        sol = sint.solve_ivp(rhs, t_span, z0, t_eval=t_eval, dense_output=False, events=events, **tol)
+    if sol.status == 1:
+        return sol
+    if sol.status != 0 or not np.all(np.isfinite(sol.y)):
+        t_bad = sol.t[-1] if sol.t.size else t_span[0]
+        raise NumericalError(f"simulate.{what}", f"integration failed at t = {t_bad:.6g} s ({sol.message})", "a trajectory that stays finite")
+    return sol
+
+
+def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
+    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
+
+    Raises
+    ------
+    DesignError
+        If xi0 is outside V or a level is out of kappa's reach.
+    """
+    tr = model.spec.simulate.tracking
+    xi0 = np.array(tr.xi0, dtype=float)
+    if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
+        raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
+    x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
+    levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
+    refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
+    M = np.asarray(up["stabilise"].value("M"))
+    e0 = plant.p_map(*xi0)[:, 0] - x0
+    return xi0, x0, float(e0 @ M @ e0), levels, refs
+
+
+def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = SAMPLE_DT) -> list[tuple[float, float, np.ndarray, int]]:
+    """(t0, t1, sample times, level index), one per dwell: level k from k dwell, the last one to t_final."""
+    segments = []
+    t0, k = 0.0, 0
+    while t0 < t_final - 1e-12:
+        i = min(k, n_levels - 1)
+        # Segment ends as multiples of the dwell (not sums, which drift by rounding).
+        t1 = t_final if k >= n_levels - 1 else min(t_final, (k + 1) * dwell)
+        segments.append((t0, t1, sample_times(t0, t1, dt), i))
+        t0, k = t1, k + 1
+    return segments
+
+
+def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
+    """The compiled tracking loop for ``law``, or None where the scipy path runs.
+
+    The compiled loop knows the set-point law only (the budget mode is that law): the governor goes to the scipy
+    path without asking it.
+    """
+    if law.kind != "setpoint" or TRACKING_TOL["method"] != "DOP853":
+        return None
+    try:
+        return compiled.tracking_loop(model, up)
+    except compiled.Unsupported:
+        return None
+
+
+def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray,
+                    segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop=None) -> dict:
+    """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0].
+
+    Returns
+    -------
+    dict
+        t, xi, x, w (the comparison system), reference_index, v, u, y at the samples; psi_end (psi at the end of
+        each segment); z_end; compiled (whether the compiled loop ran); for the governor also scale (s) and slack
+        (the margin of its invariance condition) at the samples.
+    """
+    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
+    lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
+    nh = model.n_hat
+    z = np.asarray(z0, dtype=float)
+    out: dict = {"compiled": loop is not None}
+    if loop is not None:
+        res = loop.run(z, segments, refs, gain=law.gain, v_max=law.v_max, q_kind=q_kind, saturate=saturate,
+                       rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"])
+        out.update(t=res.t, xi=res.xi, x=res.x, w=res.w, reference_index=res.reference_index, v=res.v, u=res.u, y=res.y,
+                   psi_end=[res.psi_end[j] for j in range(len(segments))], z_end=np.r_[res.xi[:, -1], res.x[:, -1], res.w[-1]])
+        return out
+
+    def rhs_for(xi_ref):
+        def rhs(t, z):
+            if law.kind == "governor":
+                _, _, dxi, dx, r, *_ = governor_law(plant, z[:nh], z[nh:-1], z[-1], xi_ref, law, q_kind, saturate, lam, eps)
+            else:
+                _, _, dxi, dx, r = tracking_law(plant, z[:nh], z[nh:-1], xi_ref, law.gain, law.v_max, q_kind, saturate)
+            # The comparison system of the a-posteriori bound: w' = -(lambda - eps) w + |sqrt(M) r|^2 / eps.
+            dw = -(lam - eps) * z[-1] + float(np.sum((plant.L.T @ r) ** 2)) / eps
+            return np.r_[dxi, dx, dw]
+        return rhs
+
+    ts, zs, ref_idx, psi_end = [], [], [], []
+    for t0, t1, t_eval, i in segments:
+        sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
+        keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
+        ts.append(sol.t[keep])
+        zs.append(sol.y[:, keep])
+        ref_idx.append(np.full(sol.t[keep].size, i))
+        z = sol.y[:, -1]
+        psi_end.append(plant.at_xi(z[:nh])[4][:, 0])
+    t = np.concatenate(ts)
+    Z = np.concatenate(zs, axis=1)
+    idx = np.concatenate(ref_idx)
+    xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
+    v = np.empty((model.m_hat, t.size))
+    u = np.empty((model.m, t.size))
+    if law.kind == "governor":
+        scale, slack = np.empty(t.size), np.empty(t.size)
+        for k in range(t.size):
+            v[:, k], u[:, k], _, _, _, scale[k], slack[k] = governor_law(plant, xi[:, k], x[:, k], w[k], refs[idx[k]], law, q_kind, saturate, lam, eps)
+        out.update(scale=scale, slack=slack)
+    else:
+        for k in range(t.size):
+            v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], law.gain, law.v_max, q_kind, saturate)
+    y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
+    out.update(t=t, xi=xi, x=x, w=w, reference_index=idx, v=v, u=u, y=y, psi_end=psi_end, z_end=z)
+    return out
+
+
+def reach_time(t: np.ndarray, y: np.ndarray, level: np.ndarray, tolerance: float, t_start: float) -> float:
+    """The time after ``t_start`` from which |y - level| <= tolerance holds at every sample to the last; NaN if it
+    does not hold at the last sample.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+        Sample times of the level's dwell.
+    y : ndarray (p, N)
+        The plant's output there.
+    level : ndarray (p,)
+    tolerance : float
+    t_start : float
+        When the level was asked for.
+    """
+    inside = np.linalg.norm(np.asarray(y) - np.asarray(level, dtype=float).reshape(-1, 1), axis=0) <= tolerance
+    if not inside.size or not inside[-1]:
+        return float("nan")
+    out = np.flatnonzero(~inside)
+    return float((t[out[-1] + 1] if out.size else t[0]) - t_start)
+
+
+def reach_times(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray, levels: list[np.ndarray],
+                refs: list[np.ndarray], tolerance: float, dwell: float, horizon_dwells: int = REACH_HORIZON_DWELLS,
+                loop=None) -> np.ndarray:
+    """The time to reach each level within ``tolerance`` when each is held until it is reached.
+
+    The levels are asked for in turn from z0; each is held in chunks of ``dwell`` until, at the end of a chunk,
+    |y - level| <= tolerance and psi has settled on the level (|psi - level| <= SETTLE_RTOL x output span), or psi
+    has stopped elsewhere (it moved less than that over the last chunk), at most ``horizon_dwells`` chunks; its
+    time is :func:`reach_time` over all its chunks (NaN if never reached).  With a
+    guaranteed controller, once psi sits on the level |y - level| <= |y - psi| stays within the tolerance, so the
+    time does not depend on how long the level is held after that.  Samples every REACH_SAMPLE_DWELLS dwell.
+
+    Returns
+    -------
+    ndarray (len(levels),)
+        Seconds from the switch to each level; NaN where it is not reached within the horizon.
+    """
+    span = float(np.ptp(model.Y, axis=1).max())
+    settle_tol = SETTLE_RTOL * span
+    dt = max(SAMPLE_DT, REACH_SAMPLE_DWELLS * dwell)
+    z = np.asarray(z0, dtype=float)
+    t = 0.0
+    times = []
+    for i, level in enumerate(levels):
+        t_start, ts, ys, psi_before = t, [], [], None
+        for _ in range(max(1, int(horizon_dwells))):
+            seg = [(t, t + dwell, sample_times(t, t + dwell, dt), i)]
+            res = closed_loop_run(model, plant, up, law, z, seg, refs, loop)
+            keep = slice(None) if not ts else slice(1, None)
+            ts.append(res["t"][keep])
+            ys.append(res["y"][:, keep])
+            z, t = res["z_end"], t + dwell
+            psi_now = np.asarray(res["psi_end"][-1], dtype=float)
+            at_level = np.linalg.norm(res["y"][:, -1] - level) <= tolerance
+            if at_level and float(np.abs(psi_now - level).max()) <= settle_tol:
+                break
+            if psi_before is not None and float(np.abs(psi_now - psi_before).max()) <= settle_tol:
+                break           # psi has stopped short of the level (e.g. a drift phi_bar the allowed v cannot hold against)
+            psi_before = psi_now
+        times.append(reach_time(np.concatenate(ts), np.concatenate(ys, axis=1), level, tolerance, t_start))
+    return np.array(times, dtype=float)
+
+
+def _deadline_report(entry, i: int, level: np.ndarray, seg: tuple[float, float], t: np.ndarray, psi: np.ndarray, y: np.ndarray,
+                     tolerance: float, settle_tol: float, mode: str, v_limit: str) -> tuple[bool, float, float, str]:
+    """Whether the guarantee covers the timed task ``entry`` (level i held within the tolerance from ``by`` for ``hold``).
+
+    The guarantee gives |y - level| <= |y - psi| + |psi - level| <= EPS + |psi - level|: it covers the task when psi
+    sits on the level (within settle_tol) over the whole window.
+
+    Returns
+    -------
+    met : bool
+    bound : float
+        EPS + max |psi - level| over the window: what the guarantee proves for |y - level| there.
+    observed : float
+        max |y - level| over the window (simulated).
+    why : str
+        How it was met, or why not.
+    """
+    t_on = seg[0]
+    window = (t >= t_on + entry.by - 1e-9) & (t <= t_on + entry.by + entry.hold + 1e-9)
+    lev = level.reshape(-1, 1)
+    psi_off = np.linalg.norm(psi - lev, axis=0)
+    y_off = np.linalg.norm(y - lev, axis=0)
+    bound = float(tolerance + psi_off[window].max())
+    observed = float(y_off[window].max())
+    if psi_off[window].max() <= settle_tol:
+        return True, bound, observed, (f"psi is on the level from {t_on + entry.by:g} s to {t_on + entry.by + entry.hold:g} s, so "
+                                       f"|y - level| <= {tolerance:g} + {psi_off[window].max():.2g} (observed {observed:.4g})")
+    mine = (t >= t_on - 1e-9) & (t <= seg[1] + 1e-9)
+    reached = reach_time(t[mine], psi[:, mine], level, settle_tol, t_on)
+    when = (f"psi reaches the level {reached:.4g} s after the switch, later than by = {entry.by:g} s"
+            if np.isfinite(reached) else f"psi does not reach the level in the {seg[1] - seg[0]:g} s it is held")
+    return False, bound, observed, (f"{when}: the deadline is too short for the v the {mode} mode allows ({v_limit}); "
+                                    f"the guarantee gives only |y - level| <= {bound:.4g} over the window (observed {observed:.4g})")
+
+
+def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The tracking scenario; returns (values, checks) with keys under ``tracking/``.
+
+    With ``abstract_controller.kind: guaranteed`` (docs/guaranteed.md) the run is the budget or the governor mode
+    of :func:`guaranteed_plan`, and the values also hold the tolerance proved, the time each level is reached
+    within it, the deadlines of timed levels and, for the governor, its speed-up over the budget mode.
+    """
+    tr = model.spec.simulate.tracking
+    ctl = tr.abstract_controller
+    _q_kind, _saturate = model.spec.interface.q, model.spec.interface.saturate
+    xi0, x0, W0, levels, refs = tracking_start(model, plant, up)
+    lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
+    alpha_h = float(up["bound"].value("alpha_h"))
+    M = np.asarray(up["stabilise"].value("M"))
+    w0_max = float(up["bound"].values.get("w0_max_certified", np.inf))
+    v_cert = float(up["bound"].values.get("v_max_certified", np.inf))
+    plan = None
+    if ctl.kind == "guaranteed":
+        plan = guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
+        law = plan.law(plan.mode, ctl.gain, model.m_hat, v_cert, lam, eps)
+    else:
+        law = Law("setpoint", ctl.gain, ctl.v_max)
+    z = np.r_[xi0, x0, W0]
+    segments = tracking_segments(tr.t_final, tr.dwell, len(levels))
+    loop = tracking_loop_for(model, up, law)
+    res = closed_loop_run(model, plant, up, law, z, segments, refs, loop)
+    t, xi, x, w, idx, v, u, y = (res[k] for k in ("t", "xi", "x", "w", "reference_index", "v", "u", "y"))
+    settle = [float(np.abs(res["psi_end"][j] - levels[i]).max()) for j, (*_, i) in enumerate(segments)]
+    xi_ref = np.stack([refs[i] for i in idx], axis=1)
+    psi = plant.kappa(*xi)[:, 0, :]
+    e = psi - y
+    err = np.linalg.norm(e, axis=0)
+    v_inf = float(np.linalg.norm(v, axis=0).max())   # sup over t of |v(t)| (2-norm: theta v is bounded by ||theta|| |v|)
+    gain = float(up["bound"].value("gain"))
+    bound = gain * v_inf
+    # Theorem 2's whole bound: the decaying W0 term (eq. (8)) plus the uniform one, G ||v||_inf.
+    theorem_bound = np.sqrt(max(W0, 0.0) * np.exp(-(lam - eps) * (t - t[0])) / alpha_h) + bound
+    span = float(np.ptp(model.Y, axis=1).max())
+    # |psi - y| <= alpha_h^-1(W) <= sqrt(w / alpha_h): the a-posteriori bound (comparison lemma on the run's
+    # own theta and v), plus the integrator's accuracy, which no simulated error can be held below.
+    posterior = np.sqrt(np.maximum(w, 0.0) / alpha_h)
+    floor = POSTERIOR_FLOOR_RTOL * max(1.0, span)
+    posterior_ok = bool(np.all(err <= posterior + floor))
+    e_p = plant.p_map(*xi)[:, 0, :] - x
+    W = np.einsum("iN,ij,jN->N", e_p, M, e_p)
+    settle_ok = bool(max(settle) <= SETTLE_RTOL * span)
+    U = model.U
+    u_ok = bool(np.all(u >= U[:, 0:1] - 1e-12) and np.all(u <= U[:, 1:2] + 1e-12))
+    xi_ok = bool(np.all(xi >= model.V[:, 0:1] - 1e-9) and np.all(xi <= model.V[:, 1:2] + 1e-9))
+    inside = bool(W0 <= w0_max and v_inf <= v_cert)
+    region_note = ("the run is inside the certified region" if inside else
+                   f"the run is outside the certified region (W0 = {W0:.4g} vs {w0_max:.4g}, ||v||_inf = {v_inf:.4g} vs {v_cert:.4g}): "
+                   "the uniform bound is not certified for it, only compared")
+    values = {
+        "tracking/inside_certified_region": inside, "tracking/compiled": res["compiled"],
+        "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
+        "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
+        "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
+        "tracking/max_abs_error": float(err.max()), "tracking/v_inf": v_inf, "tracking/u_min": float(u.min()),
+        "tracking/u_max": float(u.max()), "tracking/uniform_bound": bound, "tracking/x0": x0,
+        "tracking/W0": W0, "tracking/W": W, "tracking/theorem_bound": theorem_bound,
+        "tracking/bound_evidence": str(up["bound"].values.get("bound_evidence", "sampled")), "tracking/w_comparison": w, "tracking/posterior_bound": posterior,
+        "tracking/posterior_bound_max": float(posterior.max()),
+        "tracking/posterior_tightening": float(bound / posterior.max()) if posterior.max() > 0 else float("inf"),
+    }
+    checks = {
+        "tracking_error_within_posterior_bound": Check(float((err - posterior).max()), posterior_ok,
+                                                       f"max over the run of |psi - y| - sqrt(w(t) / alpha_h) (<= {POSTERIOR_FLOOR_RTOL:g} x output span, the integrator's accuracy)"),
+        "tracking_error_within_bound": Check(float((err - theorem_bound).max()), bool(np.all(err <= theorem_bound)),
+                                             "max over the run of |psi - y| - (sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf) "
+                                             "(<= 0: Theorem ErrorBound holds, eq. egErrorBound when W0 = 0); " + region_note),
+        "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
+        "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
+        "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem ErrorBound applies)"),
+    }
+    if model.state_box is not None:
+        box = model.state_box
+        excursion = float(max((box[:, 0:1] - x).max(), (x - box[:, 1:2]).max()))
+        checks["tracking_x_in_state_box"] = Check(excursion, excursion <= 0, "largest excursion of x outside concrete.state_box (<= 0: the Jacobian LMI and L_h hold along the run)")
+    if plan is not None:
+        more_values, more_checks = _guaranteed_results(model, plant, up, tr, plan, z, res, levels, refs, psi, err, segments, settle)
+        values.update(more_values)
+        checks.update(more_checks)
+    return values, checks
+
+
+def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact], tr, plan: GuaranteedPlan, z0: np.ndarray, res: dict,
+                        levels: list[np.ndarray], refs: list[np.ndarray], psi: np.ndarray, err: np.ndarray, segments,
+                        settle: list[float]) -> tuple[dict, dict]:
+    """The values and checks of a guaranteed controller's run (``tracking/guaranteed_*``, reach times, deadlines)."""
+    ctl = tr.abstract_controller
+    t, y, w, idx = res["t"], res["y"], res["w"], res["reference_index"]
+    span = float(np.ptp(model.Y, axis=1).max())
+    settle_tol = SETTLE_RTOL * span
+    eps_proved = plan.guaranteed_tolerance
+    w_level = eps_proved**2 * plan.alpha_h                     # |psi - y| <= sqrt(w / alpha_h) <= eps_proved while w stays below it
+    reached = np.full(len(levels), np.nan)
+    for t0, _, _, i in segments:
+        mine = idx == i
+        reached[i] = reach_time(t[mine], y[:, mine], levels[i], plan.tolerance, t0)
+    v_text = (f"|v| <= {plan.budget_v_max:.4g}" if plan.mode == "budget" else
+              f"v = s v_sp with w <= W_max = {plan.governor_level:.4g}")
+    values = {
+        "tracking/guaranteed_mode": plan.mode, "tracking/guaranteed_mode_requested": plan.requested,
+        "tracking/tolerance": float(plan.tolerance), "tracking/guaranteed_tolerance": float(eps_proved),
+        "tracking/guaranteed_w_level": float(w_level), "tracking/budget_v_max": float(plan.budget_v_max),
+        "tracking/budget_tolerance": float(plan.budget_tolerance), "tracking/governor_w_max": float(plan.governor_level),
+        "tracking/level_reached_within_tolerance_time": reached,
+    }
+    err_ok = bool(err.max() <= eps_proved)
+    checks = {
+        "tracking_error_within_tolerance": Check(float(err.max() - eps_proved), err_ok,
+                                                 f"max |psi - y| - {eps_proved:.6g} (<= 0: the tolerance the {plan.mode} mode proves, eq. TrackConst)"),
+    }
+    if plan.mode == "governor":
+        values["tracking/governor_scale"] = res["scale"]
+        values["tracking/governor_slack"] = res["slack"]
+        w_ok = bool(np.max(w) <= w_level)
+        checks["tracking_w_below_level"] = Check(float(np.max(w) - w_level), w_ok,
+                                                 f"max over the run of w(t) - {w_level:.6g} (<= 0: the governor keeps w <= W_max = {plan.governor_level:.6g}, "
+                                                 f"{GOVERNOR_MARGIN:g} below, so |psi - y| <= sqrt(w / alpha_h) <= {eps_proved:.6g})")
+        if plan.budget_refusal is None:
+            budget = plan.law("budget", ctl.gain, model.m_hat, np.inf, 0.0, 0.0)
+            budget_times = reach_times(model, plant, up, budget, z0, levels, refs, plan.tolerance, tr.dwell,
+                                       loop=tracking_loop_for(model, up, budget))
+            # Comparable only from the same start: level 0 from z0, level k from level k - 1 settled (the budget
+            # run holds each level until it has settled; the governor's run must have settled it in its dwell).
+            same_start = np.array([k == 0 or (k - 1 < len(settle) and settle[k - 1] <= settle_tol) for k in range(len(levels))])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                speedup = np.where((reached > 0) & same_start, budget_times / reached, np.nan)
+            values.update({"tracking/budget_reach_time": budget_times, "tracking/governor_reach_time": reached,
+                           "tracking/governor_speedup": speedup})
+    timed = [(i, entry) for i, entry in enumerate(tr.reference_levels) if isinstance(entry, TimedLevel)]
+    if timed:
+        rows = []
+        for i, entry in timed:
+            seg = tr.segment(i)
+            met, bound_i, observed, why = _deadline_report(entry, i, levels[i], seg, t, psi, y, eps_proved, settle_tol, plan.mode, v_text)
+            rows.append((i, met, bound_i, observed, why))
+            checks[f"tracking_deadline_{i}"] = Check(bound_i - eps_proved, met,
+                                                     f"reference_levels[{i}] (level {np.round(levels[i], 6).tolist()}, by {entry.by:g} s, hold {entry.hold:g} s): {why}")
+        values["tracking/deadline_levels"] = np.array([i for i, *_ in rows], dtype=np.int64)
+        values["tracking/deadline_met"] = np.array([m for _, m, *_ in rows], dtype=bool)
+        values["tracking/deadline_bound"] = np.array([b for _, _, b, *_ in rows], dtype=float)
+        values["tracking/deadline_observed"] = np.array([o for *_, o, _ in rows], dtype=float)
+        values["tracking/deadline_reasons"] = [why for *_, why in rows]
+    return values, checks
+
+
+def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``.
+
+    The closed loop is integrated by the compiled loop (:func:`ashc_cli.closedloop.compiled.m_relation_loop`, the same
+    right-hand side and event in numba) where it runs, else by solve_ivp; ``m_relation/compiled`` says which.
+    """
+    mr = model.spec.simulate.m_relation
+    names = {**model.params, "t": TIME}
+    texts = mr.u if isinstance(mr.u, list) else [mr.u]
+    u_expr = sp.Matrix([parse_expression(s, names, f"simulate.m_relation.u[{i}]", signal=True) for i, s in enumerate(texts)])
+    x0 = np.array(mr.x0, dtype=float)
+    # m (and b, c, built from it) is used only where it is certified: h(x) in inverse.m_domain.
+    box, set_name, _ = certified_set(up["inverse"])
+    h_x0, m_x0 = plant.h_m(x0)
+    y0 = h_x0[:, 0]
+    if outside_certified_set(box, y0):
+        shown = f"{y0[0]:.6g}" if y0.size == 1 else np.round(y0, 6).tolist()
+        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {shown} is outside the set where m is certified, y in {set_name} = {format_box(box)} (x0 = {x0.tolist()})",
+                          f"x0 with h(x0) in {format_box(box)} (inverse.m_domain)")
+    xi0 = m_x0[:, 0]
+    if not np.all(np.isfinite(xi0)):
+        raise DesignError("simulate.m_relation.x0", f"m(x0) is not real at x0 = {x0.tolist()}", "x0 where m is real (see inverse.m_real_interval)")
+    nh = model.n_hat
+
+    # One output: the run stops where y = h(x) leaves the certified interval. At an end where m stops being real,
+    # kappa turns and dm/dx (so b, c and xi') blows up like 1/sqrt(distance): there it stops a little inside,
+    # where the integrator still works. (Several outputs: m_domain is Y, checked at x0 only; the outputs must
+    # match along the run, m_relation_outputs_match.)
+    inv = up["inverse"]
+    d_lo, d_hi = box[0]
+    real_lo, real_hi = np.asarray(inv.value("m_real_interval"), dtype=float)
+    radical = [str(r) for r in np.atleast_1d(inv.values.get("radicands", ["none"]))] not in (["none"], [])
+    tol = DOMAIN_RTOL * max(1.0, d_hi - d_lo)
+    lo_edge, hi_edge = bool(radical and d_lo == real_lo), bool(radical and d_hi == real_hi)
+    lo_margin = EDGE_MARGIN * (d_hi - d_lo) if lo_edge else -tol
+    hi_margin = EDGE_MARGIN * (d_hi - d_lo) if hi_edge else -tol
+
+    def leaves_certified_set(t, z):
+        """Positive while y = h(x) is inside the interval where m (and so b, c) is certified (less a margin where m stops being real).
+
+        The compiled loop evaluates the same expression (the core's _leaves, edges [d_lo, lo_margin, d_hi, hi_margin]).
+        """
+        y = plant.h_m(z[nh:])[0][0, 0]
+        return min(y - d_lo - lo_margin, d_hi - hi_margin - y)
+
+    leaves_certified_set.terminal = True
+    leaves_certified_set.direction = -1
+    bounded = model.p == 1
+    z0 = np.r_[xi0, x0]
+    if bounded and leaves_certified_set(0.0, z0) <= 0:
+        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {y0[0]:.6g} is within {EDGE_MARGIN:.1%} of the end of {set_name} = {format_box(box)} where m stops being real",
+                          f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
+
+    def stopped(t_out: float, z_out: np.ndarray):
+        """The DesignError of a run that left the certified set at t_out, in state z_out (the event's root)."""
+        y_out = plant.h_m(z_out[nh:])[0][0, 0]
+        at_lo = abs(y_out - d_lo) <= abs(y_out - d_hi)
+        edge = f" (stopped {EDGE_MARGIN:.1%} short of its end {d_lo if at_lo else d_hi:.6g}, where m stops being real)" if (lo_edge if at_lo else hi_edge) else ""
+        return DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
+                           f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
+
+    t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
+    try:
+        loop = compiled.m_relation_loop(model, up, u_expr) if M_RELATION_TOL["method"] == "DOP853" else None
+    except compiled.Unsupported:
+        loop = None
+    if loop is not None:
+        res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
+                       rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
+        if res.left is not None:
+            raise stopped(*res.left)
+        t, xi, x, u, v, psi, y, m_x = res.t, res.xi, res.x, res.u, res.v, res.psi, res.y, res.m
+    else:
+        u_of_t = compile_flat(list(u_expr), [TIME], model.values)
+
+        def rhs(t, z):
+            """u(t), v = b(x) + c(x) u (eq. mRelateLink) and both state derivatives."""
+            xi, x = z[:nh], z[nh:]
+            u = np.array(u_of_t(t), dtype=float)
+            phi, delta, *_ = plant.at_xi(xi)
+            f_bar, g, _, b, c, _ = plant.at_x(x)
+            v = b[:, 0] + c @ u
+            return np.r_[phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u]
+
+        sol = _integrate(rhs, (0.0, mr.t_final), z0, t_eval, M_RELATION_TOL, "m_relation", events=[leaves_certified_set] if bounded else None)
+        if sol.status == 1:
+            raise stopped(sol.t_events[0][0], sol.y_events[0][0])
+        t, xi, x = sol.t, sol.y[:nh], sol.y[nh:]
+        # The samples in one batch call of each compiled function (N points at once).
+        _, _, h_x, b, c, m_of_x = plant.at_x(x)
+        u = np.stack([np.broadcast_to(np.asarray(ui, dtype=float), t.shape) for ui in u_of_t(t)])
+        v = b[:, :, 0].T + np.einsum("Nij,jN->iN", c, u)
+        y, m_x = h_x[:, :, 0].T, m_of_x[:, :, 0].T
+        psi = plant.kappa(*xi)[:, 0, :]
+    e = psi - y
+    err = float(np.linalg.norm(e, axis=0).max())
+    invariance = float(np.abs(m_x - xi).max())
+    values = {
+        "m_relation/t": t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
+        "m_relation/psi": psi, "m_relation/y": y, "m_relation/e_y": e, "m_relation/xi0": xi0,
+        "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
+        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": loop is not None,
+    }
+    checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem mRelatOutMatch)")}
+    return values, checks
+
+
+def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
+    """Run the spec's tracking and m-relation scenarios.
+
+    Returns
+    -------
+    Artefact
+        Time series and metrics under ``tracking/`` and ``m_relation/``.
+
+    Raises
+    ------
+    SpecError
+        If the spec has no ``simulate`` scenario.
+    DesignError
+        If a reference level is out of reach or the m-relation run leaves the region where m is real.
+    NumericalError
+        If an integration fails or blows up.
+    """
+    sim = model.spec.simulate
+    if sim.tracking is None and sim.m_relation is None:
+        raise DesignError("simulate", "the spec has no scenario", "simulate.tracking and/or simulate.m_relation")
+    plant = DesignTerms(model, upstream)
+    art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL,
+                                      "sample_dt": SAMPLE_DT, "interface_q": model.spec.interface.q,
+                                      "saturate": model.spec.interface.saturate})
+    for scenario, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)):
+        if getattr(sim, scenario) is not None:
+            values, checks = runner(model, plant, upstream)
+            art.values.update(values)
+            # Which DOP853 ran (the same method and tolerances either way).
+            code = "ashc_cli.closedloop.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
+            art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
+            # Observed along one simulated run: evidence "simulated", never a proof.
+            art.checks.update({k: replace(c, evidence=SIMULATED) for k, c in checks.items()})
+    return art
+
+
+_METRICS = {
+    "tracking": ("max_abs_error", "v_inf", "u_min", "u_max", "uniform_bound", "W0", "posterior_bound_max", "posterior_tightening"),
+    "m_relation": ("max_abs_error", "invariance_residual", "u_min", "u_max"),
+}
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    out = {}
+    for scenario, keys in _METRICS.items():
+        if f"{scenario}/t" in art.values:
+            out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
+    if "tracking" in out:
+        out["tracking"]["settle_errors"] = np.asarray(art.values["tracking/settle_errors"]).tolist()
+        v = art.values
+        if "tracking/guaranteed_mode" in v:        # a guaranteed controller (docs/guaranteed.md)
+            g = out["tracking"]
+            g["guaranteed_mode"] = str(v["tracking/guaranteed_mode"])
+            for key in ("tolerance", "guaranteed_tolerance", "budget_v_max", "governor_w_max"):
+                g[key] = float(v[f"tracking/{key}"])
+            for key in ("level_reached_within_tolerance_time", "budget_reach_time", "governor_speedup", "deadline_met"):
+                if f"tracking/{key}" in v:
+                    g[key] = np.asarray(v[f"tracking/{key}"]).tolist()
+    return out
+
+
+def headline(art: Artefact) -> str:
+    """One progress line."""
+    parts = []
+    if "tracking/t" in art.values:
+        v = art.values
+        post = f" (a posteriori {v['tracking/posterior_bound_max']:.4g})" if "tracking/posterior_bound_max" in v else ""
+        sampled = " (sampled)" if str(v.get("tracking/bound_evidence", "sampled")) != "proved" else ""
+        outside = "" if bool(v.get("tracking/inside_certified_region", True)) else "; not certified for this run (outside the certified region)"
+        err = float(v["tracking/max_abs_error"])
+        if "tracking/guaranteed_mode" in v:
+            times = ", ".join(f"{x:.3g}" for x in np.asarray(v["tracking/level_reached_within_tolerance_time"]))
+            speed = np.asarray(v.get("tracking/governor_speedup", []), dtype=float)
+            speed = speed[np.isfinite(speed)]
+            faster = f"; {speed.min():.3g} to {speed.max():.3g} times the budget's speed" if speed.size else ""
+            eps_g = float(v["tracking/guaranteed_tolerance"])
+            held = "tracking_error_within_tolerance" not in art.checks or art.checks["tracking_error_within_tolerance"].passed
+            relation = f"<= {eps_g:.5g} guaranteed{sampled}" if err <= eps_g and held else f"> {eps_g:.5g}: the guaranteed tolerance is NOT met"
+            parts.append(f"tracking max|psi - y| = {err:.4g} {relation} "
+                         f"({v['tracking/guaranteed_mode']}; levels reached within it in [{times}] s{faster}){outside}")
+        else:
+            bound = float(v["tracking/uniform_bound"])
+            relation = f"<= {bound:.5g}{sampled}" if err <= bound else f"> {bound:.5g}{sampled} (G ||v||_inf exceeded)"
+            parts.append(f"tracking max|psi - y| = {err:.4g} {relation}{post}{outside}")
+    if "m_relation/t" in art.values:
+        parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
+    failed = failed_checks(art)
+    if failed:
+        parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" for name, chk in failed.items()))
+    return ", ".join(parts)
+
+
+def failed_checks(art: Artefact) -> dict:
+    """The scenario checks that did not pass (shown by ``simulate``, ``ashc check`` and the report)."""
+    return {name: chk for name, chk in art.checks.items() if not chk.passed}

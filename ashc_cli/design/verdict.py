@@ -1,0 +1,153 @@
+"""The verdict on Problem 1 (Nonlinear ASHC): one row per condition of the paper, each with its number.
+
+Problem 1 asks for (1) a local simulation function on some V satisfying eq. SimuLocalRequire and (2) an
+m-relation on Y.  By Theorem SimuDesign with Proposition condB, (1) holds when Assumption 1, the
+stabilisability certificate, the invariance PDE, l(V) in U, eq. SimuLocalRequire and condition (B) hold; by
+Lemma mRelatePDE with Theorems mRelateDelta and mCondi, (2) holds when p is injective on V, conditions (i)
+and (ii), m is real on Y, delta has full row rank and b, c solve eqs. mRelatSuffiDiff/In.  Each row reads
+a check a design stage stored; :func:`verdict` is a pure function of the artefacts (and of the error that
+stopped the design, if one did).
+
+The verdict has three values.  ``proved``: every row passes and every row is *proved* (interval arithmetic,
+sympy identities, ball-matrix Cholesky): each number that enters Problem 1, the gain G and the certified region
+holds on the whole set it is about.  ``sampled``: every row passes, but some only on samples (a grid, random
+points); the design is then not certified, and the line names those rows.  ``fails``: some row fails or was
+not reached.  A certification tool may say "I could not prove this"; it never says "proved" on samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ashc_cli.design.artefacts import Artefact
+from ashc_cli.errors import AshcError
+from ashc_cli.paper import cite
+
+__all__ = ["Row", "ROWS", "Verdict", "verdict", "PROVED", "SAMPLED", "FAILS"]
+
+#: The three verdicts (``ashc check --json`` key ``verdict``).
+PROVED, SAMPLED, FAILS = "proved", "sampled", "fails"
+
+
+@dataclass(frozen=True)
+class Row:
+    """One condition of Problem 1 and how it came out."""
+
+    condition: str
+    reference: str
+    requirement: str      # "simulation function" or "m-relation"
+    status: str           # "pass", "fail" or "not reached"
+    value: float | None
+    detail: str
+    evidence: str = "-"   # "proved", "sampled" or "simulated" (how the stage established it); "-" when not reached
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+#: (condition, paper reference, requirement of Problem 1, stage, stored check name)
+ROWS = (
+    ("Assumption 1: h Lipschitz", "Assumption outputLipstchiz", "simulation function", "bound", "h_lipschitz"),
+    ("alpha_h > 0 (W bounds the output error)", "eq. SimuFuncCondi1", "simulation function", "bound", "alpha_h"),
+    ("stabilisability certificate (LMI margin)", "eq. egLMI, Thm. StabiliseLyap", "simulation function", "stabilise", "lmi_margin"),
+    ("M positive definite", "eq. egV", "simulation function", "stabilise", "M_positive"),
+    ("invariance PDE residual", "eq. SimuDesignCond1", "simulation function", "manifold", "pde_residual"),
+    ("l maps V into U", "Thm. SimuDesign", "simulation function", "manifold", "l_in_U"),
+    ("V covers Y", "eq. SimuLocalRequire", "simulation function", "inverse", "V_covers_Y"),
+    ("condition (B)", "Prop. condB", "simulation function", "bound", "condition_B"),
+    ("region where the bound is certified", "Thm. ErrorBound, Def. simuFunction", "simulation function", "bound", "certified_region"),
+    ("p injective on V (left inverse)", "Thm. mCondi, step 1", "m-relation", "inverse", "left_inverse"),
+    ("condition (i)", "Thm. mCondi (i)", "m-relation", "inverse", "condition_i"),
+    ("condition (ii)", "Thm. mCondi (ii), Cor. mRelateGeo", "m-relation", "inverse", "condition_ii"),
+    ("m real on Y", "eq. mEquation", "m-relation", "inverse", "m_real_on_Y"),
+    ("delta full row rank on V", "Thm. mRelateDelta", "m-relation", "delta", "rank_delta"),
+    ("b, c solve the m-relation PDEs", "eqs. mRelatSuffiDiff, mRelatSuffiIn", "m-relation", "delta", "m_relation_link"),
+)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Problem 1's verdict: ``kind`` is ``proved``, ``sampled`` or ``fails``, with the rows it rests on."""
+
+    kind: str
+    rows: tuple[Row, ...]
+
+    @property
+    def solved(self) -> bool:
+        """Whether every row passes (proved or on samples): ``check`` exits 0 (without ``--require proved``)."""
+        return self.kind != FAILS
+
+    @property
+    def proved(self) -> bool:
+        return self.kind == PROVED
+
+    @property
+    def sampled_rows(self) -> list[str]:
+        """The conditions that pass on samples only."""
+        return [r.condition for r in self.rows if r.status == "pass" and r.evidence != PROVED]
+
+    def counts(self) -> str:
+        """The verdict with its counts, for ``ashc design``'s last line: 'proved (15/15 conditions of Problem 1)',
+        'holds on samples only (12 of 15 conditions proved; sampled: a, b, c)' or 'no (13 of 15 conditions pass)'."""
+        n, passed = len(self.rows), sum(r.status == "pass" for r in self.rows)
+        proved = sum(r.status == "pass" and r.evidence == PROVED for r in self.rows)
+        if self.kind == PROVED:
+            return f"proved ({proved}/{n} conditions of Problem 1)"
+        if self.kind == SAMPLED:
+            return f"holds on samples only ({proved} of {n} conditions proved; sampled: {', '.join(self.sampled_rows)})"
+        return f"no ({passed} of {n} conditions pass)"
+
+    def text(self) -> str:
+        """The verdict in words: 'proved', 'holds on samples only (sampled: a, b)' or 'no'."""
+        if self.kind == PROVED:
+            return "proved"
+        if self.kind == SAMPLED:
+            return "holds on samples only (sampled: " + ", ".join(self.sampled_rows) + ")"
+        return "no"
+
+    def line(self) -> str:
+        """The last line of ``ashc check``."""
+        return f"Problem 1 solved: {self.text()}"
+
+
+def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = None) -> Verdict:
+    """Problem 1's verdict from the design artefacts.
+
+    Parameters
+    ----------
+    arts : dict of str to Artefact
+        The artefacts of the stages that completed.
+    stopped : (stage, error), optional
+        The stage whose design condition failed, and its error, if the design stopped early.
+
+    Returns
+    -------
+    Verdict
+        ``proved`` when every row passes with a proof, ``sampled`` when every row passes but some only on
+        samples, ``fails`` otherwise; and the rows.
+    """
+    rows = []
+    for condition, label, requirement, stage, check in ROWS:
+        reference = cite(label)   # as the published paper numbers it (the labels are in docs/theory.md)
+        if stage in arts and check in arts[stage].checks:
+            chk = arts[stage].checks[check]
+            value = float(chk.value) if np.isfinite(chk.value) else None
+            rows.append(Row(condition, reference, requirement, "pass" if chk.passed else "fail", value, cite(chk.description), chk.evidence))
+        elif stopped is not None and (getattr(stopped[1], "check", None) == check
+                                      or (stopped[0] == stage and getattr(stopped[1], "check", None) is None)):
+            # The failure is about this row (or about the stage as a whole, e.g. an unsupported case).
+            rows.append(Row(condition, reference, requirement, "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
+        else:
+            reason = f"stage {stage} did not complete" if stopped is not None else f"no {stage} artefact"
+            rows.append(Row(condition, reference, requirement, "not reached", None, reason))
+    if stopped is not None and not any(r.status == "fail" for r in rows):
+        rows.append(Row("design stage " + stopped[0], "-", "-", "fail", None, stopped[1].line(), getattr(stopped[1], "evidence", "sampled")))
+    if not all(r.status == "pass" for r in rows):
+        kind = FAILS
+    elif all(r.evidence == PROVED for r in rows):
+        kind = PROVED
+    else:
+        kind = SAMPLED
+    return Verdict(kind, tuple(rows))

@@ -1,0 +1,217 @@
+"""``ashc report``: one self-contained HTML page for a design review.
+
+The page holds the spec as written, the Problem 1 verdict row by row, every stage's headline numbers and
+checks, the error bounds (uniform, a-posteriori), the falsification result and the figures of
+:mod:`ashc_cli.outputs.plots` embedded as base64 PNG.  No script and no external resource: it opens offline and can
+be attached to a review as one file.  Every stored value is shown in full: a formula, a matrix (M) or a
+long list sits in a scroll box, one formula or matrix row per line, never cut short.  The layout fits a
+laptop screen (1366 px) without scrolling sideways: tables wrap, figures shrink to the page.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ashc_cli import __version__
+from ashc_cli.design.artefacts import Artefact
+from ashc_cli.outputs.query import summary
+
+__all__ = ["render"]
+
+CSS = """
+body { font-family: system-ui, sans-serif; max-width: 60rem; margin: 2rem auto; padding: 0 1rem; color: #222; }
+h1 { font-size: 1.5rem; } h2 { font-size: 1.2rem; border-bottom: 1px solid #ccc; margin-top: 2rem; }
+table { border-collapse: collapse; margin: 0.5rem 0; font-size: 0.9rem; max-width: 100%; }
+table.wide { width: 100%; table-layout: fixed; } table.wide th:first-child { width: 15rem; }
+table.checks { width: 100%; table-layout: fixed; } table.checks th:first-child { width: 4rem; }
+table.checks th:nth-child(2) { width: 14rem; } table.checks th:nth-child(3) { width: 10rem; }
+td, th { border: 1px solid #ddd; padding: 0.2rem 0.5rem; text-align: left; vertical-align: top; overflow-wrap: anywhere; }
+th { background: #f4f4f4; } .pass { color: #176617; font-weight: bold; } .fail { color: #b00; font-weight: bold; }
+.na { color: #888; } pre { background: #f8f8f8; padding: 0.5rem; overflow: auto; font-size: 0.8rem; }
+pre.box { margin: 0; padding: 0.3rem; max-height: 14rem; overflow: auto; white-space: pre-wrap; overflow-wrap: anywhere; }
+pre.box.matrix { white-space: pre; overflow-wrap: normal; }
+code { overflow-wrap: anywhere; }
+figure { display: inline-block; margin: 0.5rem; max-width: 100%; vertical-align: top; }
+figure img { max-width: 100%; height: auto; } figcaption { font-size: 0.8rem; color: #555; max-width: 26rem; }
+.verdict { font-size: 1.2rem; padding: 0.5rem; border: 2px solid; display: inline-block; }
+.sampled { color: #8a5a00; font-weight: bold; } .note { color: #555; }
+"""
+
+#: The CSS class of each verdict's banner (proved green, on samples only amber, no red).
+VERDICT_CLASS = {"proved": "pass", "sampled": "sampled", "fails": "fail"}
+
+CAPTIONS = {
+    "kappa_xi.png": "κ(ξ) over V, output region Y shaded (Fig. kappa_xi).",
+    "delta_compare.png": "‖θ(ξ, ·)‖ with q = 0 for δ = I and the design's δ (Fig. delta_Compare).",
+    "tracking_inputs.png": "Tracking run: abstract input v with ±v_max and concrete input u with the limits of U (Fig. Example_BoundedIn).",
+    "tracking_outputs.png": "Tracking run: ψ, y and the reference levels; |ψ − y| (upper envelope) against the a-posteriori "
+                            "and uniform bounds, log scale (Fig. Example_BoundedOut).",
+    "m_relation_inputs.png": "m-relation run: v = b(x) + c(x) u and u with the limits of U (Fig. Example_mRelationIn).",
+    "m_relation_outputs.png": "m-relation run: ψ and y coincide; |ψ − y| below (Fig. Example_mRelationOut).",
+    "falsify.png": "Falsification: largest |ψ − y| / guaranteed bound of each run by search strategy, log scale; "
+                   "the best run (closest to the bound) starred. Every point must stay below 1.",
+}
+
+#: CSS pixels per PNG pixel of a figure: a one-column figure (3.5 in at 200 dpi) is shown 420 px wide.
+FIGURE_SCALE = 0.6
+
+
+def _text(value) -> str:
+    """A stored value as text, in full: one formula, matrix row or key per line for a list or a mapping."""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, dict):
+        return "\n".join(f"{k}: {json.dumps(v, default=str)}" for k, v in value.items())
+    if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, (list, tuple)) for v in value):  # a matrix: one row per line
+            return "\n".join(json.dumps(list(row), default=str) for row in value)
+        if value and all(isinstance(v, str) for v in value) and max(map(len, value)) > 20:  # formulas
+            return "\n".join(value)
+        return json.dumps(list(value), default=str)
+    return str(value)
+
+
+#: A value longer than this, or of several lines, goes into a scroll box.
+INLINE_CHARS = 80
+
+
+def _is_matrix(value) -> bool:
+    return isinstance(value, (list, tuple)) and bool(value) and all(isinstance(v, (list, tuple)) for v in value)
+
+
+def _fmt(value) -> str:
+    """A stored value as HTML (escaped), never shortened: long or many-line values in a scroll box (a matrix
+    one row per line, scrolled sideways inside the box rather than wrapped)."""
+    text = _text(value)
+    if len(text) > INLINE_CHARS or "\n" in text:
+        return f'<pre class="box{" matrix" if _is_matrix(value) else ""}">{html.escape(text)}</pre>'
+    return html.escape(text)
+
+
+def _status(passed: bool | None) -> str:
+    if passed is None:
+        return '<span class="na">not reached</span>'
+    return '<span class="pass">pass</span>' if passed else '<span class="fail">fail</span>'
+
+
+def _row(status: bool | None, *cells: str) -> str:
+    """A table row: a pass/fail cell, then the text cells (escaped)."""
+    return f"<tr><td>{_status(status)}</td>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>"
+
+
+def _stage_section(name: str, entry: dict) -> str:
+    rows = "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
+                   for k, v in entry.items() if k not in ("checks", "provenance"))
+    checks = "".join(f"<tr><td>{_status(c['passed'])}</td><td>{html.escape(k)}</td><td>{_fmt(c['value'])}</td>"
+                     f"<td>{html.escape(str(c['description']))}</td></tr>" for k, c in entry.get("checks", {}).items())
+    prov = entry.get("provenance", {})
+    return (f"<h3>{html.escape(name)}</h3><table class=\"wide\">{rows}</table>"
+            + (f"<table class=\"checks\"><tr><th></th><th>check</th><th>value</th><th>meaning</th></tr>{checks}</table>" if checks else "")
+            + f"<p class=\"na\">artefact sha256 <code>{html.escape(str(prov.get('sha256', '')))}</code>, made {html.escape(str(prov.get('created', '')))}</p>")
+
+
+def _png_width(data: bytes) -> int | None:
+    """The width in pixels of a PNG (from its IHDR chunk), None for anything else."""
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or len(data) < 24:
+        return None
+    return struct.unpack(">I", data[16:20])[0]
+
+
+def _figure_html(path: Path) -> str:
+    """One embedded figure, shown at a fixed share of its pixel width (a two-column figure twice as wide as a
+    one-column one) and never wider than the page."""
+    raw = Path(path).read_bytes()
+    cap = CAPTIONS.get(Path(path).stem + ".png", Path(path).name)
+    px = _png_width(raw)
+    width = f' width="{round(px * FIGURE_SCALE)}"' if px else ""
+    mime = "image/png" if px else "image/svg+xml"
+    return (f"<figure><img alt=\"{html.escape(cap)}\" src=\"data:{mime};base64,{base64.b64encode(raw).decode()}\"{width}>"
+            f"<figcaption>{html.escape(cap)}</figcaption></figure>")
+
+
+def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path]) -> str:
+    """The HTML page.
+
+    Parameters
+    ----------
+    spec_text : str
+        The spec file as written.
+    spec_name : str
+        Its name.
+    arts : dict
+        The artefacts (design stages, simulate and falsify where present).
+    result : Verdict
+        The Problem 1 verdict and its rows (:func:`ashc_cli.design.verdict.verdict`).
+    figures : list of Path
+        PNG (or SVG) files to embed; other files are left out.
+    """
+    summ = summary(arts)
+    parts = [f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>ashc report: {html.escape(spec_name)}</title>",
+             f"<style>{CSS}</style></head><body>",
+             f"<h1>ASHC design report: {html.escape(spec_name)}</h1>",
+             f"<p>ashc {html.escape(__version__)}. The method of \"Approximate Simulation-based Hierarchical Control of Nonlinear Systems\".</p>",
+             f"<p class=\"verdict {VERDICT_CLASS[result.kind]}\">{html.escape(result.line())}</p>"]
+    if result.kind == "sampled":
+        parts.append("<p class=\"note\">Every condition passes, but the rows marked <i>sampled</i> were checked on a grid or on "
+                     "random points only: the design is not certified until they are proved (or falsified).</p>")
+
+    parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>evidence</th><th>measured</th><th>reference</th><th>detail</th></tr>")
+    for r in result.rows:
+        value = "" if r.value is None else f"{r.value:.4g}"
+        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, r.evidence, value, r.reference, r.detail or ""))
+    parts.append("</table>")
+
+    parts.append("<h2>Error bounds</h2><table class=\"wide\">")
+    if "bound" in summ:
+        b = summ["bound"]
+        region = ("global: every W(xi0, x0) and every v" if not np.isfinite(b.get("w0_max_certified", np.inf))
+                  else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.6g} and ||v||_inf &lt;= {b['v_max_certified']:.6g} ({html.escape(b.get('region_limits', ''))})")
+        ev = b.get("evidence", {})
+        sampled = "" if b.get("bound_evidence") == "proved" else f" <span class=\"sampled\">(sampled: {html.escape(str(b.get('bound_sampled', '')))})</span>"
+        parts.append(f"<tr><th>uniform gain G (eq. egErrorBound, paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf when W(xi0, x0) = 0</td></tr>"
+                     f"<tr><th>how each number was established</th><td>{html.escape(', '.join(f'{k}: {v}' for k, v in ev.items()))}</td></tr>"
+                     f"<tr><th>certified region</th><td>{region}</td></tr>"
+                     f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.6g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"
+                     f"<tr><th>comparison-lemma form</th><td>{b['gain_comparison']:.6g} ||v||_inf (ERRATA item 7)</td></tr>"
+                     f"<tr><th>dbar (q = 0): design delta / delta = I</th><td>{b['dbar_q0']:.6g} / {b['dbar_q0_identity']:.6g}</td></tr>"
+                     f"<tr><th>alpha_h, epsilon</th><td>{b['alpha_h']:.6g}, {b['epsilon']:.6g}</td></tr>")
+    if "simulate" in summ and "tracking" in summ["simulate"]:
+        t = summ["simulate"]["tracking"]
+        parts.append(f"<tr><th>tracking run: measured max |psi - y|</th><td>{t['max_abs_error']:.6g}</td></tr>"
+                     f"<tr><th>uniform bound G ||v||_inf</th><td>{t['uniform_bound']:.6g}</td></tr>")
+        if "posterior_bound_max" in t:
+            parts.append(f"<tr><th>a-posteriori bound (largest over the run)</th><td>{t['posterior_bound_max']:.6g}, "
+                         f"{t['posterior_tightening']:.3g} times tighter than the uniform bound</td></tr>")
+    parts.append("</table>")
+
+    parts.append("<h2>Falsification</h2>")
+    if "falsify" in summ:
+        f = summ["falsify"]
+        ok = f["max_ratio"] <= 1.0
+        parts.append(f"<p>{f['runs']} searched closed-loop runs (seed {f['seed']}; random, adversarial, linearised worst case, "
+                     f"boundary of the certified region, refined): largest measured error / guaranteed bound = "
+                     f"<b>{f['max_ratio']:.6g}</b> (run {f['worst_run']}, {html.escape(str(f.get('strategy_of_worst', 'random')))}, "
+                     f"t = {f['worst_time']:.4g} s); started on the manifold (W0 = 0, only G ||v||_inf counts): "
+                     f"<b>{f.get('max_ratio_w0_zero', float('nan')):.4g}</b>; {_status(ok)}. "
+                     f"{f['runs_leaving_V']} run(s) left V (not counted after that).</p>")
+    else:
+        parts.append("<p class=\"na\">not run</p>")
+
+    if figures:
+        parts.append("<h2>Figures</h2>")
+        for path in figures:
+            if Path(path).suffix.lower() in (".png", ".svg"):  # what a browser shows inline (not PDF)
+                parts.append(_figure_html(path))
+
+    parts.append("<h2>Stages</h2>")
+    for name, entry in summ.items():
+        parts.append(_stage_section(name, entry))
+    parts.append(f"<h2>Spec</h2><pre>{html.escape(spec_text)}</pre></body></html>")
+    return "\n".join(parts)
+

@@ -1,0 +1,509 @@
+"""The concrete and abstract systems of a spec, symbolic (sympy) and numeric (lambdified).
+
+:func:`build_model` parses every expression of a :class:`~ashc_cli.problem.spec.Spec` through the whitelist
+parser and returns a :class:`Model`: the concrete system x' = f_bar(x) + g(x) u, y = h(x) (eq.
+concreteAffine) and the abstract system's design choices xi' = phi_bar(xi) + delta(xi) v with l(xi)
+(eq. abstractAffine).  Parameters stay symbols in the formulas (so results read like the paper's);
+:func:`lambdify` substitutes their values and compiles an expression matrix for numpy, with common
+subexpressions eliminated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import sympy as sp
+
+from ashc_cli.errors import SpecError
+from ashc_cli.problem.expr import NUMERIC_MODULES, parse_expression
+from ashc_cli.problem.grids import domain_grid, maximise_on_box
+from ashc_cli.problem.spec import Spec
+
+__all__ = ["Model", "build_model", "apply_saturation", "lambdify", "compile_flat", "compile_terms", "sparse_jacobian", "tidy", "parameter_symbol", "state_symbol", "TIME"]
+
+#: Above this many states the stages use numbers instead of sympy where both work (measured with
+#: `make bench` on the ladder family: at n = 16 sympy.solve of the manifold and of kappa^-1 already take
+#: 19 s of a 24 s design, the numeric paths 2 s).
+NUMERIC_THRESHOLD = 12
+
+#: The time symbol of spec signals.
+TIME = sp.Symbol("t", real=True)
+
+
+def parameter_symbol(name: str, value: float) -> sp.Symbol:
+    """The symbol of a parameter, carrying the sign of its value so sympy can simplify sqrt and abs."""
+    if value > 0:
+        return sp.Symbol(name, positive=True)
+    if value < 0:
+        return sp.Symbol(name, negative=True)
+    return sp.Symbol(name, real=True)
+
+
+def state_symbol(name: str) -> sp.Symbol:
+    """The symbol of a state or input (real)."""
+    return sp.Symbol(name, real=True)
+
+
+def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode: bool | str) -> np.ndarray:
+    """The interface's input u_w from l(xi) and the correction K (x - p) + q v (eqs. Interface, egInterfaceSat).
+
+    Parameters
+    ----------
+    l, correction : ndarray (..., m)
+        l(xi) (inside U) and the correction, for one point or a batch (leading axes).
+    U : ndarray (m, 2)
+        The input box.
+    mode : True, False or "scale"
+        ``True``: clip each channel to U; ``"scale"``: l + s correction with the largest s in [0, 1] that
+        keeps u in U (one factor for every channel, so the correction keeps its direction); ``False``: l +
+        correction unclipped.
+    """
+    u = l + correction
+    if mode == "scale":
+        lo, hi = U[:, 0], U[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(correction > 0, (hi - l) / correction, np.where(correction < 0, (lo - l) / correction, np.inf))
+        s = np.clip(np.min(room, axis=-1, keepdims=True), 0.0, 1.0)
+        return l + s * correction
+    if mode:
+        return np.clip(u, U[:, 0], U[:, 1])
+    return u
+
+
+def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Matrix:
+    """d exprs / d symbols, differentiating only where the symbol occurs (the same matrix as sympy's
+    ``jacobian``, 15 times faster on the sparse ladder at n = 128: 0.05 s against 0.8 s), with the derivatives
+    of sign, abs, min and max written as functions (:func:`almost_everywhere`)."""
+    index = {s: k for k, s in enumerate(symbols)}
+    entries = {}
+    for i, e in enumerate(exprs):
+        for s in e.free_symbols:
+            if s in index:
+                d = almost_everywhere(e.diff(s))
+                if d != 0:
+                    entries[(i, index[s])] = d
+    rows, cols = len(exprs), len(symbols)
+    if rows * cols > SPARSE_JACOBIAN_ENTRIES:
+        return sp.SparseMatrix(rows, cols, entries)    # a large network: a dense matrix of sympy zeros costs seconds
+    out = sp.zeros(rows, cols)
+    for (i, j), d in entries.items():
+        out[i, j] = d
+    return out
+
+
+#: Above this many entries sparse_jacobian returns a sympy SparseMatrix.
+SPARSE_JACOBIAN_ENTRIES = 64 * 64
+
+
+#: Seconds a symbolic search (sympy.solve of a transcendental equation) may take before its numeric path is used.
+SYMBOLIC_BUDGET = 10.0
+
+
+def within_budget(fn, *args, seconds: float | None = None):
+    """fn(*args) computed in a forked child process, or raise TimeoutError after ``seconds`` (default
+    :data:`SYMBOLIC_BUDGET`).
+
+    sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
+    sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
+    The result comes back pickled (sympy expressions pickle).  Where fork is not available the call runs inline.
+    """
+    import multiprocessing as mp
+    import pickle
+
+    seconds = SYMBOLIC_BUDGET if seconds is None else seconds
+    try:
+        ctx = mp.get_context("fork")
+    except ValueError:
+        return fn(*args)
+    reader, writer = ctx.Pipe(duplex=False)
+
+    def child():
+        try:
+            writer.send(("ok", pickle.dumps(fn(*args))))
+        except BaseException as exc:   # noqa: BLE001 (handed back to the parent and raised there)
+            writer.send(("error", repr(exc)))
+        finally:
+            writer.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    writer.close()
+    try:
+        if not reader.poll(seconds):
+            raise TimeoutError(f"symbolic work took longer than {seconds:g} s")
+        kind, payload = reader.recv()
+    except EOFError:
+        raise TimeoutError("the symbolic search ended without a result") from None
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        reader.close()
+    if kind != "ok":
+        raise ValueError(payload)
+    return pickle.loads(payload)
+
+
+def almost_everywhere(e: sp.Expr) -> sp.Expr:
+    """A derivative with sympy's distributions replaced by functions every evaluator knows.
+
+    d sign(z) = 2 DiracDelta(z) is 0 wherever it is defined (z != 0), so DiracDelta becomes 0; d max(z, 0) =
+    Heaviside(z) becomes (1 + sign(z)) / 2, which is 1/2 at the kink, inside Clarke's generalised derivative
+    [0, 1] (abs, min and max are Lipschitz: a mean-value argument holds with that derivative).  That sign
+    jumps is not lost: :func:`jumps` finds the discontinuous functions of an expression, and the stages that
+    need f or h Lipschitz on a set refuse one whose jump lies inside it.
+    """
+    e = sp.sympify(e)
+    if e.has(sp.DiracDelta):
+        e = e.replace(lambda a: isinstance(a, sp.DiracDelta), lambda a: sp.S.Zero)
+    if e.has(sp.Heaviside):
+        e = e.replace(lambda a: isinstance(a, sp.Heaviside), lambda a: (1 + sp.sign(a.args[0])) / 2)
+    return e
+
+
+def jumps(exprs, symbols: Sequence[sp.Symbol]) -> list[sp.Expr]:
+    """The discontinuous functions (sign, square, step) in the expressions whose argument depends on ``symbols``."""
+    from ashc_cli.problem.expr import square, step
+
+    syms = set(symbols)
+    found = []
+    for e in (exprs if isinstance(exprs, (list, tuple)) else list(sp.Matrix(exprs))):
+        e = sp.sympify(e)
+        if not e.has(sp.sign, square, step, sp.Heaviside):
+            continue
+        for a in e.atoms(sp.sign, square, step, sp.Heaviside):
+            if a.free_symbols & syms and a not in found:
+                found.append(a)
+    return found
+
+
+def compile_flat(
+    exprs: Sequence[sp.Expr],
+    args: Sequence[sp.Symbol],
+    values: Mapping[sp.Symbol, float] | None = None,
+) -> Callable[..., list]:
+    """Compile a flat list of expressions into one numpy function (one call evaluates them all).
+
+    Cheaper per call than :func:`lambdify` (no broadcasting), for the right-hand sides of ODEs:
+    ``f(*scalars)`` returns a list of numbers, one per expression.  Common subexpressions are eliminated
+    first, except in long lists of small expressions (:func:`_worth_cse`).
+    """
+    subs = {k: sp.Float(v) for k, v in (values or {}).items()}
+    flat = [almost_everywhere(sp.sympify(e).xreplace(subs)) for e in exprs]
+    return sp.lambdify(list(args), flat, modules=NUMERIC_MODULES, cse=_worth_cse(flat))
+
+
+#: Lists longer than this, of expressions of at most ``CSE_SMALL_NODES`` nodes each, are compiled without
+#: common-subexpression elimination.
+CSE_MIN_SKIP = 64
+CSE_SMALL_NODES = 32
+
+
+def _worth_cse(flat: Sequence[sp.Expr]) -> bool:
+    """Whether sympy's CSE is worth its cost: not on a long list of small expressions (a large plant's
+    equations or sparse Jacobian entries, which share few subtrees), where it took 3/4 of the compile time
+    (1.3 s of 1.6 s for the 512-state ladder's f, and most of the n^2 entries of its Jacobian)."""
+    if len(flat) <= CSE_MIN_SKIP:
+        return True
+    for e in flat:
+        if e.is_Atom:
+            continue
+        for k, _ in enumerate(sp.preorder_traversal(e)):
+            if k >= CSE_SMALL_NODES:
+                return True
+    return False
+
+
+def compile_terms(
+    terms: Sequence[sp.MatrixBase],
+    args: Sequence[sp.Symbol],
+    values: Mapping[sp.Symbol, float] | None = None,
+) -> Callable[[np.ndarray], list[np.ndarray]]:
+    """Compile several matrices into one fused function of a point or of a batch of points.
+
+    ``f(point)`` with point of shape (d,) returns one array per matrix, of that matrix's shape (r, c);
+    ``f(points)`` with shape (d, N) returns arrays of shape (N, r, c).  One compiled call evaluates every
+    term (the right-hand sides of the closed loops in ``simulate`` and ``falsify``).
+    """
+    shapes = [t.shape for t in terms]
+    ends = np.cumsum([0] + [r * c for r, c in shapes]).tolist()
+    pieces = [(slice(a, b), shape) for a, b, shape in zip(ends[:-1], ends[1:], shapes)]
+    fun = compile_flat([e for t in terms for e in t], args, values)
+
+    def evaluate(points: np.ndarray) -> list[np.ndarray]:
+        if np.ndim(points) == 1:   # one point: the ODE right-hand side, called thousands of times
+            flat = np.array(fun(*points), dtype=float)
+            return [flat[where].reshape(shape) for where, shape in pieces]
+        N = points.shape[1]
+        flat = np.stack([np.broadcast_to(np.asarray(v, dtype=float), (N,)) for v in fun(*points)], axis=1)
+        return [flat[:, where].reshape((N,) + shape) for where, shape in pieces]
+
+    return evaluate
+
+
+def lambdify(
+    exprs: sp.MatrixBase | Sequence[sp.Expr],
+    args: Sequence[sp.Symbol],
+    values: Mapping[sp.Symbol, float] | None = None,
+) -> Callable[..., np.ndarray]:
+    """Compile an expression matrix for numpy, broadcasting over its arguments.
+
+    Parameters
+    ----------
+    exprs : sympy Matrix or sequence of expressions
+        What to evaluate; a sequence is treated as a column.
+    args : sequence of Symbol
+        The arguments of the compiled function, in order.
+    values : mapping of Symbol to float, optional
+        Values substituted first (the spec's parameters).
+
+    Returns
+    -------
+    callable
+        ``f(*arrays)`` returning an array of shape ``exprs.shape + broadcast(arrays).shape``.
+        Entries that are not real (e.g. sqrt of a negative number) come out as NaN.
+    """
+    matrix = sp.Matrix(exprs) if not isinstance(exprs, sp.MatrixBase) else exprs
+    shape = matrix.shape
+    compiled = compile_flat(list(matrix), args, values)
+
+    def evaluate(*arrays):
+        arrs = [np.asarray(a, dtype=float) for a in arrays]
+        bshape = np.broadcast_shapes(*(a.shape for a in arrs)) if arrs else ()
+        with np.errstate(all="ignore"):
+            out = compiled(*arrs)
+            cols = [np.broadcast_to(np.real_if_close(np.asarray(o)), bshape) for o in out]
+        stacked = np.stack([np.where(np.iscomplex(c), np.nan, np.real(c)).astype(float) for c in cols], axis=0)
+        return stacked.reshape(shape + bshape)
+
+    return evaluate
+
+
+@dataclass(frozen=True)
+class Model:
+    """A spec turned into symbols and expressions.
+
+    Attributes
+    ----------
+    spec : Spec
+        The spec it was built from.
+    params : dict of str to Symbol
+        The parameter symbols; ``values`` maps them to their numbers.
+    x, u, xi, v : sympy Matrix
+        Column vectors of the concrete state and input and the abstract state and input.
+    f_bar, g, h : sympy Matrix
+        The concrete drift (n x 1), input matrix (n x m) and output map (p x 1).
+    phi_bar, l : sympy Matrix
+        The abstract drift (n_hat x 1) and the concrete input on the manifold l(xi) (m x 1).
+    delta : sympy Matrix or None
+        The abstract input matrix (n_hat x m_hat); None for ``flatten`` (designed by a stage).
+    U, Y : ndarray
+        Input box (m x 2) and output region (p x 2).
+    V : ndarray or None
+        The domain box of xi (n_hat x 2); None for ``auto`` (until the manifold stage has chosen it).
+    state_box : ndarray or None
+        The box of x the design is certified on (n x 2), if the spec gives one.
+    """
+
+    spec: Spec
+    params: dict[str, sp.Symbol]
+    values: dict[sp.Symbol, float]
+    x: sp.Matrix
+    u: sp.Matrix
+    xi: sp.Matrix
+    v: sp.Matrix
+    f_bar: sp.Matrix
+    g: sp.Matrix
+    h: sp.Matrix
+    phi_bar: sp.Matrix
+    l: sp.Matrix
+    delta: sp.Matrix | None
+    U: np.ndarray
+    Y: np.ndarray
+    V: np.ndarray | None
+    state_box: np.ndarray | None = None
+    #: Force the numeric fast paths (True), the symbolic ones (False), or choose by size (None).
+    numeric_paths: bool | None = None
+    names: dict[str, sp.Symbol] = field(default_factory=dict)
+    #: The left inverse m(x) the spec gives (``abstract.m``, n_hat x 1 in the concrete states), or None.
+    m_given: sp.Matrix | None = None
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def m(self) -> int:
+        return self.u.shape[0]
+
+    @property
+    def p(self) -> int:
+        return self.h.shape[0]
+
+    @property
+    def n_hat(self) -> int:
+        return self.xi.shape[0]
+
+    @property
+    def m_hat(self) -> int:
+        return self.v.shape[0]
+
+    @property
+    def use_numeric(self) -> bool:
+        """Whether stages take their numeric fast paths: forced by ``--numeric``, else for n > NUMERIC_THRESHOLD."""
+        return self.numeric_paths if self.numeric_paths is not None else self.n > NUMERIC_THRESHOLD
+
+    @cached_property
+    def f(self) -> sp.Matrix:
+        """f(x, u) = f_bar(x) + g(x) u (eq. concreteAffine)."""
+        return self.f_bar + self.g * self.u
+
+    @cached_property
+    def C(self) -> np.ndarray | None:
+        """The matrix C of a linear output map h(x) = C x, or None if h is not linear in x."""
+        jac = sparse_jacobian(self.h, self.x)
+        if any(e.free_symbols & set(self.x) for e in jac) or any(sp.simplify(e) != 0 for e in self.h - jac * self.x):
+            return None
+        return np.array(jac.xreplace({k: sp.Float(v) for k, v in self.values.items()}), dtype=float)
+
+    @cached_property
+    def valued(self) -> dict[str, sp.Matrix]:
+        """f_bar, g, h, phi_bar and l with the parameter values put in, once (:meth:`substitute`): numbers for the
+        stages to differentiate and compile repeatedly (substituting took 1 s per compile at n = 512)."""
+        return {name: self.substitute(getattr(self, name)) for name in ("f_bar", "g", "h", "phi_bar", "l")}
+
+    def numeric(self, exprs, args: Sequence[sp.Symbol]) -> Callable[..., np.ndarray]:
+        """:func:`lambdify` with this model's parameter values."""
+        return lambdify(exprs, args, self.values)
+
+    def h_jacobian_bound(self) -> tuple[float, np.ndarray]:
+        """L_h of Assumption 1: the sup of ||dh/dx(x)||_2 (linear h: ||C||_2 exactly).
+
+        For a nonlinear h the sup is taken over ``state_box`` (a grid refined by bounded local searches), so
+        the constant, and every bound built on it, holds while x stays in that box.
+
+        Returns
+        -------
+        L_h : float
+        at : ndarray
+            Where the sup is reached (empty for linear h).
+        """
+        if self.C is not None:
+            return float(np.linalg.norm(self.C, 2)), np.zeros(0)
+        if self.state_box is None:
+            raise SpecError("concrete.state_box", "missing: h is not linear, so its Lipschitz constant L_h (Assumption 1) is computed over a box of states",
+                            "one pair [lo, hi] per state")
+        jac = self.numeric(sparse_jacobian(self.h, self.x), list(self.x))
+        pts = domain_grid(self.state_box, 20000)
+        norms = np.linalg.norm(np.moveaxis(jac(*pts), -1, 0), ord=2, axis=(1, 2))
+        return maximise_on_box(pts, norms, lambda x: float(np.linalg.norm(jac(*x), 2)), self.state_box, starts=5)
+
+    def substitute(self, expr):
+        """An expression with the parameter values put in (for numbers, never for shown formulas)."""
+        return sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.values.items()})
+
+
+#: Expressions with more operations than this are kept as derived: rewriting them gains little, and sympy's
+#: simplify (which the kappa stage still asks for) can take minutes on them.
+SIMPLIFY_MAX_OPS = 400
+
+
+def shorter(e: sp.Expr) -> sp.Expr:
+    """One fraction with common factors pulled out (``together``, then ``factor_terms``), if that is shorter.
+
+    Both are cheap and deterministic; sympy's ``simplify`` searched far longer (1.2 s on the Cuk converter's
+    b(x)) and returned longer expressions on the converters (93 against 88 operations on the Cuk b, 45
+    against 33 on the boost b).
+    """
+    candidate = sp.factor_terms(sp.together(e))
+    return candidate if sp.count_ops(candidate) <= sp.count_ops(e) else e
+
+
+def tidy(matrix: sp.Matrix, how=shorter) -> sp.Matrix:
+    """Tidy (with ``how``) each entry small enough for sympy to do quickly; keep the rest as derived.
+
+    Entries with float coefficients (a fitted manifold or inverse) are left alone too: rewriting gains
+    nothing on them and can stall for minutes on a polynomial of high degree.
+    """
+    return matrix.applyfunc(lambda e: how(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS and not e.atoms(sp.Float) else e)
+
+
+def _matrix(rows, names, field_name, shape) -> sp.Matrix:
+    """Parse a spec list (of expressions, or of rows of expressions) into a matrix of the given shape."""
+    entries = []
+    for i, row in enumerate(rows):
+        if isinstance(row, list):
+            entries.extend(parse_expression(e, names, f"{field_name}[{i}][{j}]") for j, e in enumerate(row))
+        else:
+            entries.append(parse_expression(row, names, f"{field_name}[{i}]"))
+    return sp.Matrix(shape[0], shape[1], entries)
+
+
+def _check_free(expr_matrix: sp.Matrix, allowed: set, field_name: str, what: str) -> None:
+    for k, e in enumerate(expr_matrix):
+        extra = e.free_symbols - allowed
+        if extra:
+            names = ", ".join(sorted(str(s) for s in extra))
+            raise SpecError(f"{field_name}[{k}]", f"uses {names}", f"an expression in {what} and parameters only")
+
+
+def build_model(spec: Spec) -> Model:
+    """Parse a spec's expressions into a :class:`Model`.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    Model
+
+    Raises
+    ------
+    SpecError
+        If an expression does not parse or uses a name it may not (e.g. an abstract state in f_bar).
+    """
+    c, a = spec.concrete, spec.abstract
+    params = {k: parameter_symbol(k, v) for k, v in spec.parameters.items()}
+    values = {params[k]: float(v) for k, v in spec.parameters.items()}
+    x = sp.Matrix([state_symbol(s) for s in c.states])
+    u = sp.Matrix([state_symbol(s) for s in c.inputs])
+    xi = sp.Matrix([state_symbol(s) for s in a.states])
+    v = sp.Matrix([state_symbol(s) for s in a.inputs])
+    names: dict[str, sp.Symbol] = {**params}
+    names.update({str(s): s for s in (*x, *u, *xi, *v)})
+    n, m, nh, mh = len(x), len(u), len(xi), len(v)
+
+    pset = set(params.values())
+    f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1))
+    g = _matrix(c.g, names, "concrete.g", (n, m))
+    h = _matrix(c.h, names, "concrete.h", (len(c.h), 1))
+    for mat, fname in ((f_bar, "concrete.f_bar"), (g, "concrete.g"), (h, "concrete.h")):
+        _check_free(mat, pset | set(x), fname, "the concrete states")
+    phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1))
+    l = _matrix(a.l, names, "abstract.l", (m, 1))
+    for mat, fname in ((phi_bar, "abstract.phi_bar"), (l, "abstract.l")):
+        _check_free(mat, pset | set(xi), fname, "the abstract states")
+    if a.delta == "identity":
+        delta = sp.eye(nh)
+    elif a.delta == "flatten":
+        delta = None
+    else:
+        delta = (_matrix(a.delta, names, "abstract.delta", (nh, mh)) if isinstance(a.delta, list)
+                 else sp.Matrix([[parse_expression(a.delta, names, "abstract.delta")]]))
+        _check_free(delta, pset | set(xi), "abstract.delta", "the abstract states")
+    m_given = None
+    if a.m is not None:
+        m_given = _matrix(a.m, names, "abstract.m", (nh, 1))
+        _check_free(m_given, pset | set(x), "abstract.m", "the concrete states")
+    V = None if a.domain == "auto" else np.array(a.domain, dtype=float)
+    return Model(
+        spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
+        phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
+        Y=np.array(c.output_set, dtype=float), V=V, names=names,
+        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float), m_given=m_given,
+    )

@@ -1,0 +1,683 @@
+"""The YAML spec contract (``docs/spec-format.md``) as pydantic models, and the loader.
+
+:func:`load_spec` reads a file with a safe YAML loader (no aliases, no duplicate keys), validates it
+against :class:`Spec` (unknown keys are errors, with the closest valid key suggested), checks the
+shapes that relate fields to each other, and returns the model with its SHA-256.  Every problem becomes
+one :class:`~ashc_cli.errors.SpecError` naming the field.  Expressions stay text here; :mod:`ashc_cli.problem.model`
+parses them.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+import keyword
+import re
+import types
+import typing
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
+
+from ashc_cli.errors import SpecError
+from ashc_cli.problem.expr import RESERVED_NAMES
+
+__all__ = ["Spec", "load_spec", "parse_spec_text", "spec_sha256", "MAX_SPEC_BYTES"]
+
+#: Largest spec file accepted, in bytes.
+MAX_SPEC_BYTES = 1_000_000
+
+_IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def _expression_text(value: Any) -> Any:
+    """Accept a number where an expression is expected (YAML reads ``0`` as an int)."""
+    if isinstance(value, bool):
+        return value  # left for the str check to refuse
+    if isinstance(value, (int, float)):
+        return repr(value)
+    return value
+
+
+def _identifier(value: Any) -> Any:
+    if isinstance(value, str):
+        if not _IDENT.match(value):
+            raise ValueError(f"'{value}' is not a name (letters, digits and _, starting with a letter)")
+        if keyword.iskeyword(value) or value in RESERVED_NAMES:
+            raise ValueError(f"'{value}' is reserved (a keyword, a function name, pi or t)")
+    return value
+
+
+Expr = Annotated[str, BeforeValidator(_expression_text)]
+Name = Annotated[str, BeforeValidator(_identifier)]
+Bounds = Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+#: pydantic error type of a map of bounds whose keys do not match the declared names (its ``expected`` is in ctx).
+BOUNDS_MAP_ERROR = "bounds_map"
+
+
+def bounds_by_name(value: Any, names: Any, what: str) -> Any:
+    """A map of [lo, hi] pairs keyed by ``names`` as the list of pairs in the order of ``names``.
+
+    ``input_bounds: {u: [0.0, 0.8]}`` is ``input_bounds: [[0.0, 0.8]]``: every name exactly once, no other key
+    (duplicate keys are refused by the YAML loader).  A list, or a map met when ``names`` itself is invalid,
+    is returned as it is (the list validation then reports it).
+    """
+    if not isinstance(value, dict) or not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return value
+    listed = ", ".join(names)
+    expected = f"a map with one [lo, hi] pair for each of {listed} (every {what} exactly once), or a list of pairs in that order"
+    unknown = [k for k in value if k not in names]
+    if unknown:
+        raise PydanticCustomError(BOUNDS_MAP_ERROR, "unknown {what} {key}", {"what": what, "key": _short(unknown[0], 40), "expected": expected})
+    missing = [k for k in names if k not in value]
+    if missing:
+        raise PydanticCustomError(BOUNDS_MAP_ERROR, "no pair for {what} {key}", {"what": what, "key": _short(missing[0], 40), "expected": expected})
+    return [value[k] for k in names]
+
+
+class Concrete(_Strict):
+    """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. ConcreteSystem, concreteAffine)."""
+
+    states: list[Name] = Field(min_length=1)
+    inputs: list[Name] = Field(min_length=1)
+    f_bar: list[Expr]
+    g: list[list[Expr]]
+    h: list[Expr] = Field(min_length=1)
+    #: One [lo, hi] pair per input, as a list in input order or a map keyed by the input names.
+    input_bounds: list[Bounds]
+    #: One [lo, hi] pair per output of h, as a list or a map keyed by y1, y2, ..., yp.
+    output_set: list[Bounds]
+    #: The box of states the design is certified on, where the plant is not globally simple: needed when f
+    #: is not affine in x (the Jacobian LMI is imposed over it) or h is not linear (L_h is computed over it).
+    state_box: list[Bounds] | None = None
+
+    @field_validator("input_bounds", mode="before")
+    @classmethod
+    def _input_bounds_map(cls, value: Any, info: ValidationInfo) -> Any:
+        return bounds_by_name(value, info.data.get("inputs"), "input")
+
+    @field_validator("output_set", mode="before")
+    @classmethod
+    def _output_set_map(cls, value: Any, info: ValidationInfo) -> Any:
+        h = info.data.get("h")
+        return bounds_by_name(value, [f"y{k + 1}" for k in range(len(h))] if isinstance(h, list) else None, "output")
+
+
+class Stabilisability(_Strict):
+    """How the incremental Lyapunov function V(x, z) = (x - z)^T M (x - z) is obtained (eq. egLMI)."""
+
+    method: Literal["polytopic_lmi", "given"]
+    decay_rate: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["maximise"]
+    feedback: Literal["identity", "linear_gain"] = "identity"
+    M: list[list[FiniteFloat]] | None = None
+    #: The form of M searched by ``polytopic_lmi``: ``full``, ``diagonal`` (n unknowns, a sparse LMI: fast for
+    #: large networks), or ``auto`` (full up to ``stabilise.FULL_MAX_STATES`` states, else diagonal first and
+    #: full only if the diagonal LMI is infeasible).
+    structure: Literal["auto", "full", "diagonal"] = "auto"
+    #: What the search optimises: ``rate`` (the decay rate as given, or the largest with ``maximise``) or
+    #: ``min_gain`` (the M that minimises the gain G of the bound at the decay rate, or over the lambda-G frontier
+    #: with ``maximise``).
+    objective: Literal["rate", "min_gain"] = "rate"
+
+
+DeltaSpec = Literal["identity", "flatten"] | list[list[Expr]] | Expr
+
+
+class Abstract(_Strict):
+    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. abstractAffine)."""
+
+    states: list[Name] = Field(min_length=1)
+    inputs: list[Name] = Field(min_length=1)
+    phi_bar: list[Expr]
+    l: list[Expr]
+    domain: Literal["auto"] | list[Bounds]
+    delta: DeltaSpec = "identity"
+    #: Relative residual the polynomial solver of the invariance PDE must reach on an independent grid.
+    pde_tolerance: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 1e-8
+    #: Safety cap on the polynomial degree of the PDE solvers, which raise the degree until
+    #: ``pde_tolerance`` is met or the fit stops improving (the degree used is reported).
+    pde_max_degree: Annotated[int, Field(ge=1, le=128)] = 64
+    #: A point near the equilibrium p at the centre of V, where Newton continuation starts (phi_bar = 0, no closed form).
+    manifold_guess: list[FiniteFloat] | None = None
+    #: An explicit left inverse m(x) of p (n_hat expressions in the concrete states and parameters).  The
+    #: inverse stage checks it (m(p(xi)) = xi on V, condition (ii) on X_y) instead of constructing one.
+    m: list[Expr] | None = None
+
+
+class Interface(_Strict):
+    """The interface u_w = l(xi) + q(xi, x) v (eqs. Interface, egInterface, egInterfaceSat).
+
+    ``saturate``: ``true`` clips each input channel of l + K (x - p) + q v to its bounds (eq. egInterfaceSat);
+    ``scale`` multiplies the whole correction K (x - p) + q v by the one factor s in [0, 1] that brings u
+    into U (so the correction keeps its direction, and the uniform bound of an identity-feedback design
+    holds for any number of inputs); ``false`` applies it unclipped (u may leave U).
+    """
+
+    q: Literal["zero", "least_squares"] = "least_squares"
+    saturate: bool | Literal["scale"] = True
+
+
+class SetpointController(_Strict):
+    """v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max), elementwise."""
+
+    kind: Literal["setpoint"]
+    gain: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    v_max: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class GuaranteedController(_Strict):
+    """A controller that meets |psi - y| <= tolerance by construction (eq. TrackConst, docs/guaranteed.md).
+
+    ``budget``: the set-point law with the largest v_max for which the uniform bound of Theorem ErrorBound,
+    sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max, stays below the tolerance.  ``governor``: v = s v_sp
+    with the largest s in [0, 1] that keeps the comparison system's w below tolerance^2 alpha_h.  ``auto``: the
+    governor when its conditions hold (it then allows every v the budget allows, and more), else the budget.
+    """
+
+    kind: Literal["guaranteed"]
+    tolerance: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    gain: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    mode: Literal["auto", "budget", "governor"] = "auto"
+
+
+#: The abstract controllers, told apart by ``kind``.
+AbstractController = Annotated[SetpointController | GuaranteedController, Field(discriminator="kind")]
+#: The tags of the discriminated unions: pydantic puts them in an error's location, the messages leave them out.
+_UNION_TAGS = {"setpoint", "guaranteed", "TimedLevel"}
+
+
+class TimedLevel(_Strict):
+    """A reference level with a deadline: held within the tolerance from ``by`` seconds after the switch to it,
+    for ``hold`` seconds (a guaranteed controller reports whether its guarantee covers it)."""
+
+    level: FiniteFloat | list[FiniteFloat]
+    by: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    hold: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class Tracking(_Strict):
+    """The tracking scenario of Figs. Example_BoundedIn/Out."""
+
+    t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    xi0: list[FiniteFloat]
+    x0: Literal["on_manifold"] | list[FiniteFloat] = "on_manifold"
+    reference_levels: list[FiniteFloat | list[FiniteFloat] | TimedLevel] = Field(min_length=1)
+    dwell: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    abstract_controller: AbstractController
+
+    def level_values(self) -> list[float | list[float]]:
+        """The levels as numbers (one, or one list per level), deadlines dropped."""
+        return [r.level if isinstance(r, TimedLevel) else r for r in self.reference_levels]
+
+    def segment(self, index: int) -> tuple[float, float] | None:
+        """(start, end) in s of the dwell in which level ``index`` is held, None if the run ends before it.
+
+        Level k is held from k dwell to (k + 1) dwell, the last one to t_final (as ``simulate`` runs them).
+        """
+        start = index * self.dwell
+        if start >= self.t_final - 1e-12:
+            return None
+        last = index == len(self.reference_levels) - 1
+        return start, self.t_final if last else min(self.t_final, (index + 1) * self.dwell)
+
+
+class MRelation(_Strict):
+    """The m-relation scenario of Figs. Example_mRelationIn/Out: v = b(x) + c(x) u, xi0 = m(x0)."""
+
+    t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    x0: list[FiniteFloat]
+    u: Expr | list[Expr]
+
+
+class Simulate(_Strict):
+    """The simulation scenarios; either may be left out."""
+
+    tracking: Tracking | None = None
+    m_relation: MRelation | None = None
+
+
+class Spec(_Strict):
+    """A whole ashc spec (``docs/spec-format.md``)."""
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=100)]
+    description: str = ""
+    parameters: dict[Name, FiniteFloat] = Field(default_factory=dict)
+    concrete: Concrete
+    stabilisability: Stabilisability
+    abstract: Abstract
+    interface: Interface = Field(default_factory=Interface)
+    simulate: Simulate = Field(default_factory=Simulate)
+    #: Units for figure axes: keys are declared state/input names, ``t``, ``y`` (every output) or ``y1``, ``y2``, ...
+    units: dict[str, Annotated[str, Field(max_length=20)]] = Field(default_factory=dict)
+
+    @property
+    def sha256(self) -> str:
+        """SHA-256 of the spec's canonical JSON: comments and layout do not change it."""
+        return spec_sha256(self)
+
+
+def spec_sha256(spec: Spec) -> str:
+    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values).
+
+    Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` is
+    left out when absent, so specs without it hash as they did before the key existed.
+    """
+    data = spec.model_dump(mode="json")
+    if data["abstract"].get("m") is None:
+        data["abstract"].pop("m", None)
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# --- YAML ----------------------------------------------------------------------------------------------
+
+
+class _SafeStrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses aliases (no billion-laughs) and duplicate keys (a typo must not hide)."""
+
+    def compose_node(self, parent, index):  # noqa: D401 - PyYAML hook
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.MarkedYAMLError("while composing", None, "aliases (*name) are not allowed in a spec", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_document(self, node):
+        _refuse_duplicate_keys(node, "")
+        return super().construct_document(node)
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, str):
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"key {key!r} is not a name (every key of a spec is text)", key_node.start_mark)
+            if key in seen:
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"duplicate key '{key}'", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _refuse_duplicate_keys(node: yaml.Node, path: str) -> None:
+    """Refuse a key written twice in one mapping, naming the field it is in (``concrete.input_bounds``)."""
+    if isinstance(node, yaml.MappingNode):
+        seen = set()
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+            if key in seen:
+                shown = key if len(key) <= 40 else key[:37] + "..."
+                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark,
+                                           f"duplicate key '{shown}'" + (f" in {path}" if path else ""), key_node.start_mark)
+            if key is not None:
+                seen.add(key)
+            _refuse_duplicate_keys(value_node, f"{path}.{key}" if path else str(key))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _refuse_duplicate_keys(item, f"{path}[{i}]")
+    elif isinstance(node, yaml.ScalarNode) and node.tag in (_FLOAT_TAG, _INT_TAG) and not path.startswith("stabilisability.M"):
+        _refuse_unheld_digits(node, path)
+
+
+_FLOAT_TAG, _INT_TAG = "tag:yaml.org,2002:float", "tag:yaml.org,2002:int"
+
+
+def _refuse_unheld_digits(node: yaml.ScalarNode, path: str) -> None:
+    """Refuse a number written with more digits than a double holds (2.99999999999999999 reads as 3.0).
+
+    Exact decisions (l(V) inside U, kappa(V) covering Y, identities) read each number as the decimal it is
+    written as; that is only the number the tool computes with when the double holds every written digit.
+    """
+    import decimal
+
+    text = node.value.replace("_", "")
+    try:
+        written = decimal.Decimal(text)
+    except decimal.InvalidOperation:
+        return   # .inf, .nan and the like: the validators say what is wrong with them
+    if not written.is_finite():
+        return
+    value = float(written)
+    if value in (float("inf"), float("-inf")) or decimal.Decimal(repr(value)) != written:
+        raise SpecError(path or f"line {node.start_mark.line + 1}", f"{node.value} has more significant digits than a double holds (it would be read as {value!r})",
+                        "the number written with at most 17 significant digits (every exact decision reads the digits written)")
+
+
+def _yaml_load(text: str, source: str) -> Any:
+    try:
+        return yaml.load(text, Loader=_SafeStrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
+        duplicate = str(exc.problem).startswith("duplicate key")
+        raise SpecError(where, f"malformed YAML ({exc.problem})",
+                        "every key once in a mapping" if duplicate else "a YAML mapping written to docs/spec-format.md") from None
+    except (yaml.YAMLError, RecursionError) as exc:
+        raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to docs/spec-format.md") from None
+
+
+# --- validation errors to one line -----------------------------------------------------------------------
+
+
+_FIELD = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_TAGS = {"float", "int", "str", "bool", "list", "dict"}  # pydantic's names for Union branches
+
+
+def _path(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "spec"
+
+
+def _model_at(loc: tuple, branch: str | None = None) -> type[BaseModel] | None:
+    """The pydantic model that holds the keys at ``loc`` (for suggesting a key), if one does.
+
+    ``branch``: the tag of the union member the location is in (``guaranteed``, ``TimedLevel``), if any.
+    """
+    model: Any = Spec
+    last = max((k for k, part in enumerate(loc) if not isinstance(part, int)), default=-1)
+    for k, part in enumerate(loc):
+        if isinstance(part, int) or model is None:
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return None
+        model = _first_model(field.annotation, branch if k == last else None)
+    return model
+
+
+def _tags_at(loc: tuple) -> list[str]:
+    """The tags of the union members a field at ``loc`` may hold (``setpoint``, ``guaranteed``)."""
+    parent = _model_at(loc[:-1]) if loc else None
+    field = parent.model_fields.get(loc[-1]) if parent is not None and isinstance(loc[-1], str) else None
+    found: list[str] = []
+
+    def walk(annotation: Any) -> None:
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            found.append(_tag_of(annotation))
+        else:
+            for arg in typing.get_args(annotation):
+                walk(arg)
+
+    if field is not None:
+        walk(field.annotation)
+    return found
+
+
+def _tag_of(model: type[BaseModel]) -> str:
+    """The tag pydantic gives a union member in an error's location: its ``kind`` literal, else its class name."""
+    kind = model.model_fields.get("kind")
+    args = typing.get_args(kind.annotation) if kind is not None else ()
+    return str(args[0]) if args else model.__name__
+
+
+def _first_model(annotation: Any, branch: str | None = None) -> type[BaseModel] | None:
+    """The model an annotation refers to: the union member tagged ``branch`` when given, else the first one."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation if branch is None or _tag_of(annotation) == branch else None
+    origin = typing.get_origin(annotation)
+    if origin in (Union, types.UnionType, list) or origin is Annotated:
+        for arg in typing.get_args(annotation):
+            found = _first_model(arg, branch)
+            if found is not None:
+                return found
+    return None
+
+
+def _short(value: Any, limit: int = 50) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _validation_to_spec_error(exc: ValidationError) -> SpecError:
+    errors = exc.errors()
+    # An unknown key explains the "missing" errors it causes, so it goes first; otherwise a Union
+    # reports one error per branch and the most specific (longest location) says most.
+    err = max(errors, key=lambda e: (e["type"] == "extra_forbidden", len(e["loc"])))
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        # The offending key can be anything YAML allows (a number, punctuation): keep it as it is.
+        parent = tuple(p for p in err["loc"][:-1] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS))
+        branch = next((p for p in err["loc"][:-1] if p in _UNION_TAGS), None)   # the union member holding the key
+        parent = tuple(p for p in parent if p not in _UNION_TAGS)
+        key = str(err["loc"][-1]) if err["loc"] else "?"
+        model = _model_at(parent, branch)
+        valid = sorted(model.model_fields) if model else []
+        close = difflib.get_close_matches(key, valid, n=1)
+        hint = f"did you mean '{close[0]}'? valid keys: {', '.join(valid)}" if close else f"one of: {', '.join(valid)}"
+        return SpecError(_path(parent + (key,)), f"unknown key {_short(key)}", hint)
+    loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS and p not in _UNION_TAGS))
+    where = _path(loc)
+    if kind == "missing":
+        return SpecError(where, "missing", "this key (see docs/spec-format.md)")
+    value = err.get("input")
+    if kind in ("union_tag_invalid", "union_tag_not_found"):
+        ctx = err.get("ctx") or {}
+        key = ctx.get("discriminator", "kind").strip("'")
+        tags = ctx.get("expected_tags", "").replace("'", "") or ", ".join(_tags_at(loc))
+        shown = f"{key} {_short(value.get(key))}" if isinstance(value, dict) and key in value else f"no {key}"
+        return SpecError(f"{where}.{key}" if kind == "union_tag_invalid" else where,
+                         f"{shown} is not one of the kinds" if kind == "union_tag_invalid" else f"{shown} given (got {_short(value)})",
+                         f"{key}: {' or '.join(t.strip() for t in tags.split(','))}" if tags else f"a {key}")
+    msg = err["msg"].replace("Value error, ", "")
+    return SpecError(where, f"{msg} (got {_short(value)})", _expected_for(kind, err))
+
+
+def _expected_for(kind: str, err: dict) -> str:
+    ctx = err.get("ctx") or {}
+    if kind == "literal_error":
+        return ctx.get("expected", "one of the listed values")
+    if kind == BOUNDS_MAP_ERROR:
+        return ctx["expected"]
+    if kind in ("too_short", "too_long"):
+        return "a pair [lo, hi]" if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 else "the right number of items"
+    if kind.startswith("finite") or "nan" in kind:
+        return "a finite number"
+    if kind.startswith("greater_than_equal"):
+        return f"a number >= {ctx.get('ge')}"
+    if kind.startswith("greater_than"):
+        return f"a number > {ctx.get('gt')}"
+    return "a value of the type docs/spec-format.md gives"
+
+
+# --- shapes across fields ---------------------------------------------------------------------------------
+
+
+def _check_pair(where: str, pair: list[float]) -> None:
+    lo, hi = pair
+    if lo > hi:
+        raise SpecError(where, f"lo = {lo} > hi = {hi}", "a pair [lo, hi] with lo <= hi")
+
+
+def _check_len(where: str, items: list, n: int, what: str) -> None:
+    if len(items) != n:
+        raise SpecError(where, f"has {len(items)} entries", f"{n} ({what})")
+
+
+def check_shapes(spec: Spec) -> None:
+    """Check the dimensions that tie fields together (n, m, p, n_hat, m_hat) and name clashes.
+
+    Raises
+    ------
+    SpecError
+        Naming the first field whose length or contents do not fit.
+    """
+    c, a = spec.concrete, spec.abstract
+    n, m, p = len(c.states), len(c.inputs), len(c.h)
+    nh, mh = len(a.states), len(a.inputs)
+    _check_len("concrete.f_bar", c.f_bar, n, "one per state")
+    _check_len("concrete.g", c.g, n, "one row per state")
+    for i, row in enumerate(c.g):
+        _check_len(f"concrete.g[{i}]", row, m, "one column per input")
+    _check_len("concrete.input_bounds", c.input_bounds, m, "one pair per input")
+    _check_len("concrete.output_set", c.output_set, p, "one pair per output of h")
+    for key, pairs in (("concrete.input_bounds", c.input_bounds), ("concrete.output_set", c.output_set)):
+        for i, pair in enumerate(pairs):
+            _check_pair(f"{key}[{i}]", pair)
+    if c.state_box is not None:
+        _check_len("concrete.state_box", c.state_box, n, "one pair per state")
+        for i, pair in enumerate(c.state_box):
+            _check_pair(f"concrete.state_box[{i}]", pair)
+    if a.manifold_guess is not None:
+        _check_len("abstract.manifold_guess", a.manifold_guess, n, "one number per concrete state")
+    if a.m is not None:
+        _check_len("abstract.m", a.m, nh, "one expression in the concrete states per abstract state")
+    _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
+    _check_len("abstract.l", a.l, m, "one per concrete input")
+    if a.domain != "auto":
+        _check_len("abstract.domain", a.domain, nh, "one pair per abstract state")
+        for i, pair in enumerate(a.domain):
+            _check_pair(f"abstract.domain[{i}]", pair)
+    if isinstance(a.delta, list):
+        _check_len("abstract.delta", a.delta, nh, "one row per abstract state")
+        for i, row in enumerate(a.delta):
+            _check_len(f"abstract.delta[{i}]", row, mh, "one column per abstract input")
+    elif a.delta == "identity" and nh != mh:
+        raise SpecError("abstract.delta", f"'identity' needs as many abstract inputs as states, got {mh} and {nh}", "an n_hat x m_hat matrix of expressions")
+    elif a.delta not in ("identity", "flatten") and (nh, mh) != (1, 1):
+        raise SpecError("abstract.delta", "a single expression needs one abstract state and one input", f"a {nh} x {mh} matrix of expressions")
+    st = spec.stabilisability
+    if st.method == "given":
+        if st.M is None:
+            raise SpecError("stabilisability.M", "missing for method 'given'", f"a symmetric {n} x {n} matrix")
+        _check_len("stabilisability.M", st.M, n, "one row per state")
+        for i, row in enumerate(st.M):
+            _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")
+    elif st.M is not None:
+        raise SpecError("stabilisability.M", "given with method 'polytopic_lmi'", "method: given, or no M")
+    _check_names(spec)
+    _check_units(spec)
+    _check_simulate(spec, n, m, p, nh)
+
+
+def _check_names(spec: Spec) -> None:
+    seen: dict[str, str] = {}
+    groups = [
+        ("parameters", list(spec.parameters)),
+        ("concrete.states", spec.concrete.states),
+        ("concrete.inputs", spec.concrete.inputs),
+        ("abstract.states", spec.abstract.states),
+        ("abstract.inputs", spec.abstract.inputs),
+    ]
+    for where, names in groups:
+        for name in names:
+            if name in seen:
+                raise SpecError(where, f"name '{name}' is already used in {seen[name]}", "names unique across parameters, states and inputs")
+            seen[name] = where
+
+
+def _check_units(spec: Spec) -> None:
+    c, a = spec.concrete, spec.abstract
+    allowed = {*c.states, *c.inputs, *a.states, *a.inputs, "t", "y", *(f"y{k + 1}" for k in range(len(c.h)))}
+    for key in spec.units:
+        if key not in allowed:
+            raise SpecError(f"units.{key}", "is not a declared state or input, t, or an output name", f"one of {', '.join(sorted(allowed))}")
+
+
+def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:
+    tr = spec.simulate.tracking
+    if tr is not None:
+        _check_len("simulate.tracking.xi0", tr.xi0, nh, "one per abstract state")
+        if tr.x0 != "on_manifold":
+            _check_len("simulate.tracking.x0", tr.x0, n, "one per concrete state")
+        for i, (entry, level) in enumerate(zip(tr.reference_levels, tr.level_values())):
+            where = f"simulate.tracking.reference_levels[{i}]" + (".level" if isinstance(entry, TimedLevel) else "")
+            size = len(level) if isinstance(level, list) else 1
+            if size != p:
+                raise SpecError(where, f"has {size} values", f"{p} (one per output)")
+            if isinstance(entry, TimedLevel):
+                if tr.abstract_controller.kind != "guaranteed":
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline (by, hold) but the controller is '{tr.abstract_controller.kind}', which guarantees no tolerance",
+                                    "abstract_controller.kind: guaranteed, or a plain level")
+                seg = tr.segment(i)
+                held = None if seg is None else seg[1] - seg[0]
+                if held is None:
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline but the run ends (t_final = {tr.t_final:g} s) before level {i} is asked for",
+                                    "a t_final that reaches every level with a deadline")
+                if entry.by + entry.hold > held * (1 + 1e-12):
+                    raise SpecError(f"simulate.tracking.reference_levels[{i}].hold", f"by + hold = {entry.by + entry.hold:g} s runs past the {held:g} s this level is held",
+                                    "by + hold within the level's dwell (the last level: up to t_final)")
+    mr = spec.simulate.m_relation
+    if mr is not None:
+        _check_len("simulate.m_relation.x0", mr.x0, n, "one per concrete state")
+        us = mr.u if isinstance(mr.u, list) else [mr.u]
+        _check_len("simulate.m_relation.u", us, m, "one expression in t per concrete input")
+
+
+# --- entry points ---------------------------------------------------------------------------------------
+
+
+def parse_spec_text(text: str, source: str = "spec") -> Spec:
+    """Validate spec text (YAML) into a :class:`Spec`.
+
+    Parameters
+    ----------
+    text : str
+        The YAML text.
+    source : str
+        Where it came from (a path), for error messages.
+
+    Returns
+    -------
+    Spec
+
+    Raises
+    ------
+    SpecError
+        On malformed YAML, a missing or unknown key, a wrong type, length or value.
+    """
+    data = _yaml_load(text, source)
+    if not isinstance(data, dict):
+        raise SpecError(source, f"top level is {type(data).__name__}", "a YAML mapping with keys name, concrete, stabilisability, abstract, ...")
+    try:
+        spec = Spec.model_validate(data)
+    except ValidationError as exc:
+        raise _validation_to_spec_error(exc) from None
+    check_shapes(spec)
+    return spec
+
+
+def load_spec(path: str | Path) -> Spec:
+    """Read and validate a spec file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    Spec
+        The validated spec.
+
+    Raises
+    ------
+    SpecError
+        If the file cannot be read or is not a valid spec.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_SPEC_BYTES:
+            raise SpecError(str(path), f"file is {size} bytes", f"a spec under {MAX_SPEC_BYTES} bytes")
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError(str(path), "no such file", "the path of a YAML spec") from None
+    except IsADirectoryError:
+        raise SpecError(str(path), "is a directory", "the path of a YAML spec") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(str(path), f"cannot be read ({type(exc).__name__})", "a readable UTF-8 YAML file") from None
+    return parse_spec_text(text, str(path))
+

@@ -1,0 +1,1333 @@
+"""Falsification: search for closed loops that break the error bound of Theorem ErrorBound.
+
+Along each run the guarantee is
+
+    |psi(t) - y(t)| <= sqrt(W(0) exp(-(lambda - eps) t) / alpha_h) + G sup_{s <= t} ||v(s)||
+
+(Theorem ErrorBound with beta from the comparison lemma and the gain G of eq. egErrorBound), on the region the
+bound stage certifies: W(0) <= ``w0_max_certified`` and ||v|| <= ``v_max_certified`` (both +inf when the bound is
+global).  The command reports the largest ratio measured / guaranteed over all runs and times (it must not
+exceed 1), and the largest over the runs started on the manifold (W(0) = 0, where only G ||v||_inf counts).
+Times after xi first leaves V are not counted (the theorem is local to V); how many runs left V is reported.
+
+The runs are not only drawn at random: the falsifier *searches*.  Every run keeps ||v(t)|| <= v_limit = min(the
+spec's tracking ``v_max`` (or 1), ``v_max_certified``) and starts with W(0) <= ``w0_max_certified``.  Most
+strategies hold v constant over a common grid of ``holds`` (piecewise-constant v, so the bound's sup ||v|| is
+exact) and choose its amplitude too: in the linear regime the ratio does not depend on it, and a small one
+keeps xi near the point of V it starts from.  A held input that would carry xi out of V within two holds is
+reversed (or pointed at V's centre).  The strategies, each a share of the runs (:data:`SHARES`), are
+
+``random``
+    today's draws: xi0 in V, x0 near p(xi0) (a quarter on the manifold), random references with kappa in Y,
+    random set-point gains and random piecewise-constant disturbances on v (the set-point law, continuous in
+    the state, its norm clipped to v_limit).
+``greedy`` and ``square`` (on the manifold, x0 = p(xi0), xi0 across V including near both edges)
+    ``greedy``: a state-feedback adversary; at the start of every hold it picks, among the inputs of its
+    amplitude (+-v for one abstract input), the one that maximises a one-hold look-ahead of
+    rho W / alpha_h + (1 - rho) ||dh/dx e||^2, e = p(xi) - x (rho = 1: the v that maximises the growth of W,
+    the saturation included), kept for at least ``dwell`` holds (hysteresis against chattering).
+    ``square``: bang-bang square waves v = a dir sign(sin(2 pi (f t + phase))), f from 1 / t_final to a
+    quarter of the hold rate, half at full amplitude, half with the amplitude fitted to V.
+``linearised``
+    at points of V the loop linearised about (xi, p(xi)) with v held over each hold is e+ = E e + Gamma v,
+    e_y = C e.  The input of norm a that maximises |e_y| after K holds is v_i = a normalise(C E^(K-1-i) Gamma)^T w
+    (bang-bang for one input); it is repeated with alternating sign.  Its gain sum_k ||C E^k Gamma|| / G is the
+    linearised worst ratio at that point (``linearised_worst_ratio``: 0.157 on the Cuk converter, at xi = 0).
+    The runs start where that ratio is largest and across V, with a fitted so that xi stays within 1 %, 3 % or
+    10 % of V's width; every third top point gets a square wave at the frequency of the largest linearised gain.
+``off_manifold``
+    x0 on the boundary of the certified region, W(0) = ``w0_max_certified``, or, when the bound is global,
+    W(0) spread over 10^-2 .. 10^6 times (output span)^2 alpha_h.  The directions are those of the largest
+    output error (M^-1 dh/dx^T: the bound is tight there at t = 0), the least stable modes of the linearised
+    loop, the principal axes of M and a random one.  Half have v = 0, half the W-greedy adversary.
+``refined``
+    the best runs (always including the best one on the manifold; runs off it ranked after t = 0, where
+    their ratio is 1 by construction) are refined by a derivative-free (1 + lambda) evolution strategy over
+    their parameters: xi0, frequency, phase and amplitude, look-ahead weight and dwell, pattern length and
+    phase, direction and size of x0 - p(xi0).  Each generation is one batch for all seeds together, the
+    step halving per generation (a fixed budget of :data:`REFINE_SHARE` of the runs).
+
+Integration: hold by hold with an embedded Dormand-Prince 5(4) pair (:data:`TOL`).  Each run is compiled code
+with its own step-size control, the runs shared by a pool of threads over every core
+(:mod:`ashc_cli.closedloop.falsify_loop`); without numba (or with ``ASHC_COMPILED=0``) the whole batch is one vectorised
+numpy ODE whose error control takes the worst run of the batch (:func:`_simulate`, the reference).  The hold is at most the fastest linearised time
+constant and 1/16 of the shortest linearised oscillation period.  The runs that decide the two reported ratios are integrated again with a tolerance 100 times
+tighter (:data:`TOL_VERIFY`), replaying the same v; the reported numbers and the stored worst runs come from
+that verification.  The floor (1e-7 of the output span) is taken off every error, so that a start that is
+tight by construction is not rounded above 1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+import scipy.linalg as sla
+
+from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.closedloop.compiled import Unsupported
+from ashc_cli.errors import DesignError
+from ashc_cli.closedloop.falsify_loop import falsify_loop
+from ashc_cli.problem.grids import domain_grid
+from ashc_cli.products.attack import attack
+from ashc_cli.problem.model import Model, apply_saturation, compile_flat, sparse_jacobian
+from ashc_cli.numerics.linalg import pinv
+from ashc_cli.numerics.proofs import SIMULATED
+
+NAME = "falsify"
+#: Progress steps reported to the caller (the CLI's progress bar has this length).
+SEGMENTS = 20
+#: Reference segments of the random strategy.
+REF_SEGMENTS = 3
+#: Search integration: embedded Dormand-Prince 5(4), error per run relative to the state's scale.
+TOL = {"method": "Dormand-Prince 5(4)", "rtol": 1e-5, "atol": 1e-9}
+#: Verification of the runs that decide the reported numbers.
+TOL_VERIFY = {"method": "Dormand-Prince 5(4)", "rtol": 1e-7, "atol": 1e-11}
+#: References and disturbances keep xi this fraction of V's width away from its edges.
+REF_MARGIN = 0.05
+#: Errors below this fraction of the output span count as zero (the integrator's accuracy).
+FLOOR_RTOL = 1e-7
+#: Most hold intervals per run; the hold is at most t_final / MIN_HOLDS.
+MAX_HOLDS = 4000
+MIN_HOLDS = 100
+#: A held input is turned around when xi would leave V within this many holds.
+GUARD_LOOKAHEAD = 2.0
+#: Shares of the first batch (the refinement gets REFINE_SHARE of all runs).
+SHARES = {"random": 0.15, "manifold": 0.35, "linearised": 0.2, "off_manifold": 0.3}
+REFINE_SHARE = 0.2
+#: Below this many runs nothing is kept back for refinement.
+REFINE_MIN_RUNS = 12
+REFINE_SEEDS = 3
+REFINE_GENERATIONS = 2
+#: Runs verified per headline number (max_ratio, max_ratio_w0_zero) and round, and most rounds.
+VERIFY_TOP = 1
+VERIFY_ROUNDS = 8
+#: Open-loop inputs (square waves, linearised patterns) start with an amplitude that moves xi over at most this
+#: fraction of V's width, and from an xi0 shifted so that xi stays in V.
+EXCURSION = 0.1
+#: Amplitudes of v searched, as log10 of the fraction of v_limit.
+AMP_DECADES = (-3.0, 0.0)
+#: Off the manifold with a global bound: W(0) / ((output span)^2 alpha_h) spread over these decades.
+W0_DECADES = (-2.0, 6.0)
+#: A run whose state exceeds this multiple of its scale has diverged (counted up to there, then frozen).
+DIVERGED = 1e12
+STRATEGIES = ("random", "greedy", "square", "linearised", "off_manifold", "refined")
+#: Length of each run when neither --t-final nor the spec's tracking scenario gives one.
+DEFAULT_T_FINAL = 10.0
+
+SETPOINT, TABLE, GREEDY = 0, 1, 2
+
+
+class BatchPlant:
+    """The design's maps evaluated on a batch of points at once, fused into one compiled function of xi and
+    one of x (each call returns every term, shape (N, rows, cols))."""
+
+    def __init__(self, model: Model, arts: dict[str, Artefact]):
+        xi_terms = {"phi": model.phi_bar, "delta": arts["delta"].expr("delta"), "l": model.l,
+                    "dpd": arts["bound"].expr("dp_delta"), "p": arts["manifold"].expr("p"), "kappa": arts["kappa"].expr("kappa"),
+                    "dp": arts["manifold"].expr("dp_dxi")}
+        x_terms = {"f_bar": model.f_bar, "g": model.g, "h": model.h, "dh": sparse_jacobian(model.h, model.x)}
+        self._xi = self._named(xi_terms, list(model.xi), model)
+        self._x = self._named(x_terms, list(model.x), model)
+        self.M = np.asarray(arts["stabilise"].value("M"), dtype=float)
+        self.L = np.linalg.cholesky(self.M)
+        self.K = np.asarray(arts["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
+
+    @staticmethod
+    def _named(terms: dict, args: list, model: Model):
+        # One compiled function of every entry; the entries are written into one array (constants broadcast by
+        # the assignment), several times cheaper per call than model.compile_terms on the small batches here.
+        shapes = [t.shape for t in terms.values()]
+        ends = np.cumsum([0] + [r * c for r, c in shapes]).tolist()
+        fun = compile_flat([e for t in terms.values() for e in t], args, model.values)
+        pieces = [(name, a, b, shape) for name, a, b, shape in zip(terms, ends[:-1], ends[1:], shapes)]
+
+        def evaluate(points: np.ndarray) -> dict[str, np.ndarray]:
+            N = points.shape[1]
+            flat = np.empty((N, ends[-1]))
+            for j, value in enumerate(fun(*points)):
+                flat[:, j] = value
+            return {name: flat[:, a:b].reshape((N,) + shape) for name, a, b, shape in pieces}
+
+        return evaluate
+
+    def at_xi(self, xi: np.ndarray) -> dict[str, np.ndarray]:
+        """phi, delta, l, dpd (dp/dxi delta), p, kappa, dp (dp/dxi) at the columns of xi (n_hat, N)."""
+        return self._xi(xi)
+
+    def at_x(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """f_bar, g, h, dh (dh/dx) at the columns of x (n, N)."""
+        return self._x(x)
+
+
+def saturate(model: Model, l: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """u = sat(l + c) for rows l (in U) and corrections c, by the spec's ``interface.saturate``
+    (:func:`ashc_cli.problem.model.apply_saturation`, the law simulate uses too)."""
+    return apply_saturation(l, c, model.U, model.spec.interface.saturate)
+
+
+def _interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) -> dict:
+    """Everything of the closed loop at the columns xi (n_hat, N), x (n, N) that does not depend on v."""
+    a, b = plant.at_xi(xi), plant.at_x(x)
+    kx = (x.T - a["p"][:, :, 0]) @ plant.K.T
+    if model.spec.interface.q == "least_squares":
+        A = plant.L.T @ a["dpd"]
+        B = plant.L.T @ b["g"]
+        q = pinv(B) @ A                                                          # (N, m, m_hat)
+    else:
+        q = np.zeros((xi.shape[1], model.m, model.m_hat))
+    return {"a": a, "b": b, "kx": kx, "q": q}
+
+
+def _mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A stack of matrices (N, r, c) times a stack of vectors (N, c)."""
+    return (A @ v[:, :, None])[:, :, 0]
+
+
+def _apply(model: Model, pre: dict, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u, xi', x' for the batch with input v (N, m_hat): u = sat(l + K (x - p) + q v)."""
+    a, b = pre["a"], pre["b"]
+    u = saturate(model, a["l"][:, :, 0], pre["kx"] + _mv(pre["q"], v))
+    dxi = a["phi"][:, :, 0] + _mv(a["delta"], v)
+    dx = b["f_bar"][:, :, 0] + _mv(b["g"], u)
+    return u, dxi, dx
+
+
+def _controls(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray, v: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """v, u, xi' and x' for the batch (shapes (N, m_hat), (N, m), (N, n_hat), (N, n)) with the interface
+    u = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (:func:`saturate`) and the two systems."""
+    u, dxi, dx = _apply(model, _interface(model, plant, xi, x), v)
+    return v, u, dxi, dx
+
+
+def _reference_pool(model: Model, plant: BatchPlant, rng: np.random.Generator, margin: float, count: int = 20000) -> np.ndarray:
+    """Points of V, at least ``margin`` of its width inside, whose kappa lies in Y (rows)."""
+    pad = margin * np.ptp(model.V, axis=1)[:, None]
+    pts = rng.uniform(model.V[:, 0:1] + pad, model.V[:, 1:2] - pad, size=(model.n_hat, count))
+    k = plant.at_xi(pts)["kappa"][:, :, 0].T
+    keep = np.all((k >= model.Y[:, 0:1]) & (k <= model.Y[:, 1:2]), axis=0)
+    if not keep.any():
+        raise DesignError("concrete.output_set", "no sampled point of V has kappa in Y", "Y inside kappa(V)")
+    return pts[:, keep].T
+
+
+# --- the setting of a search ----------------------------------------------------------------------------
+
+
+@dataclass
+class Setup:
+    """What every batch of a search shares: the design, the bound, the hold grid, the limits."""
+
+    model: Model
+    plant: BatchPlant
+    t_final: float
+    holds: int
+    hold: float
+    v_limit: float
+    w0_max: float
+    v_max_certified: float
+    lam: float
+    eps: float
+    alpha_h: float
+    G: float
+    span: float
+    floor: float
+    scale: np.ndarray            # per state of (xi, x): the absolute tolerance's unit
+    gain0: float
+    v_max_spec: float
+    delta_max: float = 1.0
+    lin: dict | None = None
+    loop: object | None = None          # the compiled runs (falsify_loop.FalsifyLoop), None: numpy (_simulate)
+    on_runs: Callable[[int, int, float], None] | None = None   # (runs done, of, seconds) after each compiled chunk
+
+    @property
+    def t(self) -> np.ndarray:
+        return np.linspace(0.0, self.t_final, self.holds + 1)
+
+
+@dataclass
+class Batch:
+    """Runs integrated together (arrays over runs).  ``mode``: SETPOINT (the random strategy's set-point law,
+    continuous in the state), TABLE (v held per interval from ``vtab``) or GREEDY (the state-feedback
+    adversary, held per interval); held inputs are turned around near V's edges where ``guard``."""
+
+    strategy: list
+    xi0: np.ndarray      # (N, n_hat)
+    x0: np.ndarray       # (N, n)
+    mode: np.ndarray     # (N,)
+    vtab: np.ndarray     # (N, holds, m_hat)
+    rho: np.ndarray      # (N,)
+    dwell: np.ndarray    # (N,)
+    amp: np.ndarray      # (N,) fraction of v_limit of the greedy adversary and of the guard's input
+    guard: np.ndarray    # (N,)
+    refs: np.ndarray     # (S, N, n_hat)
+    gains: np.ndarray    # (N,)
+    noise: np.ndarray    # (S, N, m_hat)
+    params: list = field(default_factory=list)   # per run: (kind, off, vector) for refinement, or None
+    origin: np.ndarray | None = None            # per run: the run it was refined from (-1: none)
+
+    def __len__(self) -> int:
+        return len(self.mode)
+
+    @staticmethod
+    def concat(parts: list[Batch]) -> Batch:
+        parts = [p for p in parts if len(p)]
+        out = {}
+        for f in fields(Batch):
+            vals = [getattr(p, f.name) for p in parts]
+            if f.name in ("strategy", "params"):
+                out[f.name] = [x for v in vals for x in v]
+            elif f.name in ("refs", "noise"):
+                out[f.name] = np.concatenate(vals, axis=1)
+            elif f.name == "origin":
+                out[f.name] = np.concatenate([v if v is not None else np.full(len(p), -1) for v, p in zip(vals, parts)])
+            else:
+                out[f.name] = np.concatenate(vals, axis=0)
+        return Batch(**out)
+
+    def take(self, idx) -> Batch:
+        idx = np.asarray(idx, dtype=int)
+        out = {}
+        for f in fields(Batch):
+            v = getattr(self, f.name)
+            if f.name in ("strategy", "params"):
+                out[f.name] = [v[i] for i in idx]
+            elif f.name in ("refs", "noise"):
+                out[f.name] = v[:, idx]
+            elif f.name == "origin":
+                out[f.name] = None if v is None else v[idx]
+            else:
+                out[f.name] = v[idx]
+        return Batch(**out)
+
+
+def _empty(st: Setup, count: int, strategy: str, mode: int) -> Batch:
+    m = st.model
+    return Batch(strategy=[strategy] * count, xi0=np.zeros((count, m.n_hat)), x0=np.zeros((count, m.n)),
+                 mode=np.full(count, mode), vtab=np.zeros((count, st.holds, m.m_hat)), rho=np.ones(count),
+                 dwell=np.ones(count, dtype=int), amp=np.ones(count), guard=np.full(count, mode != SETPOINT),
+                 refs=np.zeros((REF_SEGMENTS, count, m.n_hat)), gains=np.zeros(count),
+                 noise=np.zeros((REF_SEGMENTS, count, m.m_hat)), params=[None] * count)
+
+
+# --- integration -------------------------------------------------------------------------------------------
+
+_DP_A = [[], [1 / 5], [3 / 40, 9 / 40], [44 / 45, -56 / 15, 32 / 9],
+         [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
+         [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
+         [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]]
+_DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+
+
+def _unit_candidates(m_hat: int) -> np.ndarray:
+    """Inputs of unit norm the greedy adversary chooses from: +-e_j and +-(e_i +- e_j) / sqrt 2."""
+    eye = np.eye(m_hat)
+    rows = [eye, -eye]
+    if 1 < m_hat <= 4:
+        for i in range(m_hat):
+            for j in range(i + 1, m_hat):
+                for si in (1, -1):
+                    for sj in (1, -1):
+                        rows.append(((si * eye[i] + sj * eye[j]) / np.sqrt(2.0))[None])
+    return np.concatenate(rows, axis=0)
+
+
+def _w0(st: Setup, b: Batch) -> np.ndarray:
+    """W(xi0, x0) = (p(xi0) - x0)^T M (p(xi0) - x0) per run (exactly 0 on the manifold)."""
+    e0 = st.plant.at_xi(b.xi0.T)["p"][:, :, 0] - b.x0
+    W0 = np.maximum(np.einsum("Ni,ij,Nj->N", e0, st.plant.M, e0), 0.0)
+    W0[np.all(e0 == 0, axis=1)] = 0.0
+    return W0
+
+
+def _integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
+    """The runs of ``b``: compiled, each run with its own step size, over every core (:mod:`ashc_cli.closedloop.falsify_loop`),
+    else (numba missing, ``ASHC_COMPILED=0``, an expression numba cannot run) vectorised by :func:`_simulate`.
+    Returns what :func:`_simulate` returns; the compiled runs without ``vused`` (see :func:`_replay`)."""
+    if st.loop is None:
+        return _simulate(st, b, tol, record, progress)
+    def report(done: int, total: int, seconds: float) -> None:
+        if st.on_runs is not None:
+            st.on_runs(done, total, seconds)
+        if progress is not None:
+            progress(done / max(total, 1))
+    return st.loop.run(st, b, tol, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD, record, report,
+                       keep_inputs=False)
+
+
+def _simulate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
+    """Integrate a batch hold by hold and measure the error / bound ratio at every hold boundary.
+
+    Returns per run: ``ratio`` (largest), ``ratio_late`` (largest after t = 0), ``k_at`` (hold boundary where),
+    ``max_error``, ``left_V``, ``diverged``, ``vused`` (the held inputs, for a replay), ``W0``, ``forced`` (steps
+    accepted at the smallest step without meeting the tolerance); with ``record`` also the series ``Z``,
+    ``err``, ``bound``, ``v`` at the hold boundaries.  The ratio at a boundary is (error - floor) / bound while
+    xi has stayed in V and the error is above the floor (the integrator's accuracy).
+    """
+    model, plant = st.model, st.plant
+    nh, n, mh = model.n_hat, model.n, model.m_hat
+    N, H, dt = len(b), st.holds, st.hold
+    tgrid = st.t
+    Z = np.c_[b.xi0, b.x0].astype(float)
+    W0 = _w0(st, b)
+    lo, hi = model.V[:, 0], model.V[:, 1]
+    centre = model.V.mean(axis=1)
+    cand = _unit_candidates(mh)
+    atol = tol["atol"] * st.scale
+    rtol = tol["rtol"]
+    h_min = dt / 4096.0
+    held = b.mode != SETPOINT
+    greedy = b.mode == GREEDY
+    setpoint = b.mode == SETPOINT
+
+    active = np.ones(N, dtype=bool)
+    left = np.zeros(N, dtype=bool)
+    diverged = np.zeros(N, dtype=bool)
+    ratio = np.zeros(N)
+    ratio_late = np.zeros(N)      # over t > 0 (the start of a run off the manifold can be tight, ratio 1)
+    k_at = np.zeros(N, dtype=int)
+    max_err = np.zeros(N)
+    vsup = np.zeros(N)
+    at_limit = np.zeros(N)
+    forced = np.zeros(N, dtype=int)
+    steps = [0, 0]   # accepted, rejected
+    vused = np.zeros((N, H, mh))
+    last_switch = np.full(N, -(10 ** 9))
+    prev = np.zeros((N, mh))
+    largest_bound = 0.0
+    if record:
+        Zs, errs, bnds, vs = np.zeros((N, H + 1, nh + n)), np.zeros((N, H + 1)), np.zeros((N, H + 1)), np.zeros((N, H + 1, mh))
+
+    def setpoint_v(pre, xi_rows, seg):
+        a = pre["a"]
+        v = _mv(pinv(a["delta"]), b.gains[:, None] * (b.refs[seg] - xi_rows) - a["phi"][:, :, 0]) + b.noise[seg]
+        nv = np.linalg.norm(v, axis=1)
+        return v * np.minimum(1.0, st.v_limit / np.maximum(nv, 1e-300))[:, None]
+
+    def rhs(Zc, vh, seg, pre=None):
+        xi, x = Zc[:, :nh].T, Zc[:, nh:].T
+        if pre is None:
+            pre = _interface(model, plant, xi, x)
+        v = vh
+        if setpoint.any():
+            v = np.where(setpoint[:, None], setpoint_v(pre, Zc[:, :nh], seg), vh)
+        _, dxi, dx = _apply(model, pre, v)
+        d = np.concatenate([dxi, dx], axis=1)
+        d[~active] = 0.0
+        return np.where(np.isfinite(d), d, 0.0)
+
+    h = dt
+    report_every = max(1, H // 10)
+    for k in range(H + 1):
+        seg = min(k * REF_SEGMENTS // H, REF_SEGMENTS - 1)
+        xi_rows, x_rows = Z[:, :nh], Z[:, nh:]
+        finite = np.all(np.isfinite(Z), axis=1) & np.all(np.abs(Z) <= DIVERGED * st.scale, axis=1)
+        newly = active & ~finite
+        diverged |= newly
+        active &= finite
+        Zsafe = np.where(np.isfinite(Z), Z, 0.0)
+        pre = _interface(model, plant, Zsafe[:, :nh].T, Zsafe[:, nh:].T)
+        a, bx = pre["a"], pre["b"]
+        inside = np.all((xi_rows >= lo - 1e-9) & (xi_rows <= hi + 1e-9), axis=1)
+        left |= active & ~inside
+        active &= inside
+        err = np.linalg.norm(a["kappa"][:, :, 0] - bx["h"][:, :, 0], axis=1)
+
+        # The input of hold k (held modes) or at t_k (set-point law).
+        v_now = np.zeros((N, mh))
+        if k < H:
+            if held.any():
+                v_plan = b.vtab[:, k].copy()
+                if greedy.any():
+                    decide = greedy & active & (k - last_switch >= b.dwell)
+                    keep = greedy & ~decide
+                    v_plan[keep] = prev[keep]
+                    if decide.any():
+                        e = a["p"][:, :, 0] - x_rows
+                        best = np.full(N, -np.inf)
+                        choice = np.zeros((N, mh))
+                        C = bx["dh"]
+                        for c in cand:
+                            vc = c[None, :] * (st.v_limit * b.amp)[:, None]
+                            _, dxi, dx = _apply(model, pre, vc)
+                            de = np.einsum("Nij,Nj->Ni", a["dp"], dxi) - dx
+                            ee = e + dt * de
+                            J = (b.rho * np.einsum("Ni,ij,Nj->N", ee, plant.M, ee) / st.alpha_h
+                                 + (1 - b.rho) * np.sum(np.einsum("Nij,Nj->Ni", C, ee) ** 2, axis=1))
+                            ok = ~b.guard | _stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi, lo, hi)
+                            J = np.where(ok, J, -np.inf)
+                            thr = best.copy()
+                            fin = np.isfinite(best)
+                            thr[fin] += 1e-12 * np.abs(best[fin])
+                            better = J > thr
+                            # Ties (on the manifold every sign of v gives the same growth) keep the previous input.
+                            tie = np.isclose(J, best, rtol=1e-9, atol=0.0) & np.all(np.isclose(vc, prev), axis=1)
+                            upd = better | tie
+                            best = np.where(upd, J, best)
+                            choice = np.where(upd[:, None], vc, choice)
+                        none = decide & ~np.isfinite(best)
+                        choice[none] = 0.0
+                        switched = decide & np.any(choice != prev, axis=1)
+                        last_switch = np.where(switched, k, last_switch)
+                        v_plan[decide] = choice[decide]
+                        v_plan[none] = np.nan   # turned inwards below
+                # Guard: a held input that would carry xi out of V is reversed, else turned to V's centre.
+                g_rows = b.guard & held & active
+                if g_rows.any():
+                    v_in = np.einsum("Nij,Nj->Ni", pinv(a["delta"]), centre - xi_rows)
+                    nin = np.linalg.norm(v_in, axis=1)
+                    v_in = v_in * (st.v_limit * b.amp / np.maximum(nin, 1e-300))[:, None]
+                    plan0 = np.nan_to_num(v_plan)
+                    _, dxi, _ = _apply(model, pre, plan0)
+                    out = g_rows & (~_stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi, lo, hi) | np.any(np.isnan(v_plan), axis=1))
+                    if out.any():
+                        _, dxi_r, _ = _apply(model, pre, -plan0)
+                        rev_ok = _stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi_r, lo, hi) & np.any(plan0 != 0, axis=1)
+                        v_plan = np.where((out & rev_ok)[:, None], -plan0, v_plan)
+                        v_plan = np.where((out & ~rev_ok)[:, None], v_in, v_plan)
+                v_plan = np.nan_to_num(v_plan)
+                prev = np.where(greedy[:, None], v_plan, prev)
+                v_now = np.where(held[:, None], v_plan, 0.0)
+            if setpoint.any():
+                v_now = np.where(setpoint[:, None], setpoint_v(pre, Zsafe[:, :nh], seg), v_now)
+            vused[:, k] = v_now
+        elif setpoint.any():
+            v_now = np.where(setpoint[:, None], setpoint_v(pre, Zsafe[:, :nh], seg), 0.0)
+        vn = np.linalg.norm(v_now, axis=1)
+        vsup = np.where(active, np.maximum(vsup, vn), vsup)
+        at_limit += active & (vn >= st.v_limit * (1 - 1e-9))
+
+        bound = np.sqrt(W0 * math.exp(-(st.lam - st.eps) * tgrid[k]) / st.alpha_h) + st.G * vsup
+        # The integrator's accuracy (the floor) is taken off the error: errors below it count as zero, and the
+        # tight start of a run off the manifold in the worst direction (ratio 1 at t = 0) is not rounded above 1.
+        counted = active & (err > st.floor)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(counted, np.where(bound > 0, (err - st.floor) / np.maximum(bound, 1e-300), np.inf), 0.0)
+        higher = r > ratio
+        ratio = np.where(higher, r, ratio)
+        if k > 0:
+            ratio_late = np.maximum(ratio_late, r)
+        k_at = np.where(higher, k, k_at)
+        max_err = np.where(active, np.maximum(max_err, np.where(np.isfinite(err), err, 0.0)), max_err)
+        if active.any():
+            largest_bound = max(largest_bound, float(np.max(bound[active])))
+        if record:
+            Zs[:, k], errs[:, k], bnds[:, k], vs[:, k] = Z, err, bound, v_now
+        if k == H:
+            break
+        if progress is not None and (k + 1) % report_every == 0:
+            progress((k + 1) / H)
+        if not active.any():
+            continue
+
+        # Integrate hold k: Dormand-Prince 5(4) steps, error control over the active runs.
+        t, t_end = tgrid[k], tgrid[k + 1]
+        vh = v_now if held.any() else np.zeros((N, mh))
+        k1 = rhs(Z, vh, seg, pre)
+        while t < t_end - 1e-14 * max(1.0, t_end):
+            h_nat = h
+            h = min(h, t_end - t)
+            ks = [k1]
+            for s in range(1, 7):
+                zs = Z + h * sum(c * kk for c, kk in zip(_DP_A[s], ks) if c != 0.0)
+                ks.append(rhs(zs, vh, seg))
+            z_new = zs                                           # stage 7 is evaluated at the 5th-order solution
+            err_vec = h * sum(c * kk for c, kk in zip(_DP_E, ks) if c != 0.0)
+            sc = atol + rtol * np.maximum(np.abs(Z), np.abs(z_new))
+            e_run = np.sqrt(np.mean((err_vec / sc) ** 2, axis=1))
+            e_run = np.where(active & np.isfinite(e_run), e_run, 0.0)
+            E = float(e_run.max()) if N else 0.0
+            if E <= 1.0 or h <= h_min:
+                if E > 1.0:
+                    forced += e_run > 1.0
+                steps[0] += 1
+                Z = z_new
+                t += h
+                k1 = ks[6]
+                h = h * min(5.0, max(0.2, 0.9 * E ** -0.2)) if E > 0 else h * 5.0
+                h = min(max(h, h_min, h_nat if h < h_nat and E <= 0.5 else 0.0), dt)
+            else:
+                steps[1] += 1
+                h = max(h_min, h * max(0.2, 0.9 * E ** -0.2))
+
+    out = {"ratio": ratio, "ratio_late": ratio_late, "k_at": k_at, "max_error": max_err, "left_V": left, "diverged": diverged, "vused": vused,
+           "W0": W0, "forced": forced, "vsup": vsup, "at_limit": at_limit, "largest_bound": largest_bound,
+           "steps": np.array(steps)}
+    if record:
+        out.update({"Z": Zs, "err": errs, "bound": bnds, "v": vs})
+    return out
+
+
+def _stays(xi_rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.all((xi_rows >= lo) & (xi_rows <= hi), axis=1)
+
+
+# --- linearisation ------------------------------------------------------------------------------------------
+
+
+def _linearise(st: Setup, xi_grid: np.ndarray) -> dict:
+    """The loop linearised about (xi, p(xi)), v = 0, at the columns of xi_grid: e' = J e + theta v, e_y = C e
+    with e = p - x, theta = dp/dxi delta - g q (the unsaturated interface)."""
+    model, plant = st.model, st.plant
+    n, Ng = model.n, xi_grid.shape[1]
+    a = plant.at_xi(xi_grid)
+    p, l = a["p"][:, :, 0], a["l"][:, :, 0]
+    step = 1e-6 * np.maximum(1.0, np.abs(p))                                        # (Ng, n)
+    X = np.repeat(p[None], 2 * n, axis=0)                                           # (2n, Ng, n)
+    for j in range(n):
+        X[2 * j, :, j] += step[:, j]
+        X[2 * j + 1, :, j] -= step[:, j]
+    Xf = X.reshape(-1, n)
+    bx = plant.at_x(Xf.T)
+    u = np.tile(l, (2 * n, 1)) + (Xf - np.tile(p, (2 * n, 1))) @ plant.K.T
+    F = (bx["f_bar"][:, :, 0] + np.einsum("Nij,Nj->Ni", bx["g"], u)).reshape(2 * n, Ng, n)
+    J = np.stack([(F[2 * j] - F[2 * j + 1]) / (2 * step[:, j:j + 1]) for j in range(n)], axis=2)   # (Ng, n, n)
+    b0 = plant.at_x(p.T)
+    pre = _interface(model, plant, xi_grid, p.T)
+    theta = a["dpd"] - b0["g"] @ pre["q"]
+    return {"xi": xi_grid, "J": J, "theta": theta, "C": b0["dh"], "p": p}
+
+
+def _discrete(st: Setup, lin: dict) -> dict:
+    """E = exp(J hold), Gamma = int_0^hold exp(J s) ds theta; the Markov parameters C E^k Gamma over the window
+    where they matter; the linearised worst ratio per point and the output direction that reaches it."""
+    J, theta, C = lin["J"], lin["theta"], lin["C"]
+    Ng, n, mh = theta.shape
+    p = C.shape[1]
+    aug = np.zeros((Ng, n + mh, n + mh))
+    aug[:, :n, :n] = J * st.hold
+    aug[:, :n, n:] = theta * st.hold
+    with np.errstate(all="ignore"):
+        Ea = sla.expm(aug)
+    E, Gam = Ea[:, :n, :n], Ea[:, :n, n:]
+    ok = np.all(np.isfinite(Ea), axis=(1, 2))
+    E, Gam = np.where(ok[:, None, None], E, 0.0), np.where(ok[:, None, None], Gam, 0.0)
+    marks = []
+    Xk = Gam
+    top = 0.0
+    for k in range(st.holds):
+        mk = C @ Xk                                                                 # (Ng, p, mh)
+        marks.append(mk)
+        size = float(np.max(np.abs(mk)))
+        top = max(top, size)
+        if k > 8 and size < 1e-4 * top:
+            break
+        Xk = E @ Xk
+    mk = np.stack(marks, axis=1)                                                    # (Ng, K, p, mh)
+    if p == 1:
+        W = np.ones((1, 1))
+    else:
+        if p == 2:
+            ang = np.linspace(0, np.pi, 16, endpoint=False)
+            W = np.c_[np.cos(ang), np.sin(ang)]
+        else:
+            W = np.random.default_rng(0).standard_normal((32, p))
+            W = np.r_[np.eye(p), W / np.linalg.norm(W, axis=1, keepdims=True)]
+    gain = np.stack([np.linalg.norm(np.einsum("p,NKpm->NKm", w, mk), axis=2).sum(axis=1) for w in W], axis=1)   # (Ng, w)
+    wbest = np.argmax(gain, axis=1)
+    ratio = gain[np.arange(Ng), wbest] / st.G if st.G > 0 else np.full(Ng, np.inf)
+    # Frequency of the largest sinusoidal gain sigma_max(C (j w - J)^-1 theta).
+    omegas = np.geomspace(2 * np.pi / st.t_final, np.pi / st.hold, 48)
+    sig = np.zeros((Ng, omegas.size))
+    eye = np.eye(n)
+    for i, w in enumerate(omegas):
+        with np.errstate(all="ignore"):
+            try:
+                Hm = C @ np.linalg.solve(1j * w * eye - J, theta.astype(complex))
+            except np.linalg.LinAlgError:
+                continue
+        sig[:, i] = np.linalg.norm(Hm, ord=2, axis=(1, 2)) if min(p, mh) > 1 else np.sqrt(np.sum(np.abs(Hm) ** 2, axis=(1, 2)))
+    sig = np.where(np.isfinite(sig), sig, 0.0)
+    f_star = omegas[np.argmax(sig, axis=1)] / (2 * np.pi)
+    return {"marks": mk, "W": W, "wbest": wbest, "ratio": np.where(ok, ratio, 0.0), "f_star": f_star}
+
+
+def _pattern(st: Setup, disc: dict, g: int, length: int, offset: float, wsel: int | None = None) -> np.ndarray:
+    """The linearised worst input at grid point g at full amplitude: v_i = v_limit normalise(m_{K-1-i}^T w),
+    i < K, repeated with alternating sign, started ``offset`` of a period late (holds, m_hat)."""
+    mk = disc["marks"][g]                                                            # (K, p, mh)
+    K = int(np.clip(length, 1, mk.shape[0]))
+    w = disc["W"][disc["wbest"][g] if wsel is None else wsel % len(disc["W"])]
+    rows = np.einsum("p,Kpm->Km", w, mk[:K])[::-1]                                  # v_0 .. v_{K-1}
+    nr = np.linalg.norm(rows, axis=1, keepdims=True)
+    # Where the linearised response vanishes (theta = 0 there) the pattern is a square wave of period 2 K.
+    unit = np.zeros(rows.shape[1])
+    unit[0] = 1.0
+    rows = np.where(nr > 1e-12 * max(float(nr.max()), 1e-300), rows / np.where(nr > 0, nr, 1.0), unit) * st.v_limit
+    i = np.arange(st.holds) + int(round(offset * K))
+    sign = np.where((i // K) % 2 == 0, 1.0, -1.0)
+    return rows[i % K] * sign[:, None]
+
+
+def _square(st: Setup, f: float, phase: float, direction: np.ndarray) -> np.ndarray:
+    """v = v_limit dir sign(sin(2 pi (f t + phase))) sampled at the middle of each hold (holds, m_hat)."""
+    tm = (np.arange(st.holds) + 0.5) * st.hold
+    s = np.sign(np.sin(2 * np.pi * (f * tm + phase)))
+    s[s == 0] = 1.0
+    d = np.asarray(direction, dtype=float)
+    d = d / max(float(np.linalg.norm(d)), 1e-300)
+    return s[:, None] * d[None, :] * st.v_limit
+
+
+def _excursion(st: Setup, xi0: np.ndarray, vtab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest and highest displacement of xi from xi0 under a held input at full amplitude, delta frozen at xi0
+    (the drift phi_bar left out): the extremes of hold * cumsum(delta(xi0) v_i)."""
+    delta0 = st.plant.at_xi(xi0[:, None])["delta"][0]                                 # (nh, mh)
+    path = np.cumsum(vtab @ delta0.T, axis=0) * st.hold
+    path = np.vstack([np.zeros((1, len(xi0))), path])
+    return path.min(axis=0), path.max(axis=0)
+
+
+def _fit_amplitude(st: Setup, xi0: np.ndarray, vtab: np.ndarray, excursion: float = EXCURSION) -> float:
+    """The fraction of v_limit that keeps xi's excursion under a held input within ``excursion`` of V's width."""
+    lo, hi = _excursion(st, xi0, vtab)
+    spread = hi - lo
+    width = np.ptp(st.model.V, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(spread > 0, excursion * width / spread, np.inf)
+    return float(np.clip(np.min(frac), 10 ** AMP_DECADES[0], 1.0))
+
+
+def _shift_into_V(st: Setup, xi0: np.ndarray, vtab: np.ndarray) -> np.ndarray:
+    """xi0 moved (as little as possible) so that xi stays in V under the held input (delta frozen); where the
+    excursion does not fit in V, xi0 stays (in V) and the guard turns the input around at V's edges."""
+    lo, hi = _excursion(st, xi0, vtab)
+    V = st.model.V
+    pad = 0.005 * np.ptp(V, axis=1)
+    a, b = V[:, 0] - lo + pad, V[:, 1] - hi - pad
+    return np.clip(np.where(a <= b, np.clip(xi0, a, b), xi0), V[:, 0], V[:, 1])
+
+
+# --- run parameters (for the strategies and the refinement) --------------------------------------------------
+
+
+def _param_bounds(st: Setup, kind: str, off: bool, w0_free: bool, disc: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Box of a kind's parameter vector: xi0 | law (with log10 amplitude / v_limit) | x0 - p(xi0) direction, log10 W0.
+
+    square: log10 f, phase, log10 amplitude, direction (several abstract inputs); greedy: rho, log2 dwell,
+    log10 amplitude; pattern: log10 K, offset, output direction, log10 amplitude; free (v = 0): nothing.
+    """
+    m = st.model
+    lo, hi = list(m.V[:, 0]), list(m.V[:, 1])
+    f_lo, f_hi = 1.0 / st.t_final, 0.25 / st.hold
+    many = m.m_hat if m.m_hat > 1 else 0
+    if kind == "square":
+        lo += [np.log10(f_lo), 0.0, AMP_DECADES[0]] + [-1.0] * many
+        hi += [np.log10(f_hi), 1.0, AMP_DECADES[1]] + [1.0] * many
+    elif kind == "greedy":
+        lo += [0.0, 0.0, AMP_DECADES[0]]
+        hi += [1.0, 3.0, AMP_DECADES[1]]
+    elif kind == "pattern":
+        lo += [np.log10(2.0), 0.0, 0.0, AMP_DECADES[0]]
+        hi += [np.log10(max(2.0, disc["marks"].shape[1])), 1.0, 1.0, AMP_DECADES[1]]
+    if off:
+        lo += [-1.0] * m.n + ([W0_DECADES[0]] if w0_free else [])
+        hi += [1.0] * m.n + ([W0_DECADES[1]] if w0_free else [])
+    return np.array(lo, dtype=float), np.array(hi, dtype=float)
+
+
+def _law_table(st: Setup, kind: str, xi0: np.ndarray, law: np.ndarray, disc: dict, lin: dict) -> np.ndarray:
+    """The full-amplitude held input of an open-loop kind (holds, m_hat)."""
+    mh = st.model.m_hat
+    if kind == "square":
+        direction = law[3:3 + mh] if mh > 1 else np.ones(1)
+        if not np.any(direction):
+            direction = np.ones(mh)
+        return _square(st, 10 ** law[0], law[1], direction)
+    g = int(np.argmin(np.sum((lin["xi"].T - xi0) ** 2, axis=1)))
+    W = len(disc["W"])
+    return _pattern(st, disc, g, int(round(10 ** law[0])), law[1], int(law[2] * W) if W > 1 else None)
+
+
+def _decode(st: Setup, kind: str, off: bool, w0_free: bool, vec: np.ndarray, disc: dict, lin: dict) -> Batch:
+    """One run from a parameter vector (see :func:`_param_bounds`)."""
+    m = st.model
+    nh, n, mh = m.n_hat, m.n, m.m_hat
+    xi0 = np.clip(vec[:nh], m.V[:, 0], m.V[:, 1])
+    b = _empty(st, 1, kind, GREEDY if kind == "greedy" else TABLE)
+    i = nh
+    if kind in ("square", "pattern"):
+        size = 3 + (mh if mh > 1 else 0) if kind == "square" else 4
+        law = vec[i:i + size]
+        amp = 10 ** float(law[2] if kind == "square" else law[3])
+        table = _law_table(st, kind, xi0, law, disc, lin) * amp
+        xi0 = _shift_into_V(st, xi0, table)
+        b.vtab[0] = table
+        i += size
+    elif kind == "greedy":
+        b.rho[0] = float(np.clip(vec[i], 0, 1))
+        b.dwell[0] = int(round(2 ** np.clip(vec[i + 1], 0, 3)))
+        b.amp[0] = 10 ** float(np.clip(vec[i + 2], *AMP_DECADES))
+        i += 3
+    else:   # "free": v = 0 throughout (no guard: the run tests W0 alone)
+        b.guard[0] = False
+    p0 = st.plant.at_xi(xi0[:, None])["p"][0, :, 0]
+    x0 = p0.copy()
+    if off:
+        d = vec[i:i + n]
+        if not np.any(d):
+            d = np.ones(n)
+        d = d / np.sqrt(d @ st.plant.M @ d)
+        W0 = st.w0_max * (1 - 1e-6) if not w0_free else st.span ** 2 * st.alpha_h * 10 ** vec[i + n]
+        x0 = p0 + np.sqrt(W0) * d
+        if st.model.state_box is not None:
+            x0 = np.clip(x0, st.model.state_box[:, 0], st.model.state_box[:, 1])
+    b.xi0[0], b.x0[0] = xi0, x0
+    b.params = [(kind, off, np.array(vec, dtype=float))]
+    return b
+
+
+def _runs(st: Setup, specs: list[tuple[str, bool, np.ndarray]], disc: dict, lin: dict, strategy: str | None = None) -> Batch:
+    w0_free = not np.isfinite(st.w0_max)
+    parts = [_decode(st, kind, off, w0_free, vec, disc, lin) for kind, off, vec in specs]
+    out = Batch.concat(parts) if parts else _empty(st, 0, "none", TABLE)
+    if strategy is not None:
+        out.strategy = [strategy] * len(out)
+    return out
+
+
+def _open_loop(st: Setup, kind: str, xi0: np.ndarray, law: list, disc: dict, lin: dict, full: bool,
+               excursion: float = EXCURSION) -> np.ndarray:
+    """The parameter vector of an open-loop run with its amplitude fitted to V (or full amplitude)."""
+    law = np.array(law, dtype=float)
+    at = 2 if kind == "square" else 3
+    if full:
+        law[at] = 0.0
+    else:
+        law[at] = np.log10(_fit_amplitude(st, xi0, _law_table(st, kind, xi0, law, disc, lin), excursion))
+    return np.r_[xi0, law]
+
+
+# --- the strategies -------------------------------------------------------------------------------------------
+
+
+def _allocate(runs: int) -> dict[str, int]:
+    """Runs per strategy: REFINE_SHARE for the refinement (from REFINE_MIN_RUNS runs on), the rest by SHARES."""
+    refine = int(round(REFINE_SHARE * runs)) if runs >= REFINE_MIN_RUNS else 0
+    main = runs - refine
+    order = ["linearised", "off_manifold", "manifold", "random"]
+    counts = dict.fromkeys(order, 0)
+    if main < len(order):
+        for name in order[:main]:
+            counts[name] = 1
+    else:
+        for name in order:
+            counts[name] = 1
+        rest = main - len(order)
+        raw = {k: SHARES[k] * rest for k in order}
+        for k in order:
+            counts[k] += int(np.floor(raw[k]))
+        left = main - sum(counts.values())
+        for k in sorted(order, key=lambda k: raw[k] - np.floor(raw[k]), reverse=True)[:left]:
+            counts[k] += 1
+    counts["refined"] = refine
+    return counts
+
+
+def _spread(lo: np.ndarray, hi: np.ndarray, count: int, rng: np.random.Generator, edge: float = 0.02) -> np.ndarray:
+    """count points of the box: near both edges first (``edge`` of the width inside), then a Latin hypercube (rows)."""
+    nh = len(lo)
+    width = hi - lo
+    pts = []
+    for j in range(min(count, 2 * nh)):
+        pt = rng.uniform(lo + edge * width, hi - edge * width)
+        axis, side = j // 2, j % 2
+        pt[axis] = lo[axis] + (edge if side == 0 else 1 - edge) * width[axis]
+        pts.append(pt)
+    rest = count - len(pts)
+    if rest > 0:
+        u = (np.stack([rng.permutation(rest) for _ in range(nh)], axis=1) + rng.uniform(0, 1, (rest, nh))) / rest
+        pts.extend(lo + u * width)
+    return np.array(pts, dtype=float).reshape(count, nh)
+
+
+def _random_runs(st: Setup, count: int, rng: np.random.Generator) -> Batch:
+    """Today's random draws: xi0 in V, x0 near p(xi0) (a quarter on the manifold), set-point references in V with
+    kappa in Y, random gains and bounded disturbances (the set-point law clipped to v_limit)."""
+    model, plant = st.model, st.plant
+    nh, n, mh = model.n_hat, model.n, model.m_hat
+    b = _empty(st, count, "random", SETPOINT)
+    if count == 0:
+        return b
+    xi0 = rng.uniform(model.V[:, 0], model.V[:, 1], size=(count, nh))
+    p0 = plant.at_xi(xi0.T)["p"][:, :, 0]
+    d = rng.standard_normal((count, n))
+    d /= np.sqrt(np.einsum("Ni,ij,Nj->N", d, plant.M, d))[:, None]
+    W_target = rng.uniform(0, min((0.1 * st.span) ** 2 * st.alpha_h, st.w0_max * (1 - 1e-6)), size=count)
+    W_target[: max(1, count // 4)] = 0.0
+    x0 = p0 + np.sqrt(W_target)[:, None] * d
+    if model.state_box is not None:
+        x0 = np.clip(x0, model.state_box[:, 0], model.state_box[:, 1])
+    pool = _reference_pool(model, plant, rng, margin=REF_MARGIN)
+    b.xi0, b.x0 = xi0, x0
+    b.refs = pool[rng.integers(0, len(pool), size=(REF_SEGMENTS, count))]
+    b.gains = st.gain0 * rng.uniform(0.5, 2.0, size=count)
+    # The disturbance moves the abstract equilibrium by at most delta noise / gain <= REF_MARGIN of V's width.
+    amplitude = np.minimum(0.5 * st.v_limit, REF_MARGIN * np.ptp(model.V, axis=1).min() * b.gains / max(st.delta_max, 1e-300))
+    b.noise = rng.uniform(-1, 1, size=(REF_SEGMENTS, count, mh)) * amplitude[None, :, None]
+    return b
+
+
+def _directions(st: Setup, lin: dict, g: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Directions of x0 - p(xi0): the largest output error (M^-1 dh/dx^T), the least stable modes of the
+    linearised loop, the principal axes of M, each with both signs, and one random direction."""
+    M = st.plant.M
+    out = []
+    for row in lin["C"][g]:
+        if np.any(row):
+            out.append(np.linalg.solve(M, row))
+    w, vecs = np.linalg.eig(lin["J"][g])
+    for k in np.argsort(-w.real)[:2]:
+        out.extend([vecs[:, k].real, vecs[:, k].imag])
+    _, U = np.linalg.eigh(M)
+    out.extend(U.T)
+    out = [d for d in out if np.linalg.norm(d) > 1e-12]
+    full = []
+    for d in out:
+        full.extend([d, -d])
+    full.append(rng.standard_normal(st.model.n))
+    return full
+
+
+def _first_batch(st: Setup, counts: dict, rng: np.random.Generator, lin: dict, disc: dict) -> Batch:
+    """The runs of every strategy but the refinement, in one batch."""
+    model = st.model
+    mh = model.m_hat
+    lo, hi = model.V[:, 0], model.V[:, 1]
+    w0_free = not np.isfinite(st.w0_max)
+    f_lo, f_hi = 1.0 / st.t_final, 0.25 / st.hold
+    rand = _random_runs(st, counts["random"], rng)
+
+    def direction():
+        return list(rng.standard_normal(mh)) if mh > 1 else []
+
+    # On the manifold: greedy adversaries (full amplitude and smaller) and square waves (half at full amplitude,
+    # turned around by the guard near V's edges; half with the amplitude fitted to V), xi0 across V.
+    nm = counts["manifold"]
+    ng = (nm + 1) // 2
+    xs = _spread(lo, hi, ng, rng)
+    settings = [(1.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, -1.0), (0.5, 2.0, 0.0), (1.0, 0.0, -2.0), (0.0, 1.0, -1.0)]
+    greedy = [("greedy", False, np.r_[xs[j], settings[j % len(settings)]]) for j in range(ng)]
+    ns = nm - ng
+    xs = _spread(lo, hi, ns, rng)
+    freqs = np.geomspace(f_lo, f_hi, max(ns, 1))[rng.permutation(max(ns, 1))]
+    square = [("square", False, _open_loop(st, "square", xs[j], [np.log10(freqs[j]), rng.uniform(), 0.0] + direction(),
+                                           disc, lin, full=j % 2 == 0)) for j in range(ns)]
+    man = _runs(st, greedy, disc, lin, "greedy")
+    sq = _runs(st, square, disc, lin, "square")
+
+    # Linearised worst case: the pattern at the points of V where its ratio is largest, then across V, the
+    # amplitude fitted so that xi stays within 1 %, 3 % or 10 % of V's width of the point (the linearised ratio
+    # does not depend on the amplitude, but it can fall fast away from the point); every third top point a
+    # square wave at its worst frequency.
+    nl = counts["linearised"]
+    width = np.ptp(model.V, axis=1)
+    picked = []
+    for g in np.argsort(-disc["ratio"]):
+        if all(np.max(np.abs(lin["xi"][:, g] - lin["xi"][:, q]) / width) > 0.03 for q in picked):
+            picked.append(int(g))
+        if len(picked) >= max(1, (nl + 1) // 2):
+            break
+    across = np.linspace(0, lin["xi"].shape[1] - 1, max(1, nl - len(picked))).round().astype(int)
+    K = disc["marks"].shape[1]
+    specs = []
+    for j in range(nl):
+        g = picked[j] if j < len(picked) else int(across[j - len(picked)])
+        xi_g = lin["xi"][:, g]
+        if j < len(picked) and j % 3 == 2:
+            f = float(np.clip(disc["f_star"][g], f_lo, f_hi))
+            specs.append(("square", False, _open_loop(st, "square", xi_g, [np.log10(f), 0.0, 0.0] + direction(), disc, lin, False, 0.01)))
+        else:
+            wsel = (disc["wbest"][g] + 0.5) / len(disc["W"])
+            specs.append(("pattern", False, _open_loop(st, "pattern", xi_g, [np.log10(max(2, K)), 0.0, wsel, 0.0], disc, lin, False,
+                                                       (0.01, 0.03, 0.1)[j % 3])))
+    lin_runs = _runs(st, specs, disc, lin, "linearised")
+
+    # Off the manifold: x0 on the boundary of the certified W0 region (or W0 over decades when it is global), in
+    # the directions of _directions; half with v = 0, half with the W-greedy adversary.
+    no = counts["off_manifold"]
+    specs = []
+    xs = _spread(lo, hi, no, rng)
+    levels = np.linspace(*W0_DECADES, max(no, 1))[rng.permutation(max(no, 1))]
+    for j in range(no):
+        g = int(np.argmin(np.sum((lin["xi"].T - xs[j]) ** 2, axis=1)))
+        dirs = _directions(st, lin, g, rng)
+        d = dirs[(j // 2) % len(dirs)]
+        d = d / max(np.max(np.abs(d)), 1e-300)
+        tail = np.r_[d, levels[j]] if w0_free else d
+        if j % 2 == 0:
+            specs.append(("free", True, np.r_[xs[j], tail]))
+        else:
+            specs.append(("greedy", True, np.r_[xs[j], 1.0, 0.0, 0.0, tail]))
+    off = _runs(st, specs, disc, lin, "off_manifold")
+    return Batch.concat([rand, man, sq, lin_runs, off])
+
+
+
+def _refine(st: Setup, first: Batch, res: dict, budget: int, rng: np.random.Generator, lin: dict, disc: dict,
+            progress: Callable[[float], None] | None = None) -> tuple[Batch, dict]:
+    """(1 + lambda) evolution strategy from the best refinable runs: every generation one batch of perturbed
+    parameter vectors for all seeds, the step shrinking by half per generation."""
+    if budget <= 0:
+        return _empty(st, 0, "refined", TABLE), None
+    w0_free = not np.isfinite(st.w0_max)
+    ratio = res["ratio_late"]   # a start that is tight by construction (ratio 1 at t = 0) is no lead
+    refinable = np.array([p is not None for p in first.params])
+    if not refinable.any():
+        return _empty(st, 0, "refined", TABLE), None
+    seeds = []
+    zero = res["W0"] == 0
+    for mask in (refinable & zero, refinable):
+        if mask.any():
+            cand = np.where(mask)[0]
+            seeds.append(int(cand[np.argmax(ratio[cand])]))
+    for i in np.argsort(-ratio):
+        if len(set(seeds)) >= REFINE_SEEDS:
+            break
+        if refinable[i]:
+            seeds.append(int(i))
+    seeds = list(dict.fromkeys(seeds))
+    best = {s: (float(ratio[s]), first.params[s][2].copy()) for s in seeds}
+    gens = max(1, min(REFINE_GENERATIONS, budget // len(seeds)))
+    batches, results = [], []
+    used = 0
+    for gen in range(gens):
+        left = budget - used
+        per = left // ((gens - gen) * len(seeds))
+        extra = left - per * (gens - gen) * len(seeds) if gen == gens - 1 else 0
+        specs, origin = [], []
+        for j, s in enumerate(seeds):
+            kind, off, _ = first.params[s]
+            lo, hi = _param_bounds(st, kind, off, w0_free, disc)
+            sigma = 0.2 * 0.5 ** gen * (hi - lo)
+            count = per + (extra if j == 0 else 0)
+            for _ in range(count):
+                vec = np.clip(best[s][1] + sigma * rng.standard_normal(len(lo)), lo, hi)
+                specs.append((kind, off, vec))
+                origin.append(s)
+        if not specs:
+            continue
+        b = _runs(st, specs, disc, lin, "refined")
+        b.origin = np.array(origin)
+        r = _integrate(st, b, TOL)
+        for i, s in enumerate(origin):
+            if r["ratio_late"][i] > best[s][0]:
+                best[s] = (float(r["ratio_late"][i]), b.params[i][2].copy())
+        batches.append(b)
+        results.append(r)
+        used += len(b)
+        if progress is not None:
+            progress((gen + 1) / gens)
+    if not batches:
+        return _empty(st, 0, "refined", TABLE), None
+    return Batch.concat(batches), _merge(results)
+
+
+def _merge(results: list[dict]) -> dict:
+    out = {}
+    for key in results[0]:
+        if key == "largest_bound":
+            out[key] = max(r[key] for r in results)
+        elif key == "steps":
+            out[key] = sum(r[key] for r in results)
+        else:
+            out[key] = np.concatenate([r[key] for r in results], axis=0)
+    return out
+
+
+def _replay(st: Setup, batch: Batch, res: dict, idx: np.ndarray) -> Batch:
+    """The runs idx with their held inputs as a table (the same v, no guard): for the verification.  The compiled
+    runs keep no inputs: each is integrated again alone at :data:`TOL` (the same run, since its step control is
+    its own) to recover them."""
+    b = batch.take(idx)
+    held = b.mode != SETPOINT
+    if "vused" in res:
+        vused = res["vused"][idx]
+    else:
+        vused = st.loop.run(st, b, TOL, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD)["vused"]
+    b.vtab = np.where(held[:, None, None], vused, b.vtab)
+    b.mode = np.where(held, TABLE, b.mode)
+    b.guard = np.zeros(len(b), dtype=bool)
+    return b
+
+
+def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Setup:
+    plant = BatchPlant(model, arts)
+    tr = model.spec.simulate.tracking
+    ac = tr.abstract_controller if tr is not None else None
+    gain0 = float(getattr(ac, "gain", 1.0) or 1.0)
+    v_max_spec = float(getattr(ac, "v_max", 1.0) or 1.0)
+    t_final = float(t_final if t_final is not None else (tr.t_final if tr is not None else DEFAULT_T_FINAL))
+    if not t_final > 0:
+        raise DesignError("--t-final", f"{t_final}", "a positive length of run")
+    bd = arts["bound"].values
+    lam, eps, alpha_h, G = (float(bd[k]) for k in ("lambda", "epsilon", "alpha_h", "gain"))
+    w0_max = float(bd.get("w0_max_certified", np.inf))
+    v_cert = float(bd.get("v_max_certified", np.inf))
+    v_limit = min(v_max_spec, v_cert)
+    span = float(np.ptp(model.Y, axis=1).max())
+    nh = model.n_hat
+    width = np.ptp(model.V, axis=1)
+    grid = domain_grid(model.V, 201 if nh == 1 else 225)
+    p_grid = plant.at_xi(grid)["p"][:, :, 0]
+    scale = np.r_[np.maximum(width, 1e-12), np.maximum(1.0, np.max(np.abs(p_grid), axis=0))]
+    st = Setup(model=model, plant=plant, t_final=t_final, holds=MIN_HOLDS, hold=t_final / MIN_HOLDS, v_limit=v_limit,
+               w0_max=w0_max, v_max_certified=v_cert, lam=lam, eps=eps, alpha_h=alpha_h, G=G, span=span,
+               floor=FLOOR_RTOL * max(1.0, span), scale=scale, gain0=gain0, v_max_spec=v_max_spec,
+               delta_max=float(arts["delta"].value("max_singular_value")))
+    # The hold: at most the fastest linearised time constant and 1/16 of the shortest linearised oscillation
+    # period, and short enough for xi to move at most 2 % of V per hold at the median speed; between
+    # t_final / MAX_HOLDS and t_final / MIN_HOLDS.
+    lin = _linearise(st, grid)
+    with np.errstate(all="ignore"):
+        eig = np.linalg.eigvals(lin["J"])
+    eig = eig[np.all(np.isfinite(eig), axis=1)]
+    fastest = float(np.max(np.abs(eig.real))) if eig.size else 0.0
+    turning = float(np.max(np.abs(eig.imag))) if eig.size else 0.0
+    a = plant.at_xi(grid)
+    speed = (np.abs(a["phi"][:, :, 0]) + np.linalg.norm(a["delta"], axis=2) * v_limit) / width
+    med = float(np.median(np.max(speed, axis=1)))
+    hold = min(1.0 / fastest if fastest > 0 else np.inf, 2 * np.pi / (16 * turning) if turning > 0 else np.inf,
+               0.02 / med if med > 0 else np.inf, t_final / MIN_HOLDS)
+    holds = int(np.ceil(t_final / max(hold, t_final / MAX_HOLDS)))
+    holds = int(np.ceil(holds / REF_SEGMENTS) * REF_SEGMENTS)
+    st.holds, st.hold = holds, t_final / holds
+    st.lin = lin
+    try:
+        st.loop = falsify_loop(model, arts, plant.M, plant.L, plant.K)
+    except Unsupported:
+        st.loop = None
+    return st
+
+
+def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t_final: float | None = None,
+            progress: Callable[[int], None] | None = None, on_runs: Callable[[int, float], None] | None = None) -> Artefact:
+    """Search for runs that break the bound and measure the largest error / bound ratio.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V already fixed).
+    arts : dict
+        Artefacts of stabilise, manifold, kappa, delta and bound.
+    runs : int
+        Runs in all (first batch and refinement).
+    seed : int
+        Random seed (the search is reproducible).
+    t_final : float, optional
+        Length of each run [default: the spec's tracking t_final, else 10 s].
+    progress : callable, optional
+        Called with the number of progress steps done (of :data:`SEGMENTS`).
+    on_runs : callable, optional
+        Called with (runs integrated so far, runs per second) as the compiled runs go (not on the numpy path).
+
+    Returns
+    -------
+    Artefact
+        Values max_ratio, max_ratio_w0_zero, run_ratio (per run), strategy (per run), ratio_by_strategy/<name>,
+        where (run, time), the initial states, W0, the worst run's series.
+    """
+    if runs < 1:
+        raise DesignError("--runs", f"{runs}", "at least 1")
+    rng = np.random.default_rng(seed)
+    done = [0]
+
+    def report(step: int) -> None:
+        if progress is not None and step > done[0]:
+            done[0] = min(step, SEGMENTS)
+            progress(done[0])
+
+    def phase(a: int, b: int):
+        return lambda frac: report(a + int((b - a) * frac))
+
+    with np.errstate(all="ignore"):
+        st = _setup(model, arts, t_final)
+        if on_runs is not None:
+            tally = {"before": 0, "seconds": 0.0}
+
+            def count(done: int, total: int, seconds: float) -> None:
+                so_far = tally["before"] + done
+                on_runs(so_far, so_far / max(tally["seconds"] + seconds, 1e-9))
+                if done == total:
+                    tally["before"], tally["seconds"] = so_far, tally["seconds"] + seconds
+
+            st.on_runs = count
+        lin = st.lin
+        disc = _discrete(st, lin)
+        counts = _allocate(runs)
+        first = _first_batch(st, counts, rng, lin, disc)
+        res = _integrate(st, first, TOL, progress=phase(0, 12))
+        report(12)
+        ref_b, ref_r = _refine(st, first, res, counts["refined"], rng, lin, disc, progress=phase(12, 17))
+        if ref_r is not None:
+            batch, res = Batch.concat([first, ref_b]), _merge([res, ref_r])
+        else:
+            batch = first
+        report(17)
+        verified, series = _verify(st, batch, res)
+        # What the design only sampled is attacked where it could fail (attack.py): the LMI between its samples,
+        # a second equilibrium, L_h; a counter-example there breaks the certificate whatever the runs show.
+        found = attack(model, arts, seed)
+        report(SEGMENTS)
+    art = _artefact(st, batch, res, verified, series, runs, seed, counts, disc)
+    _store_counterexamples(art, found)
+    return art
+
+
+def _store_counterexamples(art: Artefact, found: list[dict]) -> None:
+    """The certificate attack's counter-examples in the falsify artefact (values and a check)."""
+    texts = [counterexample_text(c) for c in found]
+    art.values["certificate_counterexamples"] = len(found)
+    art.values["counterexamples"] = texts if texts else ["none"]
+    for c in found:
+        if c["kind"] == "lmi" and "lmi_counterexample_x" not in art.values:
+            art.values.update({"lmi_counterexample_x": np.asarray(c["x"]), "lmi_counterexample_u": np.asarray(c["u"]),
+                               "lmi_counterexample_margin": float(c["margin"])})
+        if c["kind"] == "second_equilibrium" and "second_equilibrium_u" not in art.values:
+            art.values.update({"second_equilibrium_u": np.asarray(c["u"]), "second_equilibrium_x": np.asarray(c["x"]),
+                               "second_equilibrium_x_other": np.asarray(c["x_other"])})
+    art.checks["certificate_attack"] = Check(float(len(found)), not found,
+                                             "counter-examples found to the rows the design only sampled (0): " + ("; ".join(texts) if texts else "none"),
+                                             SIMULATED)
+
+
+def counterexample_text(c: dict) -> str:
+    """One line for a counter-example of :mod:`ashc_cli.products.attack`."""
+    if c["kind"] == "lmi":
+        return (f"eq. (28) fails at x = {np.round(c['x'], 6).tolist()}, u = {np.round(c['u'], 6).tolist()}: "
+                f"lambda_max(J^T M + M J + lambda M) = {c['margin']:.4g} > 0 at lambda = {c['lambda']:.6g}")
+    if c["kind"] == "second_equilibrium":
+        return (f"two equilibria for u = {np.round(c['u'], 6).tolist()}: x = {np.round(c['x'], 6).tolist()} and "
+                f"{np.round(c['x_other'], 6).tolist()} (no contraction on the box allows two)")
+    return f"||dh/dx|| = {c['norm']:.6g} > L_h = {c['L_h']:.6g} at x = {np.round(c['x'], 6).tolist()}"
+
+
+def _verify(st: Setup, batch: Batch, res: dict) -> tuple[np.ndarray, dict]:
+    """Integrate the runs that decide max_ratio and max_ratio_w0_zero again at TOL_VERIFY (the same inputs) and
+    use those numbers; repeat while the best run is one not verified yet."""
+    ratio = res["ratio"]
+    verified = np.zeros(len(batch), dtype=bool)
+    series = {}
+    zero = res["W0"] == 0
+    for _ in range(VERIFY_ROUNDS):
+        want = []
+        for mask in (np.ones(len(batch), dtype=bool), zero):
+            if not mask.any():
+                continue
+            cand = np.where(mask)[0]
+            top = cand[np.argsort(-ratio[cand])][:VERIFY_TOP]
+            if not verified[top[0]]:
+                want.extend(int(i) for i in top if not verified[i])
+        want = list(dict.fromkeys(want))
+        if not want:
+            break
+        idx = np.array(want)
+        r = _integrate(st, _replay(st, batch, res, idx), TOL_VERIFY, record=True)
+        for j, i in enumerate(idx):
+            for key in ("ratio", "ratio_late", "k_at", "max_error", "left_V", "diverged", "forced"):
+                res[key][i] = r[key][j]
+            verified[i] = True
+            series[int(i)] = {k: r[k][j] for k in ("Z", "err", "bound", "v")}
+        ratio = res["ratio"]
+    return verified, series
+
+
+def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: dict, runs: int, seed: int,
+              counts: dict, disc: dict) -> Artefact:
+    model = st.model
+    nh = model.n_hat
+    ratio = res["ratio"]
+    N = len(batch)
+    worst = int(np.argmax(ratio))
+    zero = res["W0"] == 0
+    zero_idx = np.where(zero)[0]
+    worst0 = int(zero_idx[np.argmax(ratio[zero_idx])]) if zero_idx.size else -1
+    max_ratio = float(ratio[worst])
+    max_ratio0 = float(ratio[worst0]) if worst0 >= 0 else 0.0
+    t = st.t
+    by = {}
+    for name in STRATEGIES:
+        sel = np.array([s == name for s in batch.strategy])
+        if sel.any():
+            by[name] = float(ratio[sel].max())
+    if worst not in series:   # only when the verification rounds ran out (``verified`` says so): no series
+        series[worst] = {"Z": np.zeros((len(t), nh + model.n)), "err": np.zeros(len(t)), "bound": np.zeros(len(t)),
+                         "v": np.zeros((len(t), model.m_hat))}
+    ws = series[worst]
+    zs = series.get(worst0, ws) if worst0 >= 0 else ws
+    samples = max(1, N * (st.holds + 1))
+    art = Artefact(stage=NAME, meta={
+        "runs": runs, "seed": seed, "segments": SEGMENTS, "integrator": str(TOL), "verification": str(TOL_VERIFY),
+        "bound": "sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup_{s<=t} ||v(s)||",
+        "engine": (f"compiled (numba): one integration per run with its own step-size control, {st.loop.threads} threads"
+                   if st.loop is not None else "numpy: one vectorised ODE over the whole batch, error control by its worst run"),
+        "strategies": ", ".join(STRATEGIES), "runs_per_strategy": {k: int(v) for k, v in counts.items()},
+    })
+    vals = {
+        "max_ratio": max_ratio, "max_ratio_w0_zero": max_ratio0, "run_ratio": ratio, "run_ratio_after_start": res["ratio_late"],
+        "worst_run": worst,
+        "worst_time": float(t[int(res["k_at"][worst])]), "worst_w0_zero_run": worst0,
+        "worst_w0_zero_time": float(t[int(res["k_at"][worst0])]) if worst0 >= 0 else 0.0,
+        "strategy": list(batch.strategy), "strategy_of_worst": batch.strategy[worst],
+        "strategy_of_worst_w0_zero": batch.strategy[worst0] if worst0 >= 0 else "",
+        "refined_from": batch.origin if batch.origin is not None else np.full(N, -1),
+        "verified": verified, "xi0": batch.xi0, "x0": batch.x0, "W0": res["W0"],
+        "references": batch.refs, "gains": batch.gains, "noise": batch.noise, "t_final": st.t_final,
+        "runs_leaving_V": int(np.sum(res["left_V"])), "runs_diverged": int(np.sum(res["diverged"])),
+        "max_error": float(np.max(res["max_error"])), "largest_bound": float(res["largest_bound"]),
+        "v_at_limit_fraction": float(np.sum(res["at_limit"]) / samples),
+        "inaccurate_runs": int(np.sum(res["forced"] > 0)),
+        "v_limit": st.v_limit, "w0_max_certified": st.w0_max, "v_max_certified": st.v_max_certified,
+        "hold": st.hold, "holds": st.holds,
+        "linearised_worst_ratio": float(np.max(disc["ratio"])) if disc["ratio"].size else 0.0,
+        "linearised_worst_xi": st.lin["xi"][:, int(np.argmax(disc["ratio"]))],
+        "linearised_ratio": disc["ratio"], "linearised_xi": st.lin["xi"],
+        "worst_t": t, "worst_error": ws["err"], "worst_bound": ws["bound"], "worst_v": ws["v"],
+        "worst_xi": ws["Z"][:, :nh], "worst_x": ws["Z"][:, nh:], "worst_xi0": batch.xi0[worst], "worst_x0": batch.x0[worst],
+        "worst_W0": float(res["W0"][worst]),
+        "worst_w0_zero_xi0": batch.xi0[worst0] if worst0 >= 0 else np.zeros(nh),
+        "worst_w0_zero_error": zs["err"], "worst_w0_zero_bound": zs["bound"], "worst_w0_zero_v": zs["v"],
+    }
+    for name, r in by.items():
+        vals[f"ratio_by_strategy/{name}"] = r
+    art.values.update(vals)
+    check = Check(max_ratio, max_ratio <= 1.0,
+                  f"largest |psi - y| / guaranteed bound over {runs} searched runs and all times (<= 1); "
+                  f"{max_ratio0:.4g} on the manifold (W0 = 0)")
+    if "evidence" in {f.name for f in fields(check)}:
+        check = replace(check, evidence=SIMULATED)   # observed along simulated runs: a search, not a proof
+    art.checks["falsify_ratio"] = check
+    return art
+
+
+def summarise(art: Artefact) -> dict:
+    """Headline numbers for ``ashc summary``."""
+    v = art.values
+    by = {k.split("/", 1)[1]: float(x) for k, x in v.items() if k.startswith("ratio_by_strategy/")}
+    out = {"runs": int(art.meta["runs"]), "seed": int(art.meta["seed"]), "max_ratio": float(v["max_ratio"]),
+           "worst_run": int(v["worst_run"]), "worst_time": float(v["worst_time"]), "runs_leaving_V": int(v["runs_leaving_V"]),
+           "max_error": float(v["max_error"])}
+    out["certificate_counterexamples"] = int(v.get("certificate_counterexamples", 0))
+    out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
+    if "max_ratio_w0_zero" in v:
+        out.update({
+            "max_ratio_w0_zero": float(v["max_ratio_w0_zero"]), "worst_w0_zero_run": int(v["worst_w0_zero_run"]),
+            "strategy_of_worst": str(v["strategy_of_worst"]), "strategy_of_worst_w0_zero": str(v["strategy_of_worst_w0_zero"]),
+            "ratio_by_strategy": by, "worst_xi0": np.asarray(v["worst_xi0"]).tolist(), "worst_x0": np.asarray(v["worst_x0"]).tolist(),
+            "worst_W0": float(v["worst_W0"]), "v_limit": float(v["v_limit"]),
+            "linearised_worst_ratio": float(v["linearised_worst_ratio"]), "hold": float(v["hold"]),
+        })
+    return out
+
+
+def headline(art: Artefact) -> str:
+    """One line."""
+    v = art.values
+    extra = ""
+    if "max_ratio_w0_zero" in v:
+        extra = f", on the manifold {v['max_ratio_w0_zero']:.4g}; worst by {v['strategy_of_worst']}"
+    return (f"{art.meta['runs']} runs: largest error / bound = {v['max_ratio']:.4g} (run {v['worst_run']}, t = {v['worst_time']:.4g} s)"
+            f"{extra}; {v['runs_leaving_V']} left V")
