@@ -2,7 +2,7 @@
 
 Each exported function is compared with the tool's own evaluation at random points: p and kappa with the
 stored formulas lambdified, m with the formula and the certified set (``inverse.m_domain``), the interface and
-the abstract controller with :func:`ashc_cli.design.stages.simulate.tracking_law`.  The C file is compiled with the
+the abstract controller with :func:`ashc_cli.closedloop.reference.tracking_law`.  The C file is compiled with the
 system compiler (``cc -std=c99 -Wall -Werror -O2``, as a shared library called through ctypes); the tests that
 need it are skipped, saying so, when there is none.  The tracking scenario of each spec is integrated again
 with the exported Python functions (scipy's DOP853 at simulate's tolerances) and must give simulate's

@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.closedloop import reference
 from ashc_cli.design.stages import simulate
 from ashc_cli.design.stages.simulate import SAMPLE_DT, sample_times
 
@@ -63,12 +64,12 @@ def test_controller_and_interface_law(paper_spec, paper_design):
     model = build_model(paper_spec)
     plant = simulate.DesignTerms(model, paper_design)
     xi, x0 = np.array([0.5]), np.array([1.0, 20.0, -1.0, -12.0])
-    v, u, dxi, dx, _ = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "zero", True)
+    v, u, dxi, dx, _ = reference.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "zero", True)
     assert v[0] == 60.0  # far from the reference: clipped at v_max
     assert u[0] == 0.5   # q = 0: u_w = l(xi) = xi
     delta = ((0.5 - 1) ** 2 + 44.7e-3 * 0.05 * 0.25) ** 2
     assert dxi[0] == pytest.approx(delta * 60.0)
-    v, u, *_ = simulate.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "least_squares", True)
+    v, u, *_ = reference.tracking_law(plant, xi, x0, np.array([0.9]), 80.0, 60.0, "least_squares", True)
     assert 0.0 <= u[0] <= 1.0
 
 
@@ -163,7 +164,7 @@ def test_guaranteed_cuk_meets_five_volts_at_every_sample(guaranteed):
     # Measured: 0.60 V. The uniform bound of the same run, G ||v||_inf, is 753 V: only the construction proves 5 V.
     assert err.max() < 1.0 < 5.0 < v["tracking/uniform_bound"]
     assert v["tracking/budget_v_max"] == pytest.approx(5.0 / bound["gain"], rel=1e-12)   # W0 = 0: (EPS - 0) / G
-    assert not v["tracking/compiled"]   # the compiled loop knows only the set-point law: the governor runs on scipy
+    assert v["tracking/compiled"]   # the governor runs compiled (ashc_cli/closedloop/governor.py)
 
 
 def test_governor_keeps_w_below_its_level_and_works_at_it(guaranteed):
@@ -224,7 +225,7 @@ def test_governor_holds_the_tolerance_from_an_adversarial_start(paper_design, pa
     assert np.all(res["slack"] >= 0.0)
     assert plant.kappa(*res["xi"][:, -1:])[0, 0, 0] < -25.0       # it still moves towards -80.9 (from -19.1)
     # The same start under the unchecked set-point law (v_max 60) leaves the tolerance: the test can fail.
-    free = simulate.closed_loop_run(model, plant, paper_design, simulate.Law("setpoint", 80.0, 60.0), np.r_[xi0, x0, W0], segments, [ref])
+    free = simulate.closed_loop_run(model, plant, paper_design, reference.Law("setpoint", 80.0, 60.0), np.r_[xi0, x0, W0], segments, [ref])
     assert np.abs(plant.kappa(*free["xi"])[:, 0, :] - free["y"]).max() > 5.5
 
 
@@ -276,10 +277,10 @@ def test_governor_scale_is_admissible_and_the_largest(saturate, m):
     grid = np.linspace(0.0, 1.0, 20001)
     for _ in range(60):
         L, l, fb, qv, dv, g, U = _random_interface(rng, m, saturate)
-        _, _, q2 = simulate._interface_r(grid, L, l, fb, qv, dv, g, U, saturate)
+        _, _, q2 = reference.interface_r(grid, L, l, fb, qv, dv, g, U, saturate)
         bound = float(rng.uniform(0.05, 1.5) * np.median(q2)) + 1e-3
-        s, u, r, admissible = simulate.governor_scale(L, l, fb, qv, dv, g, U, saturate, bound)
-        u_s, r_s, q2_s = simulate._interface_r(s, L, l, fb, qv, dv, g, U, saturate)
+        s, u, r, admissible = reference.governor_scale(L, l, fb, qv, dv, g, U, saturate, bound)
+        u_s, r_s, q2_s = reference.interface_r(s, L, l, fb, qv, dv, g, U, saturate)
         assert np.allclose(u, u_s[0]) and np.allclose(r, r_s[0])
         ok = q2 <= bound
         if not admissible:                      # only when s = 0 itself is not admissible (K e clipped)
@@ -297,9 +298,9 @@ def test_s_zero_is_admissible_without_feedback_and_with_l_in_U():
     rng = np.random.default_rng(7)
     for saturate in (True, "scale", False):
         L, l, _, qv, dv, g, U = _random_interface(rng, 2, saturate)
-        _, r0, q0 = simulate._interface_r(0.0, L, l, np.zeros(2), qv, dv, g, U, saturate)
+        _, r0, q0 = reference.interface_r(0.0, L, l, np.zeros(2), qv, dv, g, U, saturate)
         assert np.all(r0 == 0.0) and q0[0] == 0.0
-        s, *_, admissible = simulate.governor_scale(L, l, np.zeros(2), 1e6 * qv, 1e6 * dv, g, U, saturate, 1e-12)
+        s, *_, admissible = reference.governor_scale(L, l, np.zeros(2), 1e6 * qv, 1e6 * dv, g, U, saturate, 1e-12)
         assert admissible and 0.0 <= s < 1e-3
 
 
@@ -353,10 +354,10 @@ def test_s_zero_inadmissible_when_the_feedback_clips_is_returned_and_flagged():
     # linear_gain with l + K e outside U: r(0) = -g (SAT(l + K e) - l - K e) != 0, so no s meets a small bound.
     L, g, U = np.eye(2), np.array([[0.0], [1.0]]), np.array([[-1.0, 1.0]])
     l, feedback = np.array([0.5]), np.array([1.0])                    # l + K e = 1.5, clipped to 1: r(0) = (0, 0.5)
-    s, u, r, admissible = simulate.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 0.2)
+    s, u, r, admissible = reference.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 0.2)
     assert not admissible and s == 0.0 and u[0] == 1.0 and np.allclose(r, [0.0, 0.5])
     # With room for r(0) the same point is admissible, and s is the largest that keeps |L^T r|^2 <= bound.
-    s, u, r, admissible = simulate.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 1.0)
+    s, u, r, admissible = reference.governor_scale(L, l, feedback, np.array([1.0]), np.array([0.0, 1.0]), g, U, True, 1.0)
     assert admissible and s == pytest.approx(0.5, abs=1e-12) and float(r @ r) <= 1.0   # r(s) = (0, s + 0.5), clipped u
 
 

@@ -54,7 +54,10 @@ def test_artefact_is_written_and_holds_both_modes(result, short_spec):
     assert np.allclose(v["budget_v_max"], np.array([20.0, 10.0]) / G, rtol=1e-12)        # W0 = 0: EPS / G
     assert np.allclose(v["proved_tolerance/budget"], [20.0, 10.0]) and np.allclose(v["proved_tolerance/governor"], [20.0, 10.0])
     assert set(stored.provenance["upstream"]) == set(tradeoff.UPSTREAM)
-    assert art.meta["implementation"]["governor"] == "scipy.integrate.solve_ivp"
+    # both modes run compiled (the governor in ashc_cli/closedloop/governor.py), unless numba is switched off
+    from ashc_cli.closedloop.compiled import available
+    expected = "ashc_cli.closedloop.compiled (numba)" if available() else "scipy.integrate.solve_ivp"
+    assert art.meta["implementation"] == {"setpoint": expected, "governor": expected}
 
 
 def test_governor_is_faster_and_both_slow_down_with_a_tighter_tolerance(result):

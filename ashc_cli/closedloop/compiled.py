@@ -13,7 +13,7 @@ loops in compiled code:
   ``simulate.m_relation.u``, its time signals triangle, square and step as in :mod:`ashc_cli.problem.expr`).  sympy
   stays the single source of truth;
 * **the core** (the same for every design) holds the control laws and the integrator.  The tracking law is
-  :func:`ashc_cli.design.stages.simulate.tracking_law` written out in loops (the set-point controller v = clip(delta^+
+  :func:`ashc_cli.closedloop.reference.tracking_law` written out in loops (the set-point controller v = clip(delta^+
   (gain (xi_ref - xi) - phi_bar), -v_max, v_max); the interface u = SAT(l + K (x - p) + q v) with q the
   least-squares q of eq. egqLS or 0 and SAT as :func:`ashc_cli.problem.model.apply_saturation`; the comparison system
   w' = -(lambda - eps) w + |L^T r|^2 / eps, r = dp/dxi delta v - g (u - l - K (x - p))); the m-relation's is
@@ -375,6 +375,8 @@ class TrackingRun:
         psi at the end of each segment.
     nfev, steps : int
         Right-hand-side calls and accepted steps.
+    scale, slack : ndarray (N,) or None
+        The governor's s and the margin of its invariance condition at the samples (None for the set-point law).
     """
 
     t: np.ndarray
@@ -389,6 +391,8 @@ class TrackingRun:
     psi_end: np.ndarray
     nfev: int
     steps: int
+    scale: np.ndarray | None = None
+    slack: np.ndarray | None = None
 
 
 _SATURATE = {False: 0, True: 1, "scale": 2}
@@ -429,7 +433,8 @@ class TrackingLoop:
         return v, u, dz
 
     def run(self, z0: np.ndarray, segments: Sequence[tuple[float, float, np.ndarray, int]], refs: Sequence[np.ndarray], *,
-            gain: float, v_max: float, q_kind: str, saturate, rtol: float, atol: float, what: str = "tracking") -> TrackingRun:
+            gain: float, v_max: float, q_kind: str, saturate, rtol: float, atol: float, what: str = "tracking",
+            governor: tuple | None = None) -> TrackingRun:
         """Integrate the tracking loop segment after segment, as run_tracking's ``while`` loop does.
 
         Parameters
@@ -447,6 +452,9 @@ class TrackingLoop:
             ``interface.q`` and ``interface.saturate``.
         rtol, atol : float
             The tolerances (``TRACKING_TOL``).
+        governor : tuple, optional
+            (W_max, c, grid, bisections, backoffs): run the guaranteed governor (:mod:`ashc_cli.closedloop.governor`)
+            instead of the set-point law; the run then records s and the slack.
 
         Raises
         ------
@@ -464,7 +472,14 @@ class TrackingLoop:
         index = np.array([i for *_, i in segments], dtype=np.int64)
         seg_refs = np.ascontiguousarray(np.stack([np.asarray(refs[i], dtype=float).reshape(self.nh) for i in index]))
         prm = self._prm(gain, v_max)
-        _, out, _, nfev, steps = _integrate(self.core, self.core.tracking_rhs, self.kernels, (self.core.no_link, self.core.no_signal), self.dims,
+        rhs = self.core.tracking_rhs
+        if governor is not None:
+            from ashc_cli.closedloop import governor as gov
+
+            w_level, rate, grid, bisections, backoff = governor
+            prm = np.r_[prm, w_level, rate, 1.0, grid, bisections, np.asarray(backoff, dtype=float)]
+            rhs = gov.governor_rhs
+        _, out, _, nfev, steps = _integrate(self.core, rhs, self.kernels, (self.core.no_link, self.core.no_signal), self.dims,
                                             z0, t_bounds, t_eval, offsets, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, np.empty(0),
                                             rtol, atol, what)
         keep = np.ones(t_eval.size, dtype=bool)
@@ -473,12 +488,18 @@ class TrackingLoop:
         V, Uo = np.empty((t_eval.size, self.mh)), np.empty((t_eval.size, self.m))
         PSI, Y = np.empty((t_eval.size, self.p)), np.empty((t_eval.size, self.p))
         fxi, fx = self.kernels.eval_xi, self.kernels.eval_x
-        self.core.samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y)
+        scale = slack = None
+        if governor is None:
+            self.core.samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y)
+        else:
+            S, SL = np.empty(t_eval.size), np.empty(t_eval.size)
+            gov.governor_samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y, S, SL)
+            scale, slack = S[keep].copy(), SL[keep].copy()
         Z = out[keep].T
         nh, n = self.nh, self.n
         return TrackingRun(t=t_eval[keep], xi=Z[:nh].copy(), x=Z[nh:nh + n].copy(), w=Z[-1].copy(), v=V[keep].T.copy(), u=Uo[keep].T.copy(),
                            psi=PSI[keep].T.copy(), y=Y[keep].T.copy(), reference_index=index[seg_of_row[keep]],
-                           psi_end=PSI[offsets[1:] - 1].copy(), nfev=nfev, steps=steps)
+                           psi_end=PSI[offsets[1:] - 1].copy(), nfev=nfev, steps=steps, scale=scale, slack=slack)
 
 
 def _design_kernels(model, up):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop.laws import pinv_into, saturate
+from ashc_cli.closedloop.laws import pinv_flat, saturate
 
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
@@ -36,12 +36,6 @@ DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 
 #: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
 #: kernel's, wk the loop's work (row-major matrices).
 O_PHI, O_DEL, O_L, O_DPD, O_KAP, O_PM, O_DP, O_FB, O_G, O_H, O_DH, O_KX, O_Q, O_LTG, O_LTD, O_PG, O_DPLUS, O_CORR, O_VIN = range(19)
-
-
-@njit(**OPTIONS)
-def _pinv_flat(src, so, r, c, dst, do):
-    """dst[do:] = pinv of the r x c matrix src[so:] (:func:`ashc_cli.closedloop.laws.pinv_into` on views)."""
-    pinv_into(src[so:so + r * c].reshape((r, c)), dst[do:do + c * r].reshape((c, r)))
 
 
 @njit(**OPTIONS)
@@ -88,7 +82,7 @@ def _terms(exi, ex, z, dims, off, A, B, wk, K, L, q_ls):
                 for k in range(n):
                     s += L[k, i] * A[o_dpd + k * mh + a]
                 wk[o_ltd + i * mh + a] = s
-        _pinv_flat(wk, o_ltg, n, m, wk, o_pg)
+        pinv_flat(wk, o_ltg, n, m, wk, o_pg)
         for j in range(m):
             for a in range(mh):
                 s = 0.0
@@ -110,7 +104,7 @@ def _apply(dims, off, A, B, wk, U, sat, v, u, dxi, dx):
         for a in range(mh):
             s += wk[o_q + j * mh + a] * v[a]
         wk[o_c + j] = wk[o_kx + j] + s
-    saturate(A[o_l:o_l + m], wk[o_c:o_c + m], U, sat, u)
+    saturate(A, o_l, wk, o_c, U, sat, u, m)
     o_phi, o_del = off[O_PHI], off[O_DEL]
     for i in range(nh):
         s = 0.0
@@ -130,7 +124,7 @@ def _setpoint_v(z, dims, off, A, wk, ref, gain, noise, v_limit, v):
     """The random strategy's law: v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped to v_limit."""
     nh, mh = dims[0], dims[3]
     o_dp = off[O_DPLUS]
-    _pinv_flat(A, off[O_DEL], nh, mh, wk, o_dp)
+    pinv_flat(A, off[O_DEL], nh, mh, wk, o_dp)
     o_phi = off[O_PHI]
     for a in range(mh):
         s = 0.0
@@ -334,7 +328,7 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                                 v_plan[a] = neg[a]
                         else:
                             o_dplus, o_del = off[O_DPLUS], off[O_DEL]
-                            _pinv_flat(A, o_del, nh, mh, wk, o_dplus)
+                            pinv_flat(A, o_del, nh, mh, wk, o_dplus)
                             nin = 0.0
                             for a in range(mh):
                                 s = 0.0

@@ -21,7 +21,7 @@ OPTIONS = dict(cache=True, error_model='numpy')
 
 
 @njit(**OPTIONS)
-def _design_at(eval_xi, eval_x, dims, z):
+def design_at(eval_xi, eval_x, dims, z):
     """The kernels at z = [xi, x, ...], in fresh arrays: (phi_bar, delta, l, dp/dxi delta, kappa, p) of xi and
     (f_bar, g, h) of x."""
     NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
@@ -41,7 +41,7 @@ def _design_at(eval_xi, eval_x, dims, z):
 
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
 def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
-    """simulate.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
+    """reference.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
 
     dims = [n_hat, n, m, m_hat, p]; prm = [gain, v_max, lambda, eps]; q_ls = 1 for the least-squares q, 0 for
     q = 0; sat = 0 (no saturation), 1 (clip each channel to U) or 2 (scale the correction).
@@ -50,7 +50,7 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
+    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     # v = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max)
     dplus = pinv(delta)
     for a in range(MH):
@@ -90,7 +90,7 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
                     qa += pg[j, i] * Ltd[i, a]
                 s += qa * v[a]
             correction[j] = feedback[j] + s
-    saturate(l, correction, U, sat, u)          # u = SAT(l + correction)
+    saturate(l, 0, correction, 0, U, sat, u, M)          # u = SAT(l + correction)
     # dxi = phi_bar + delta v; dx = f_bar + g u; r = dp/dxi delta v - g (u - u_nominal)
     for i in range(NH):
         s = 0.0
@@ -131,7 +131,7 @@ def link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz):
     tt[0] = t
     eval_u(tt, u)
     x = z[NH:NH + N].copy()
-    phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
+    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     b = np.empty(MH)
     c = np.empty((MH, M))
     mx = np.empty(NH)
@@ -520,7 +520,7 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
     for k in range(Z.shape[0]):
         z = Z[k]
         closed_loop(eval_xi, eval_x, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
-        phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
+        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
         # element by element, as in integrate
         for a in range(MH):
             V[k, a] = v[a]
@@ -544,7 +544,7 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
     for k in range(Z.shape[0]):
         z = Z[k]
         link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t[k], z, v, u, dz)
-        phi, delta, l, dpd, kap, pm, fb, g, h = _design_at(eval_xi, eval_x, dims, z)
+        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
         x = z[NH:NH + N].copy()
         eval_link(x, b, c, mx)
         for a in range(MH):

@@ -9,7 +9,7 @@
     ``inverse.m_domain`` (widened by ``DOMAIN_RTOL``, as ``ashc eval`` and ``simulate`` test it).  It returns a
     status: ``0`` (ok), ``1`` (outside the certified set; the result is NaN) or ``2`` (m is not real there).
 ``ashc_interface(xi, x, v)``
-    The interface u_w = SAT(l(xi) + K (x - p(xi)) + q(xi, x) v) of :func:`ashc_cli.design.stages.simulate.tracking_law`
+    The interface u_w = SAT(l(xi) + K (x - p(xi)) + q(xi, x) v) of :func:`ashc_cli.closedloop.reference.tracking_law`
     (eqs. Interface, egInterface, egInterfaceSat): the feedback K (x - p) when the design synthesised a gain
     (``feedback: linear_gain``); q = pinv(L^T g(x)) L^T dp/dxi delta(xi) (eq. egqLS, with M = L L^T) or q = 0
     as the spec's ``interface.q`` says; SAT as :func:`ashc_cli.problem.model.apply_saturation` (``interface.saturate``:
@@ -637,7 +637,7 @@ def python_source(design: Design) -> str:
     str
         The module's source.  ``ashc_m(x)`` returns ``(status, xi)``; ``ashc_controller(xi, xi_ref)`` takes
         ``gain`` and ``v_max`` as further arguments when the spec gives no abstract controller.  The
-        interface and the controller are those of :func:`ashc_cli.design.stages.simulate.tracking_law`, operation
+        interface and the controller are those of :func:`ashc_cli.closedloop.reference.tracking_law`, operation
         for operation (numpy's pinv where a pseudo-inverse is not of one column).
     """
     d = design
@@ -873,7 +873,7 @@ def interface_point(design: Design, point: Mapping[str, float]) -> tuple[np.ndar
 def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str, float]) -> list[float]:
     """The interface law u_w(xi, x, v) at a point, with the tool's own numerics (for ``ashc eval DIR u_w``).
 
-    The same law as :func:`ashc_cli.design.stages.simulate.tracking_law`'s u: SAT(l(xi) + K (x - p(xi)) + q(xi, x) v),
+    The same law as :func:`ashc_cli.closedloop.reference.tracking_law`'s u: SAT(l(xi) + K (x - p(xi)) + q(xi, x) v),
     the terms lambdified from the spec and the artefacts, q by :func:`ashc_cli.numerics.linalg.pinv`, SAT by
     :func:`ashc_cli.problem.model.apply_saturation`.
 

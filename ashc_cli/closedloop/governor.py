@@ -1,0 +1,252 @@
+"""The guaranteed governor of the tracking scenario (docs/guaranteed.md), compiled with numba: the same law as
+:func:`ashc_cli.closedloop.reference.governor_law` (the scipy path, the reference), run by the tracking
+core's integrator through :func:`governor_rhs`.
+
+v = s v_sp with the largest s in [0, 1] such that |L^T r(s)|^2 / eps <= (lambda - eps) W_max + c (W_max - w),
+r(s) through the actual interface (saturation included); then w <= W_max is invariant.  ``prm`` holds
+[gain, v_max, lambda, eps, W_max, c, grid, bisections, backoff...] (the simulate stage's GOVERNOR_* constants).
+"""
+
+import numpy as np
+from numba import njit, types
+
+from ashc_cli.closedloop.laws import pinv, saturate
+from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at
+
+OPTIONS = dict(cache=True, error_model="numpy")
+
+
+@njit(**OPTIONS)
+def _q_of_L(L, u, r):
+    """|L^T r|^2 (u unused: keeps one call shape)."""
+    N = r.size
+    q2 = 0.0
+    for i in range(N):
+        acc = 0.0
+        for k in range(N):
+            acc += r[k] * L[k, i]
+        q2 += acc * acc
+    return q2
+
+
+@njit(**OPTIONS)
+def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
+    """u(s) = SAT(l + K e + s q v_sp) and r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) into u and r; returns
+    |L^T r(s)|^2 (reference.interface_r at one s)."""
+    M, N = l.size, dv.size
+    for j in range(M):
+        corr[j] = feedback[j] + s * qv[j]
+    saturate(l, 0, corr, 0, U, sat, u, M)
+    for i in range(N):
+        acc = 0.0
+        for j in range(M):
+            acc += (u[j] - l[j] - feedback[j]) * g[i, j]
+        r[i] = s * dv[i] - acc
+    return _q_of_L(L, u, r)
+
+
+@njit(**OPTIONS)
+def breakpoints(l, feedback, qv, U, sat, ends):
+    """The s in (0, 1) where the interface changes form, sorted and distinct, into ``ends``; returns (count,
+    affine) as reference.breakpoints."""
+    if sat == 0:
+        return 0, True
+    M = l.size
+    if sat == 2:
+        for j in range(M):
+            if feedback[j] != 0.0:
+                return 0, False
+    count, s_c = 0, np.inf
+    for j in range(M):
+        d = qv[j]
+        if d == 0.0:
+            continue
+        lo = (U[j, 0] - l[j] - feedback[j]) / d
+        hi = (U[j, 1] - l[j] - feedback[j]) / d
+        if sat == 1:
+            if 0.0 < lo < 1.0:
+                ends[count] = lo
+                count += 1
+            if 0.0 < hi < 1.0:
+                ends[count] = hi
+                count += 1
+        else:
+            s_c = min(s_c, hi if d > 0 else lo)
+    if sat == 2 and 0.0 < s_c < 1.0:
+        ends[count] = s_c
+        count += 1
+    ends[:count] = np.sort(ends[:count])
+    distinct = 0
+    for k in range(count):
+        if distinct == 0 or ends[k] != ends[distinct - 1]:
+            ends[distinct] = ends[k]
+            distinct += 1
+    return distinct, True
+
+
+@njit(**OPTIONS)
+def _largest_verified(lo, hi, bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr):
+    """The largest s in [lo, hi] found admissible by evaluation (hi a few roundings lower, else bisection from
+    lo), with u(s) and r(s) in u and r; (False, 0) when not even lo is admissible."""
+    for b in range(9, prm.size):
+        s_try = max(lo, hi * (1.0 - prm[b]))
+        if interface_at(s_try, L, l, feedback, qv, dv, g, U, sat, u, r, corr) <= bound:
+            return True, s_try
+    if not interface_at(lo, L, l, feedback, qv, dv, g, U, sat, u, r, corr) <= bound:
+        return False, 0.0
+    good = lo
+    for _ in range(int(prm[8])):
+        mid = 0.5 * (good + hi)
+        if not (good < mid < hi):
+            break
+        if interface_at(mid, L, l, feedback, qv, dv, g, U, sat, ut, rt, corr) <= bound:
+            good = mid
+            u[:] = ut
+            r[:] = rt
+        else:
+            hi = mid
+    return True, good
+
+
+@njit(**OPTIONS)
+def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
+    """reference.governor_scale: the largest s in [0, 1] with |L^T r(s)|^2 <= bound, u(s) and r(s) into u and r;
+    returns (s, admissible).  Closed-form roots on the pieces where r is affine in s, else a grid of prm[7] + 1
+    values of s and bisection."""
+    M, N = l.size, dv.size
+    ends = np.empty(2 * M + 1)
+    count, affine = breakpoints(l, feedback, qv, U, sat, ends)
+    if affine:
+        G = count + 2
+        grid = np.empty(G)
+        grid[0] = 0.0
+        grid[1:G - 1] = ends[:count]
+        grid[G - 1] = 1.0
+    else:
+        G = int(prm[7]) + 1
+        grid = np.linspace(0.0, 1.0, G)
+    Ug, Rg, q2 = np.empty((G, M)), np.empty((G, N)), np.empty(G)
+    corr, ut, rt = np.empty(M), np.empty(M), np.empty(N)
+    for k in range(G):
+        q2[k] = interface_at(grid[k], L, l, feedback, qv, dv, g, U, sat, Ug[k], Rg[k], corr)
+    if q2[G - 1] <= bound:
+        u[:] = Ug[G - 1]
+        r[:] = Rg[G - 1]
+        return 1.0, True
+    if affine:
+        R = Rg @ L
+        for k in range(G - 2, -1, -1):
+            s0, s1 = grid[k], grid[k + 1]
+            if q2[k + 1] <= bound:
+                u[:] = Ug[k + 1]
+                r[:] = Rg[k + 1]
+                return s1, True
+            h = s1 - s0
+            D = (R[k + 1] - R[k]) / h
+            a, b, c0 = D @ D, R[k] @ D, R[k] @ R[k] - bound
+            if a <= 0.0:
+                continue                                    # constant on the piece and inadmissible at its end
+            disc = b * b - a * c0
+            if disc < 0.0:
+                continue
+            root = np.sqrt(disc)
+            upper = -c0 / (b + root) if b > 0 else (root - b) / a         # the larger root, without cancellation
+            if b > 0:
+                lower = (-b - root) / a
+            else:
+                lower = c0 / (a * upper) if upper != 0 else (-b - root) / a
+            if upper < 0.0 or lower > h:
+                continue
+            found, s = _largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h), bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr)
+            if found:
+                return s, True
+    else:
+        last = -1
+        for k in range(G):
+            if q2[k] <= bound:
+                last = k
+        if last >= 0:
+            found, s = _largest_verified(grid[last], grid[last + 1], bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr)
+            if found:
+                return s, True
+    u[:] = Ug[0]
+    r[:] = Rg[0]
+    return 0.0, q2[0] <= bound
+
+
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1, F1), **OPTIONS)
+def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+    """reference.governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
+    out = [s, slack]."""
+    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
+    gain, v_max, lam, eps, w_level, rate = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
+    xi = z[:NH].copy()
+    x = z[NH:NH + N].copy()
+    w = z[NH + N]
+    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+    dplus = pinv(delta)
+    v_sp = np.empty(MH)
+    for a in range(MH):
+        s = 0.0
+        for i in range(NH):
+            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
+        v_sp[a] = min(max(s, -v_max), v_max)
+    feedback = np.empty(M)
+    for j in range(M):
+        s = 0.0
+        for i in range(N):
+            s += K[j, i] * (x[i] - pm[i])
+        feedback[j] = s
+    qv = np.zeros(M)
+    if q_ls == 1:
+        Ltg = L.T @ g
+        qv = pinv(Ltg) @ (L.T @ dpd) @ v_sp          # q v_sp, q of eq. (43)
+    dv = dpd @ v_sp
+    room = (lam - eps) * w_level + rate * (w_level - w)
+    r = np.empty(N)
+    scale, _ = governor_scale(L, l, feedback, qv, dv, g, U, sat, eps * room, prm, u, r)
+    for a in range(MH):
+        v[a] = scale * v_sp[a]
+    for i in range(NH):
+        s = 0.0
+        for a in range(MH):
+            s += delta[i, a] * v[a]
+        dz[i] = phi[i] + s
+    for i in range(N):
+        s = 0.0
+        for j in range(M):
+            s += g[i, j] * u[j]
+        dz[NH + i] = fb[i] + s
+    q2 = _q_of_L(L, u, r)
+    dz[NH + N] = -(lam - eps) * w + q2 / eps
+    out[0] = scale
+    out[1] = room - q2 / eps
+
+
+@njit(RHS_SIGNATURE, **OPTIONS)
+def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
+    """governed_loop behind the tracking core's RHS signature."""
+    governed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz, np.empty(2))
+
+
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), **OPTIONS)
+def governor_samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y, SCALE, SLACK):
+    """At every row of Z: v, u, s and slack (governed_loop), psi = kappa(xi) and y = h(x)."""
+    NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
+    dz = np.empty(NH + N + 1)
+    v = np.empty(MH)
+    u = np.empty(M)
+    out = np.empty(2)
+    for k in range(Z.shape[0]):
+        z = Z[k]
+        governed_loop(eval_xi, eval_x, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz, out)
+        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+        for a in range(MH):
+            V[k, a] = v[a]
+        for j in range(M):
+            Uo[k, j] = u[j]
+        for i in range(P):
+            PSI[k, i] = kap[i]
+            Y[k, i] = h[i]
+        SCALE[k] = out[0]
+        SLACK[k] = out[1]
