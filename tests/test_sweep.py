@@ -56,3 +56,21 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path):
     proc = ashc("sweep", str(BOOST), "--param", "r=0.1:0.1:1", "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path))
     assert proc.returncode == 2
     assert "no dask scheduler answers" in proc.stderr
+
+
+def test_without_dask_the_sweep_says_which_extra_to_install(monkeypatch, tmp_path):
+    # dask and distributed are the `sweep` extra: without them only `ashc sweep` refuses, with a one-line error
+    import builtins
+
+    from ashc_cli.products import sweep as sweep_mod
+    real = builtins.__import__
+
+    def no_dask(name, *args, **kwargs):
+        if name.split(".")[0] in ("dask", "distributed"):
+            raise ImportError(name)
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_dask)
+    spec = load_spec(SPECS / "boost_converter.yaml")
+    with pytest.raises(SpecError, match=r"needs dask.distributed.*ashc\[sweep\]"):
+        sweep_mod.sweep(spec, [parse_param("r=0.05:2:2", spec)], tmp_path)

@@ -1,23 +1,12 @@
 """The runs of ``ashc falsify`` as compiled (numba) code: one adaptive integration per run, runs over every core.
 
-:func:`ashc_cli.products.falsify._simulate` integrates a batch of runs as one vectorised ODE (numpy) whose step is set by
-the worst run of the batch, so every run is as slow as the stiffest and each step pays numpy's per-call cost.
-This module runs the *same* runs, hold by hold, with the same laws and the same measurement of the ratio, but
-
-* each run is integrated on its own, with its own embedded Dormand-Prince 5(4) step-size control (the error
-  of that run alone against ``rtol`` and ``atol`` times the state's scale, as the batch measures it per run);
-* the right-hand side is compiled: the design's expressions (phi_bar, delta, l, dp/dxi delta, kappa, p and
-  dp/dxi of xi; f_bar, g, h and dh/dx of x) are printed from sympy into two numba *kernels*
-  (:func:`ashc_cli.closedloop.compiled.emit_kernel`, one source of truth with the tracking loop), and the interface, the
-  abstract input of every strategy (the set-point law, held tables, the greedy adversary and the guard at V's
-  edges) and the integrator live in a *core* compiled once per machine (:data:`CORE_SOURCE`);
-* the runs of a batch are spread over the cores with numba's ``prange`` (threads), in chunks so that the caller
-  can show progress.
-
-Both are cached on disk (:func:`ashc_cli.closedloop.compiled.load_source`), so a second process pays no compilation.
-``ASHC_COMPILED=0``, or a design whose expressions numba cannot run, keeps the numpy path
-(:class:`ashc_cli.closedloop.compiled.Unsupported`).  A run integrated here and the same run integrated alone by the numpy
-path (a batch of one, whose step control is then that run's) agree to round-off (tests).
+Each run is integrated on its own with the Dormand-Prince 5(4) pair of :mod:`ashc_cli.closedloop.falsify_core`
+(its own step-size control), its right-hand side the design's kernels (printed from sympy by
+:func:`ashc_cli.closedloop.compiled.emit_kernel`) and the core's laws; a pool of Python threads runs the
+batch's runs over every core, the core releasing the GIL.  ``ASHC_COMPILED=0``, or a design whose expressions
+numba cannot run, keeps the numpy path of :mod:`ashc_cli.products.falsify` (:class:`ashc_cli.errors.Unsupported`);
+a run here and the same run integrated alone there agree to round-off (tests).  The rationale and the
+measurements are in docs/guide.md ("Compiled closed loops").
 """
 
 from __future__ import annotations

@@ -114,7 +114,10 @@ def sweep(spec: Spec, axes: list[tuple[str, np.ndarray]], out: Path, scheduler: 
     Artefact
         The table: one row per combination (parameters, lambda, dbar_q0, gain, solved, falsify ratio, seconds, error).
     """
-    from dask.distributed import Client, LocalCluster, as_completed
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise SpecError("sweep", "needs dask.distributed, which is not installed", "pip install 'ashc[sweep]'") from None
 
     combos = combinations(axes)
     spec_json = spec.model_dump(mode="json")
