@@ -32,10 +32,8 @@ MODULE_DEBTS = {
 FUNCTION_DEBTS = {
     "closedloop/falsify_core.py:run_one": 290,
     "closedloop/tracking_core.py:integrate": 203,
-    "design/stages/bound.py:run": 143,
     "design/stages/inverse.py:run_explicit": 103,
     "design/stages/inverse.py:run": 121,
-    "design/stages/manifold.py:run": 121,
     "design/stages/simulate.py:run_m_relation": 105,
     "outputs/export.py:c_sources": 118,
     "products/falsify.py:_simulate": 201,

@@ -465,7 +465,14 @@ def prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, 
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. egErrorBound.
+    """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. (38).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    upstream : dict of str to Artefact
+        The stabilise, manifold and delta artefacts.
 
     Returns
     -------
@@ -480,129 +487,173 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     SpecError
         If h is nonlinear and the spec gives no ``concrete.state_box`` to compute L_h on.
     """
-    st, man, dl = upstream["stabilise"], upstream["manifold"], upstream["delta"]
+    st = upstream["stabilise"]
     M = np.asarray(st.value("M"), dtype=float)
     lam = float(st.value("lambda"))
-    C = model.C
-    lipschitz_h, lipschitz_at = model.h_jacobian_bound()
-    alpha_h = alpha_h_linear(M, C) if C is not None else alpha_h_lipschitz(M, lipschitz_h)
     eps = lam / 2.0
     L = np.linalg.cholesky(M)
+    alpha = _alpha_h(model, M)
+    th = _theta_on_V(model, upstream["manifold"], upstream["delta"], L)
+    db = _dbar(model, M, L, th)
+    gain = error_bound_gain(alpha["alpha_h"], lam, eps, db["dbar"])
+    region = _region(model, upstream, M, L, lam, eps, db, th)
+    return _artefact(model, upstream, M, L, lam, eps, gain, alpha, th, db, region)
 
+
+def _alpha_h(model: Model, M: np.ndarray) -> dict:
+    """alpha_h and L_h (1 / lambda_max(C M^-1 C^T) for a linear h, Assumption 1 otherwise), proved where ball arithmetic can."""
+    lipschitz_h, lipschitz_at = model.h_jacobian_bound()
+    alpha_h = alpha_h_linear(M, model.C) if model.C is not None else alpha_h_lipschitz(M, lipschitz_h)
+    out = {"alpha_h_sampled": alpha_h, "lipschitz_h_sampled": lipschitz_h, "lipschitz_at": lipschitz_at, "how": "numpy", "proved": False}
+    proof = prove_alpha_h(model, M, alpha_h)
+    if proof is not None:
+        alpha_h, lipschitz_h, out["how"] = proof
+        out["proved"] = True
+    out.update(alpha_h=alpha_h, lipschitz_h=lipschitz_h)
+    return out
+
+
+def _theta_on_V(model: Model, man: Artefact, dl: Artefact, L: np.ndarray) -> dict:
+    """dp/dxi delta (a formula, or a series when p is numeric and delta constant), its numpy forms and
+    ||sqrt(M) theta|| on a grid of V for q = 0, delta = I and the least-squares q.
+
+    Raises
+    ------
+    DesignError
+        If ||sqrt(M) dp/dxi delta|| is not finite on the grid (condition (B) fails).
+    """
     delta = dl.expr("delta")
     xi_args = list(model.xi)
+    th = {"dpd_series": None}
     if "dp_dxi" in man.series and not delta.free_symbols & set(model.xi):
         # p kept numeric and delta constant: dp/dxi delta is a series too, evaluated by numpy (no formula built).
-        dpd_series = man.series["dp_dxi"].right(np.array(model.substitute(delta), dtype=float))
-        dp_delta, dpd_num = None, dpd_series
+        th["dpd_series"] = man.series["dp_dxi"].right(np.array(model.substitute(delta), dtype=float))
+        th["dp_delta"], th["dpd_num"] = None, th["dpd_series"]
     else:
-        dp_delta = man.expr("dp_dxi") * delta
-        dpd_num = model.numeric(dp_delta, xi_args)
-    dp_num, p_num = dp_function(man, model), p_function(man, model)
-    g_num = model.numeric(model.g, list(model.x))
-
-    grid = domain_grid(model.V, GRID_POINTS)
-    dpd_grid, p_grid = dpd_num(*grid), p_num(*grid)          # evaluated once, used by every sup below
-    norm_q0 = theta_norms(L, dpd_grid, None)
-    norm_q0_identity = theta_norms(L, dp_num(*grid), None)
-    norm_ls = theta_norms(L, dpd_grid, g_num(*p_grid[:, 0, :]))
-    if not np.all(np.isfinite(norm_q0)):
+        th["dp_delta"] = man.expr("dp_dxi") * delta
+        th["dpd_num"] = model.numeric(th["dp_delta"], xi_args)
+    th["dp_num"], th["p_num"] = dp_function(man, model), p_function(man, model)
+    th["g_num"] = model.numeric(model.g, list(model.x))
+    grid = th["grid"] = domain_grid(model.V, GRID_POINTS)
+    th["dpd_grid"], th["p_grid"] = th["dpd_num"](*grid), th["p_num"](*grid)          # evaluated once, used by every sup below
+    th["norm_q0"] = theta_norms(L, th["dpd_grid"], None)
+    th["norm_q0_identity"] = theta_norms(L, th["dp_num"](*grid), None)
+    th["norm_ls"] = theta_norms(L, th["dpd_grid"], th["g_num"](*th["p_grid"][:, 0, :]))
+    if not np.all(np.isfinite(th["norm_q0"])):
         raise DesignError("abstract.delta", "||sqrt(M) dp/dxi delta|| is not finite on V (condition (B) fails)",
-                          "p continuously differentiable and delta continuous on V (Proposition condB)", check="condition_B")
+                          "p continuously differentiable and delta continuous on V (Proposition 1)", check="condition_B")
+    th["p_expr"] = man.exprs["p"] if "p" in man.exprs else (man.series["p"].to_sympy(xi_args) if "p" in man.series else None)
+    return th
 
-    alpha_h_sampled, lipschitz_h_sampled = alpha_h, lipschitz_h
-    alpha_proof, alpha_how = prove_alpha_h(model, M, alpha_h), "numpy"
-    if alpha_proof is not None:
-        alpha_h, lipschitz_h, alpha_how = alpha_proof
 
+def _dbar(model: Model, M: np.ndarray, L: np.ndarray, th: dict) -> dict:
+    """The sups of ||theta|| over V (q = 0, delta = I, least squares; refined by a scalar search for one
+    abstract state), dbar_q0 proved in ball arithmetic where it can be, and the dbar of the interface."""
+    grid, dpd_num, dp_num, g_num, p_num = th["grid"], th["dpd_num"], th["dp_num"], th["g_num"], th["p_num"]
     if model.n_hat == 1:
         xs = grid[0]
-        dbar_q0, at_q0 = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, norm_q0)
-        dbar_id, at_id = sup_on_interval(lambda s: theta_norms(L, dp_num(s), None), xs, norm_q0_identity)
-        dbar_ls, at_ls = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), g_num(*p_num(s)[:, 0, :])), xs, norm_ls)
+        dbar_q0, at_q0 = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, th["norm_q0"])
+        dbar_id, at_id = sup_on_interval(lambda s: theta_norms(L, dp_num(s), None), xs, th["norm_q0_identity"])
+        dbar_ls, at_ls = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), g_num(*p_num(s)[:, 0, :])), xs, th["norm_ls"])
         at = [[at_q0], [at_id], [at_ls]]
     else:
-        dbar_q0, dbar_id, dbar_ls = float(norm_q0.max()), float(norm_q0_identity.max()), float(norm_ls.max())
-        at = [grid[:, np.argmax(v)].tolist() for v in (norm_q0, norm_q0_identity, norm_ls)]
-
-    dbar_q0_sampled = dbar_q0
-    dbar_q0_proved = np.inf
+        dbar_q0, dbar_id, dbar_ls = (float(th[k].max()) for k in ("norm_q0", "norm_q0_identity", "norm_ls"))
+        at = [grid[:, np.argmax(th[k])].tolist() for k in ("norm_q0", "norm_q0_identity", "norm_ls")]
+    dp_delta = th["dp_delta"] if th["dp_delta"] is not None else th["dpd_series"].to_sympy(list(model.xi))
+    db = {"dbar_q0_sampled": dbar_q0, "dbar_q0_proved": np.inf, "dbar_id": dbar_id, "dbar_ls": dbar_ls, "at": at}
     if model.n <= proofs.MAX_PROOF_STATES:   # the proof works on the formula (the one readers get)
-        dbar_q0_proved = prove_dbar(model, M, dp_delta if dp_delta is not None else dpd_series.to_sympy(xi_args), model.V, np.asarray(at[0], dtype=float))
-    if np.isfinite(dbar_q0_proved):
-        dbar_q0 = max(dbar_q0, dbar_q0_proved)
+        db["dbar_q0_proved"] = prove_dbar(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
+    if np.isfinite(db["dbar_q0_proved"]):
+        dbar_q0 = max(dbar_q0, db["dbar_q0_proved"])
     # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
-    dbar, dbar_how = interface_dbar(model, L, dpd_grid, dbar_q0)
-    dbar_evidence = PROVED if np.isfinite(dbar_q0_proved) and dbar == dbar_q0 else SAMPLED
-    if np.isfinite(dbar) and dbar != dbar_q0 and np.isfinite(dbar_q0_proved):
+    dbar, dbar_how = interface_dbar(model, L, th["dpd_grid"], dbar_q0)
+    evidence = PROVED if np.isfinite(db["dbar_q0_proved"]) and dbar == dbar_q0 else SAMPLED
+    if np.isfinite(dbar) and dbar != dbar_q0 and np.isfinite(db["dbar_q0_proved"]):
         # The clipping patterns of several inputs: proved where theta does not depend on xi (affine p, constant delta and g).
         g_const = constant_g(model)
-        pattern_proved = prove_pattern_dbar(model, M, g_const, dp_delta) if g_const is not None else np.inf
+        pattern_proved = prove_pattern_dbar(model, M, g_const, th["dp_delta"]) if g_const is not None else np.inf
         if np.isfinite(pattern_proved):
             dbar = max(dbar, pattern_proved, dbar_q0)
             dbar_how = dbar_how.replace("(grid)", "(proved in ball arithmetic: theta is constant on V)")
-            dbar_evidence = PROVED
+            evidence = PROVED
     if not np.isfinite(dbar):
         raise DesignError("interface.saturate", f"no uniform bound is certified: {dbar_how} (condition (B) fails for this interface)",
                           "interface.saturate: scale (one factor for the whole correction), q: zero, or a constant g", check="condition_B")
-    gain = error_bound_gain(alpha_h, lam, eps, dbar)
-    l_num = model.numeric(model.l, xi_args)
-    w0_max, v_max, limits = certified_region(model, upstream, L, dbar, (lam - eps) * eps, grid, l_num(*grid), p_grid, dpd_grid)
+    db.update(dbar_q0=dbar_q0, dbar=dbar, dbar_how=dbar_how, evidence=evidence)
+    return db
+
+
+def _region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.ndarray, lam: float, eps: float, db: dict, th: dict) -> dict:
+    """Where the bound is certified (W0 and ||v||_inf limits; infinite for a global bound), the published limits
+    proved where ball arithmetic can (then a little smaller than the sampled ones)."""
+    grid = th["grid"]
+    l_num = model.numeric(model.l, list(model.xi))
+    w0_max, v_max, limits = certified_region(model, upstream, L, db["dbar"], (lam - eps) * eps, grid, l_num(*grid), th["p_grid"], th["dpd_grid"])
     # A global region rests on the structural argument of interface_dbar and on dbar itself; a local one on the
     # proved lower bounds of its limits (then the region published is the proved one, a little smaller).
-    region_evidence = dbar_evidence if not np.isfinite(w0_max) else SAMPLED
-    w0_max_sampled, v_max_sampled = w0_max, v_max
+    region = {"w0_max_sampled": w0_max, "v_max_sampled": v_max, "limits": limits,
+              "evidence": db["evidence"] if not np.isfinite(w0_max) else SAMPLED}
     if np.isfinite(w0_max):
-        p_expr = man.exprs["p"] if "p" in man.exprs else (man.series["p"].to_sympy(xi_args) if "p" in man.series else None)
-        proved_region = prove_region(model, upstream, M, dbar, (lam - eps) * eps, p_expr, dp_delta)
+        proved_region = prove_region(model, upstream, M, db["dbar"], (lam - eps) * eps, th["p_expr"], th["dp_delta"])
         if proved_region is not None and proved_region[0] > 0:
             w0_max, v_max = min(w0_max, proved_region[0]), min(v_max, proved_region[1])
-            region_evidence = dbar_evidence
+            region["evidence"] = db["evidence"]
+    region.update(w0_max=w0_max, v_max=v_max)
+    return region
+
+
+def _artefact(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.ndarray, lam: float, eps: float, gain: float,
+              alpha: dict, th: dict, db: dict, region: dict) -> Artefact:
+    """The bound stage's artefact: values, expressions, and the checks of condition (B), the region, alpha_h and L_h."""
+    C = model.C
     art = Artefact(stage=NAME, meta={
-        "grid_points": int(grid.shape[1]), "sup_method": "grid maximum refined by bounded scalar search",
+        "grid_points": int(th["grid"].shape[1]), "sup_method": "grid maximum refined by bounded scalar search",
         "sqrt_M": "Cholesky factor L of M, ||L^T w|| = ||sqrt(M) w|| (ERRATA item 8)",
-        "gain_form": "paper (Theorem ErrorBound max-form, factor 2 kept, ERRATA item 7)",
+        "gain_form": "paper (Theorem 2 max-form, factor 2 kept, ERRATA item 7)",
         "dbar_ls_where": "on the manifold x = p(xi); not a uniform bound off it",
         "interface_q": model.spec.interface.q,
     })
-    if dp_delta is None:
-        art.set_series("dp_delta", dpd_series, model.xi)
+    if th["dp_delta"] is None:
+        art.set_series("dp_delta", th["dpd_series"], model.xi)
     else:
-        art.exprs["dp_delta"] = dp_delta
+        art.exprs["dp_delta"] = th["dp_delta"]
     art.exprs["g"] = model.g
+    alpha_h, dbar, dbar_how, w0_max, v_max, limits = alpha["alpha_h"], db["dbar"], db["dbar_how"], region["w0_max"], region["v_max"], region["limits"]
     art.values.update({
         "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C if C is not None else np.zeros((0, model.n)),
-        "dbar_q0": dbar_q0, "dbar_q0_squared": dbar_q0**2, "dbar_q0_identity": dbar_id, "dbar_ls": dbar_ls,
-        "dbar_argmax": np.array(at, dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
-        "dbar": dbar, "dbar_how": dbar_how, "dbar_q0_sampled": dbar_q0_sampled, "dbar_q0_proved": dbar_q0_proved,
-        "alpha_h_sampled": alpha_h_sampled, "lipschitz_h_sampled": lipschitz_h_sampled, "w0_max_certified": w0_max, "v_max_certified": v_max,
-        "w0_max_sampled": w0_max_sampled, "v_max_sampled": v_max_sampled,
+        "dbar_q0": db["dbar_q0"], "dbar_q0_squared": db["dbar_q0"]**2, "dbar_q0_identity": db["dbar_id"], "dbar_ls": db["dbar_ls"],
+        "dbar_argmax": np.array(db["at"], dtype=float), "gain": gain, "gain_comparison": gain / np.sqrt(2.0),
+        "dbar": dbar, "dbar_how": dbar_how, "dbar_q0_sampled": db["dbar_q0_sampled"], "dbar_q0_proved": db["dbar_q0_proved"],
+        "alpha_h_sampled": alpha["alpha_h_sampled"], "lipschitz_h_sampled": alpha["lipschitz_h_sampled"],
+        "w0_max_certified": w0_max, "v_max_certified": v_max,
+        "w0_max_sampled": region["w0_max_sampled"], "v_max_sampled": region["v_max_sampled"],
         "region_limits": "; ".join(limits) if limits else "none: the bound holds on V x R^n for every v",
-        "xi_grid": grid, "theta_norm_q0": norm_q0, "theta_norm_q0_identity": norm_q0_identity, "theta_norm_ls_manifold": norm_ls,
+        "xi_grid": th["grid"], "theta_norm_q0": th["norm_q0"], "theta_norm_q0_identity": th["norm_q0_identity"], "theta_norm_ls_manifold": th["norm_ls"],
     })
-    how = "proved upper bound by ball arithmetic over V" if dbar_evidence == PROVED else "grid of V"
+    how = "proved upper bound by ball arithmetic over V" if db["evidence"] == PROVED else "grid of V"
     art.checks["condition_B"] = Check(dbar, bool(np.isfinite(dbar) and 0 < eps < lam),
-                                      "Proposition condB: sup of ||theta|| over V, the states and the interface's saturation finite and 0 < epsilon < lambda "
-                                      f"(dbar = {dbar_how}; {how})", dbar_evidence)
-    region = "global (every W0, every v)" if not np.isfinite(w0_max) else f"W(xi0, x0) <= {w0_max:.6g} and ||v||_inf <= {v_max:.6g} ({'; '.join(limits)})"
+                                      "Proposition 1: sup of ||theta|| over V, the states and the interface's saturation finite and 0 < epsilon < lambda "
+                                      f"(dbar = {dbar_how}; {how})", db["evidence"])
+    text = "global (every W0, every v)" if not np.isfinite(w0_max) else f"W(xi0, x0) <= {w0_max:.6g} and ||v||_inf <= {v_max:.6g} ({'; '.join(limits)})"
     art.checks["certified_region"] = Check(w0_max, bool(w0_max > 0),
-                                           f"where |psi - y| <= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf is certified: {region} (non-empty)",
-                                           region_evidence)
-    alpha_evidence = PROVED if alpha_proof is not None else SAMPLED
-    art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, f"alpha_h with W >= alpha_h |kappa(xi) - h(x)|^2 (> 0, eq. SimuFuncCondi1; {alpha_how})", alpha_evidence)
-    art.values.update({"lipschitz_h": lipschitz_h, "lipschitz_h_at": lipschitz_at})
+                                           f"where |psi - y| <= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf is certified: {text} (non-empty)",
+                                           region["evidence"])
+    alpha_evidence = PROVED if alpha["proved"] else SAMPLED
+    art.checks["alpha_h"] = Check(alpha_h, alpha_h > 0, f"alpha_h with W >= alpha_h |kappa(xi) - h(x)|^2 (> 0, eq. (6); {alpha['how']})", alpha_evidence)
+    lipschitz_h = alpha["lipschitz_h"]
+    art.values.update({"lipschitz_h": lipschitz_h, "lipschitz_h_at": alpha["lipschitz_at"]})
     where = "||C||_2 of the linear output map" if C is not None else f"sup of ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (grid + L-BFGS-B)"
     art.meta["alpha_h_form"] = "1 / lambda_max(C M^-1 C^T)" if C is not None else "lambda_min(M) / L_h^2 (Assumption 1)"
-    if C is None and alpha_proof is not None:
+    if C is None and alpha["proved"]:
         where = f"proved upper bound of sup ||dh/dx||_2 over concrete.state_box = {model.state_box.tolist()} (ball arithmetic)"
     # A linear h is Lipschitz with the constant ||C||_2 by definition: nothing is sampled.
-    h_evidence = PROVED if C is not None or alpha_proof is not None else SAMPLED
+    h_evidence = PROVED if C is not None or alpha["proved"] else SAMPLED
     art.checks["h_lipschitz"] = Check(lipschitz_h, bool(np.isfinite(lipschitz_h) and lipschitz_h > 0), f"Lipschitz constant L_h = {where} (finite: Assumption 1 holds)", h_evidence)
     # How each number that enters G and the region was established (proved or sampled), for `ashc summary`.
     lmi = [upstream["stabilise"].checks[k].evidence for k in ("lmi_margin", "M_positive") if k in upstream["stabilise"].checks]
     art.values.update({"evidence_lambda": PROVED if lmi and all(e == PROVED for e in lmi) else SAMPLED,
                        "evidence_alpha_h": PROVED if alpha_evidence == PROVED and h_evidence == PROVED else SAMPLED,
-                       "evidence_dbar": dbar_evidence, "evidence_region": region_evidence})
+                       "evidence_dbar": db["evidence"], "evidence_region": region["evidence"]})
     sampled = bound_sampled({**upstream, NAME: art})
     art.values["bound_evidence"] = PROVED if not sampled else SAMPLED
     art.values["bound_sampled"] = ", ".join(sampled) if sampled else "none"

@@ -598,7 +598,14 @@ def auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Solve eq. SimuDesignCond1 for p and check it.
+    """Solve eq. (14a) for p and check it.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    upstream : dict of str to Artefact
+        Unused (the manifold reads only the spec).
 
     Returns
     -------
@@ -613,9 +620,44 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If the residual of the PDE on V is above tolerance.
     """
+    plant = _Plant(model)
+    p, series, branches, method, tolerance = _solve(model, plant)
+    V = model.V if model.V is not None else auto_domain(model, p)
+    on = _on_grid(model, plant, p, series, V, tolerance)
+    l_range, excursion, l_proved, grid_excursion, l_inside = _l_in_U(model, V, on["l_grid"])
+    art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
+                                      "grid_points": int(on["grid"].shape[1]), "residual_rtol": tolerance,
+                                      "domain": "auto" if model.V is None else "spec"})
+    if series is not None:
+        art.set_series("p", series, model.xi)
+        art.set_series("dp_dxi", on["dp_series"], model.xi)
+        art.values["p_formula_deviation"] = on["deviation"]
+    else:
+        art.exprs.update({"p": p, "dp_dxi": on["dp"]})
+    art.values.update({"V": V, "xi_grid": on["grid"], "p_grid": on["p_grid"], "residual": on["residual"], "residual_scale": on["scale"],
+                       "l_range": l_range})
+    points = on["grid"].shape[1]
+    if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, p)))):
+        art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. (14a) exactly", proofs.PROVED)
+    else:
+        which = f" (the Chebyshev series and its formula; they differ by {on['deviation']:.2g})" if series is not None else ""
+        art.checks["pde_residual"] = Check(on["residual"], True, f"max over a {points}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. (14a)){which}")
+    if l_proved:
+        how = ("l affine: its values at the corners of V, in exact rationals" if proofs.affine_in(model.l, list(model.xi))
+               else "the ball-arithmetic enclosure of l(V)")
+        art.checks["l_in_U"] = Check(excursion, True, f"largest excursion of l(V) outside U, {how} (<= 0: l maps V into U)", proofs.PROVED)
+    else:
+        art.checks["l_in_U"] = Check(grid_excursion, l_inside, f"largest excursion of l(V) outside U on a {points}-point grid (<= 0: l maps V into U)")
+    return art
+
+
+def _solve(model: Model, plant: _Plant):
+    """(p, series, branches, method, tolerance): p by the first method that applies (a closed form, Newton
+    continuation with a Chebyshev fit, the Sylvester equation, Chebyshev collocation), its coefficients
+    recognised as exact where they are; ``series`` is p kept numeric (then p is that series too); tolerance is
+    the residual p must meet (round-off for a closed form, the spec's pde_tolerance for a fit)."""
     # A closed form must solve the PDE to round-off; a fitted p to the spec's pde_tolerance.
     tolerance, fitted_tolerance = RESIDUAL_RTOL, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
-    plant = _Plant(model)
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
         p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
         if not (model.use_numeric and model.V is not None):
@@ -655,32 +697,42 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         if exact_p is not None:
             p, tolerance = exact_p, RESIDUAL_RTOL
             method += "; its coefficients recognised as rationals that solve eq. (14a) exactly (sympy)"
-    V = model.V if model.V is not None else auto_domain(model, p)
+    return p, series, branches, method, tolerance
 
+
+def _on_grid(model: Model, plant: _Plant, p, series, V: np.ndarray, tolerance: float) -> dict:
+    """p, dp/dxi, phi_bar and l on a grid of V, and the PDE residual there (the series and its formula both);
+    a NumericalError if the residual is above ``tolerance`` relative to the size of its terms."""
     grid = domain_grid(V, GRID_POINTS)
     xi_args = list(model.xi)
+    on = {"grid": grid, "deviation": 0.0}
     phi_grid = model.numeric(model.phi_bar, xi_args)(*grid)[:, 0, :]         # (n_hat, N)
-    l_grid = model.numeric(model.l, xi_args)(*grid)[:, 0, :]                 # (m, N)
+    on["l_grid"] = l_grid = model.numeric(model.l, xi_args)(*grid)[:, 0, :]  # (m, N)
     if series is not None:
         # Kept numeric (Chebyshev series, evaluated by numpy): no sympy Jacobian or compiled formula of p.
-        dp_series = series.jacobian()
+        on["dp_series"] = dp_series = series.jacobian()
         p_grid, dp_grid = series.at(grid)[:, 0, :], dp_series.at(grid)      # (n, N), (n, n_hat, N)
     else:
-        dp = p.jacobian(model.xi)
+        on["dp"] = dp = p.jacobian(model.xi)
         p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                   # (n, N)
         dp_grid = model.numeric(dp, xi_args)(*grid)                          # (n, n_hat, N)
     residual, scale = _grid_residual(plant, p_grid, dp_grid, phi_grid, l_grid)
-    deviation = 0.0
     if series is not None:
         # Readers of the artefact get p's formula (Horner on power coefficients), which differs from the series
         # by the round-off of that conversion: it must solve the PDE too, and the check covers both.
         p_formula = series.formula_at(grid)[:, 0, :]
-        deviation = float(np.abs(p_formula - p_grid).max())
+        on["deviation"] = float(np.abs(p_formula - p_grid).max())
         formula_residual, formula_scale = _grid_residual(plant, p_formula, dp_series.formula_at(grid), phi_grid, l_grid)
         residual, scale = max(residual, formula_residual), max(scale, formula_scale)
     if not np.isfinite(residual) or residual > tolerance * scale:
-        raise NumericalError(NAME, f"residual of eq. SimuDesignCond1 on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
+        raise NumericalError(NAME, f"residual of eq. (14a) on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
+    on.update(p_grid=p_grid, residual=residual, scale=scale)
+    return on
 
+
+def _l_in_U(model: Model, V: np.ndarray, l_grid: np.ndarray):
+    """(l_range, excursion, proved, grid_excursion, inside): l(V) inside U, proved (exactly for an affine l, in
+    ball arithmetic otherwise) or on the grid; a DesignError if l(V) leaves U."""
     U = model.U
     l_lo, l_hi = l_grid.min(axis=1), l_grid.max(axis=1)
     excursion, l_proved = prove_l_in_U(model, V)
@@ -693,31 +745,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         tiny = " (at the level of rounding: shrink abstract.domain by that much)" if by <= 1e-12 * max(1.0, float(np.abs(U).max())) else ""
         raise DesignError("abstract.l", f"l(V) = {np.c_[l_lo, l_hi].tolist()} is not inside U = {U.tolist()}: it leaves U by {by:.3g}"
                           f"{' (decided exactly)' if decided else ' on a grid of V'}{tiny}",
-                          "l: V -> U (Theorem SimuDesign); shrink abstract.domain or change l", check="l_in_U")
-
-    art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
-                                      "grid_points": int(grid.shape[1]), "residual_rtol": tolerance,
-                                      "domain": "auto" if model.V is None else "spec"})
-    if series is not None:
-        art.set_series("p", series, model.xi)
-        art.set_series("dp_dxi", dp_series, model.xi)
-        art.values["p_formula_deviation"] = deviation
-    else:
-        art.exprs.update({"p": p, "dp_dxi": dp})
-    art.values.update({"V": V, "xi_grid": grid, "p_grid": p_grid, "residual": residual, "residual_scale": scale,
-                       "l_range": np.c_[l_lo, l_hi]})
-    if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, p)))):
-        art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. SimuDesignCond1 exactly", proofs.PROVED)
-    else:
-        which = f" (the Chebyshev series and its formula; they differ by {deviation:.2g})" if series is not None else ""
-        art.checks["pde_residual"] = Check(residual, True, f"max over a {grid.shape[1]}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. SimuDesignCond1){which}")
-    if l_proved:
-        how = ("l affine: its values at the corners of V, in exact rationals" if proofs.affine_in(model.l, list(model.xi))
-               else "the ball-arithmetic enclosure of l(V)")
-        art.checks["l_in_U"] = Check(excursion, True, f"largest excursion of l(V) outside U, {how} (<= 0: l maps V into U)", proofs.PROVED)
-    else:
-        art.checks["l_in_U"] = Check(grid_excursion, l_inside, f"largest excursion of l(V) outside U on a {grid.shape[1]}-point grid (<= 0: l maps V into U)")
-    return art
+                          "l: V -> U (Theorem 4); shrink abstract.domain or change l", check="l_in_U")
+    return np.c_[l_lo, l_hi], excursion, l_proved, grid_excursion, l_inside
 
 
 def _grid_residual(plant: _Plant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
