@@ -43,7 +43,6 @@ of X_y (and symbolically), m real and finite there, and kappa(V) covering Y; any
 from __future__ import annotations
 
 import itertools
-from dataclasses import replace
 
 import numpy as np
 import scipy.optimize as sopt
@@ -55,6 +54,7 @@ from ashc_cli.errors import DesignError
 from ashc_cli.numerics import chebyshev
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy, within_budget
+from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
@@ -262,103 +262,6 @@ def _cover_nonlinear(model: Model, kap: Artefact) -> tuple[float, str, str, bool
             f"some outputs of Y are not kappa(xi) for any xi in V (residual {value:.3g})", value <= 1e-9)
 
 
-#: Exact (rational) proofs of the affine inverse are attempted up to this many unknowns n_hat x n of K.
-EXACT_MAX_UNKNOWNS = 64
-
-
-def prove_affine_inverse(model: Model, man: Artefact, kap: Artefact, T: np.ndarray, K: np.ndarray, kappa_affine: bool) -> dict:
-    """Prove the inverse stage's claims for an affine p(xi) = P xi + p0 in exact rational arithmetic.
-
-    P and p0 are p's stored formula with every parameter and number the exact rational of its double.  Then:
-
-    * p injective: rank P = n_hat (exact);
-    * a left inverse K_ex with K_ex P = I and T (I - P K_ex) = 0 exactly, found from the rationals (the
-      pseudo-inverse (P^T P)^-1 P^T, or the least-norm solution of both equations): m(x) = K_ex (x - p0) gives
-      m(p(xi)) = xi (the left-inverse row, and condition (i): p(m(p(xi))) = p(xi)) and, since h reads x only
-      through T x (T = C for a linear h), h(p(m(x))) = h(x) for every x (condition (ii));
-    * m is linear, hence real everywhere;
-    * eq. (10) for an affine kappa = C P xi + C p0: for one output the exact range of kappa over V's corners
-      contains Y; otherwise each vertex of Y is reached from V (an exact linear program, sympy's simplex).
-
-    Returns
-    -------
-    dict
-        ``K`` (the doubles nearest K_ex, or the given K if not proved), booleans ``injective``, ``left_inverse``,
-        ``condition_ii``, ``covers`` (None when not decided exactly), ``K_deviation`` (max |K - K_ex| of the
-        given K) and ``how``.
-    """
-    out = {"K": K, "injective": False, "left_inverse": False, "condition_ii": False, "covers": None, "K_deviation": np.nan, "how": "not proved"}
-    n, n_hat = model.n, model.n_hat
-    if n * n_hat > EXACT_MAX_UNKNOWNS:
-        out["how"] = f"not attempted: n_hat x n = {n * n_hat} unknowns (exact rational proofs up to {EXACT_MAX_UNKNOWNS})"
-        return out
-    p = man.expr("p")
-    P = proofs.exact(model, man.expr("dp_dxi"))
-    if P.free_symbols & set(model.xi):
-        out["how"] = "not proved: dp/dxi is not constant in exact arithmetic"
-        return out
-    p0 = proofs.exact(model, p.xreplace({s: 0 for s in model.xi}))
-    if P.rank() < n_hat:
-        out["how"] = "not proved: P has exact rank below n_hat"
-        return out
-    out["injective"] = True
-    Tq = sp.Matrix([[proofs.exact_number(t) for t in row] for row in np.asarray(T, dtype=float)])
-    I_n, I_hat = sp.eye(n), sp.eye(n_hat)
-    K_ex = (P.T * P).inv() * P.T
-    if Tq * (I_n - P * K_ex) != sp.zeros(*Tq.shape):
-        # The least-norm solution of K P = I, T P K = T in vec(K) (column-major), exactly.
-        unknowns = sp.symbols(f"k0:{n_hat * n}")
-        Ks = sp.Matrix(n_hat, n, lambda i, j: unknowns[i + j * n_hat])
-        eqs = list(Ks * P - I_hat) + list(Tq * P * Ks - Tq)
-        A, b = sp.linear_eq_to_matrix(eqs, unknowns)
-        try:
-            sol = A.pinv() * b
-        except (ValueError, ZeroDivisionError):
-            sol = None
-        if sol is None or A * sol != b:
-            out["how"] = "not proved: no left inverse K of P with T (I - P K) = 0 exists in exact arithmetic"
-            return out
-        K_ex = Ks.xreplace(dict(zip(unknowns, sol)))
-    assert K_ex * P == I_hat
-    out.update(left_inverse=True, condition_ii=True)
-    K_float = np.array(K_ex.evalf(17).tolist(), dtype=float)
-    out["K_deviation"] = float(np.abs(np.asarray(K, dtype=float) - K_float).max())
-    out["K"] = K_float
-    how = "exact rationals: rank P = n_hat, K_ex P = I and T (I - P K_ex) = 0 with m = K_ex (x - p0) rounded to doubles"
-    if kappa_affine:
-        Cq = proofs.exact(model, sparse_jacobian(model.h, model.x))
-        Kk, k0 = Cq * P, Cq * p0
-        if Kk.free_symbols or k0.free_symbols:
-            out["how"] = how
-            return out
-        corners = list(itertools.product(*[(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]))
-        Yq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.Y]
-        if model.p == 1:
-            vals = [(Kk * sp.Matrix(c) + k0)[0] for c in corners]
-            out["covers"] = bool(min(vals) <= Yq[0][0] and max(vals) >= Yq[0][1])
-            gap = max(min(vals) - Yq[0][0], Yq[0][1] - max(vals))
-            out["covers_gap"] = float(gap)
-            out["kappa_V_exact"] = [float(min(vals)), float(max(vals))]
-        else:
-            from sympy.solvers.simplex import InfeasibleLPError, linprog
-
-            covers = True
-            # xi = lo + z with 0 <= z <= hi - lo (sympy's simplex keeps its variables non-negative)
-            Vq = [(proofs.exact_number(lo), proofs.exact_number(hi)) for lo, hi in model.V]
-            lo_vec = sp.Matrix([lo for lo, _ in Vq])
-            A_in, b_in = sp.eye(n_hat), sp.Matrix([hi - lo for lo, hi in Vq])
-            for vertex in itertools.product(*Yq):
-                try:
-                    linprog(sp.zeros(1, n_hat), A_in, b_in, Kk, sp.Matrix(vertex) - k0 - Kk * lo_vec)
-                except InfeasibleLPError:
-                    covers = False
-                    break
-            out["covers"] = covers
-        how += "; eq. (10) decided exactly (" + ("kappa's range at the corners of V" if model.p == 1 else "a rational linear program per vertex of Y") + ")"
-    out["how"] = how
-    return out
-
-
 def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """The left inverse m(x) = K (x - p0) of an affine p(xi) = P xi + p0 (K from :func:`choose_left_inverse`), and its checks."""
     p = man.expr("p")
@@ -451,9 +354,9 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     art.values["left_inverse_exact_deviation"] = proof["K_deviation"]
     if proof["left_inverse"]:
         for name in ("left_inverse", "condition_i", "condition_ii", "m_real_on_Y"):
-            _relabel_proved(art, name, proof["how"])
+            relabel_proved(art, name, proof["how"])
     if proof["covers"]:
-        _relabel_proved(art, "V_covers_Y", proof["how"])
+        relabel_proved(art, "V_covers_Y", proof["how"])
     return art
 
 
@@ -588,7 +491,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     _checks_common(art, model, p_function(man, model), m, p_grid)
     proof = prove_multi_inverse(model, kappa, m_of_y, ys)
     art.meta["proof"] = proof["how"]
-    _mark_proved(art, proof)
+    mark_proved(art, proof)
     return art
 
 
@@ -713,14 +616,21 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
     _checks_common(art, model, p_function(man, model), m, p_grid)
     if proved_left:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
-        _relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
+        relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
     if proved_ii:
-        _relabel_proved(art, "condition_ii", "h(p(m(x))) - h(x) simplifies to 0, sympy")
+        relabel_proved(art, "condition_ii", "h(p(m(x))) - h(x) simplifies to 0, sympy")
     return art
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Find the left inverse m of p and check conditions (i), (ii) and eq. SimuLocalRequire.
+    """Find the left inverse m of p and check conditions (i), (ii) and eq. (10).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    upstream : dict of str to Artefact
+        The manifold and kappa artefacts.
 
     Returns
     -------
@@ -736,7 +646,6 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         a left inverse of p on V or fails condition (ii).
     """
     man, kap = upstream["manifold"], upstream["kappa"]
-    kappa = kap.expr("kappa")
     if model.m_given is not None:
         return run_explicit(model, man, kap)
     if p_is_affine(man, model):
@@ -746,7 +655,22 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                           "a square kappa, or an affine p (m = P^+ (x - p0))")
     if model.n_hat > 1:
         return run_multi(model, man, kap)
-    xi = model.xi[0]
+    return run_scalar(model, man, kap)
+
+
+def run_scalar(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+    """One abstract state and one output: m = kappa^-1(h(x)) (:func:`run`), its branch and where it is real."""
+    kappa = kap.expr("kappa")
+    m_of_y, y, method, n_branches, left_residual, y_grid = _scalar_branch(model, man, kappa)
+    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
+    real_lo, real_hi, radicands = _real_on_Y(model, m_of_y, y, y_grid)
+    return _scalar_artefact(model, man, kap, m, m_of_y, y, method, n_branches, left_residual, y_grid, real_lo, real_hi, radicands)
+
+
+def _scalar_branch(model: Model, man: Artefact, kappa: sp.Matrix):
+    """(m_of_y, y, method, branches, left residual, kappa on V's grid): the branch of kappa(m) = y that is a
+    left inverse of p on V (a closed form, else a Chebyshev interpolant of kappa^-1); a DesignError naming
+    where kappa turns when none is."""
     y = output_symbol()
     grid = np.asarray(man.value("xi_grid"))
     p_grid = np.asarray(man.value("p_grid"))
@@ -777,9 +701,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone", check="left_inverse")
     m_of_y = tidy(sp.Matrix([branches[best]]))[0]
-    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
+    return m_of_y, y, method, len(branches), left_residual, y_grid
 
-    # Where m is real, and whether that covers Y.
+
+def _real_on_Y(model: Model, m_of_y: sp.Expr, y: sp.Symbol, y_grid: np.ndarray):
+    """(lo, hi, radicands): where m is real; a DesignError if Y reaches outputs where m is not real or finite."""
     Y = model.Y
     real_lo, real_hi, radicands = real_interval(m_of_y, y, model)
     real_covers_Y = bool(real_lo <= Y[0, 0] and Y[0, 1] <= real_hi)
@@ -798,18 +724,27 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                           f"an output_set inside {format_box(np.array([[max(real_lo, k_lo), min(real_hi, k_hi)]]))} "
                           "(where m is real and kappa reaches), or a larger domain V if kappa(V) is the limit", check="m_real_on_Y")
 
-    # eq. SimuLocalRequire: kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
+    return real_lo, real_hi, radicands
+
+
+def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, m: sp.Matrix, m_of_y: sp.Expr, y: sp.Symbol, method: str, n_branches: int,
+                     left_residual: float, y_grid: np.ndarray, real_lo: float, real_hi: float, radicands: list) -> Artefact:
+    """Eq. (10) (kappa(V) covers Y), kappa's monotonicity, the certified set and the proofs, into the artefact."""
+    kappa, xi, Y = kap.expr("kappa"), model.xi[0], model.Y
+    grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
+    real_covers_Y = bool(real_lo <= Y[0, 0] and Y[0, 1] <= real_hi)
+    # eq. (10): kappa(V) covers Y (kappa is continuous and V an interval, so kappa(V) is an interval).
     k_lo, k_hi = float(y_grid.min()), float(y_grid.max())
     covers = bool(k_lo <= Y[0, 0] and Y[0, 1] <= k_hi)
     if not covers:
-        raise DesignError("abstract.domain", f"kappa(V) = [{k_lo:.6g}, {k_hi:.6g}] does not cover Y = {Y[0].tolist()} (eq. SimuLocalRequire)",
+        raise DesignError("abstract.domain", f"kappa(V) = [{k_lo:.6g}, {k_hi:.6g}] does not cover Y = {Y[0].tolist()} (eq. (10))",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
     dkappa = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid))[0, 0]
     monotone = bool(np.all(dkappa > 0) or np.all(dkappa < 0))
 
     symbolic_ii = bool(method.startswith("closed") and sp.simplify(kappa[0].xreplace({xi: m_of_y}) - y) == 0)
 
-    art = Artefact(stage=NAME, meta={"branches": len(branches), "samples": SAMPLES, "sample_seed": 0, "method": method, "construction": KAPPA_INVERSE,
+    art = Artefact(stage=NAME, meta={"branches": n_branches, "samples": SAMPLES, "sample_seed": 0, "method": method, "construction": KAPPA_INVERSE,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": sp.Matrix([m_of_y.xreplace({y: sp.Symbol("y", real=True)})]), "dm_dx": sparse_jacobian(m, model.x)})
     if method.startswith("Chebyshev"):
@@ -832,127 +767,14 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     })
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["kappa_monotone"] = Check(float(np.abs(dkappa).min()), monotone, "min |dkappa/dxi| on V (kappa strictly monotone, so p is injective)")
-    art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)")
-    art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y and finite_on_Y, "Y inside the output interval where m is real (<= 0)")
+    art.checks["V_covers_Y"] = Check(float(max(k_lo - Y[0, 0], Y[0, 1] - k_hi)), covers, "eq. (10): kappa(V) contains Y (<= 0)")
+    art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y, "Y inside the output interval where m is real (<= 0)")
     _certify(art, model, *certified)
     _checks_common(art, model, p_function(man, model), m, p_grid)
     proof = prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii)
     art.meta["proof"] = proof["how"]
-    _mark_proved(art, proof)
+    mark_proved(art, proof)
     return art
-
-
-def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: sp.Expr, y: sp.Symbol, symbolic_ii: bool) -> dict:
-    """Prove the inverse stage's claims for one abstract state and one output, in ball arithmetic over V and Y.
-
-    * kappa strictly monotone on V: dkappa/dxi enclosed away from 0 on V (so p is injective on V);
-    * eq. SimuLocalRequire: kappa(V) = [kappa(a), kappa(b)] (monotone) with the end values enclosed, Y inside;
-    * m real and finite on Y: the enclosure of m over Y is finite (a square root of a ball reaching below 0,
-      or a division by a ball containing 0, is not);
-    * conditions (i) and (ii): kappa(m(y)) = y simplifies to 0 (sympy) wherever m is defined, so
-      h(p(m(x))) = kappa(m(h(x))) = h(x) on X_y; and m maps kappa(V) into an interval V' around V on which
-      kappa is strictly monotone, so m(kappa(xi)) is the only preimage of kappa(xi) in V', xi itself:
-      m(p(xi)) = xi on V.
-
-    Returns
-    -------
-    dict
-        Booleans monotone, covers, real_on_Y, left_inverse, condition_ii; min_abs_dkappa (proved lower
-        bound); covers_margin (proved); how (text).
-    """
-    V, Y = model.V, model.Y
-    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
-    try:
-        dk = proofs.compile_claims(model, [dkappa], [model.xi[0]])
-        k = proofs.compile_claims(model, [kappa], [model.xi[0]])
-        mf = proofs.compile_claims(model, [m_of_y], [y])
-    except proofs.interval.UnsupportedExpression as exc:
-        out["how"] = f"not proved: {exc}"
-        return out
-    lo, hi, ok = proofs.range_on_box(dk, V)
-    sign = 1 if ok and lo > 0 else (-1 if ok and hi < 0 else 0)
-    if sign == 0:
-        out["how"] = "not proved: the enclosure of dkappa/dxi on V contains 0"
-        return out
-    out.update(monotone=True, min_abs_dkappa=float(lo if sign > 0 else -hi))
-    ka, kb = k([proofs.arb(float(V[0, 0]))])[0], k([proofs.arb(float(V[0, 1]))])[0]
-    first, last = (ka, kb) if sign > 0 else (kb, ka)
-    kV = np.array([[proofs.lower(first), proofs.upper(last)]])        # contains kappa(V)
-    margin = max(proofs.upper(first) - Y[0, 0], Y[0, 1] - proofs.lower(last))
-    out.update(covers=bool(margin <= 0), covers_margin=float(margin))
-    m_lo, m_hi, m_ok = proofs.range_on_box(mf, Y)
-    out["real_on_Y"] = bool(m_ok)
-    out["condition_ii"] = bool(symbolic_ii and m_ok)
-    if symbolic_ii:
-        r_lo, r_hi, r_ok = proofs.range_on_box(mf, kV, rtol=1e-12)
-        if r_ok:
-            wider = np.array([[min(V[0, 0], r_lo), max(V[0, 1], r_hi)]])
-            w_lo, w_hi, w_ok = proofs.range_on_box(dk, wider)
-            out["left_inverse"] = bool(w_ok and (w_lo > 0 if sign > 0 else w_hi < 0))
-    out["how"] = ("ball arithmetic: dkappa/dxi " + ("> 0" if sign > 0 else "< 0") + " on V, kappa at the ends of V, m enclosed over Y"
-                  + ("; kappa(m(y)) = y symbolically and m(kappa(V)) inside an interval where kappa is monotone" if out["left_inverse"] else ""))
-    return out
-
-
-def prove_multi_inverse(model: Model, kappa: sp.Matrix, m_of_y: sp.Matrix, ys: list[sp.Symbol]) -> dict:
-    """Prove the inverse stage's claims for several abstract states and as many outputs (m = kappa^-1 in closed form).
-
-    * m real and finite on Y: each component's ball-arithmetic enclosure over the box Y is finite;
-    * eq. (10): those enclosures lie inside V, and kappa(m(y)) - y simplifies to 0 (sympy): every y in Y is
-      kappa(m(y)) with m(y) in V;
-    * condition (ii): h(p(m(x))) = kappa(m(h(x))) = h(x) for h(x) in Y, by the same identity;
-    * p injective on V with m as left inverse (and condition (i)): m(kappa(xi)) - xi simplifies to 0 and
-      m(kappa(xi)) is enclosed finite over V (so the identity holds at every xi of V).
-
-    Returns
-    -------
-    dict
-        Booleans covers, real_on_Y, left_inverse, condition_ii; covers_margin (proved); how (text).
-    """
-    V, Y = model.V, model.Y
-    out = {"monotone": False, "covers": False, "real_on_Y": False, "left_inverse": False, "condition_ii": False, "how": "not proved"}
-    try:
-        mf = proofs.compile_claims(model, list(m_of_y), ys)
-        composed = [e.xreplace(dict(zip(ys, kappa))) for e in m_of_y]
-        mk = proofs.compile_claims(model, composed, list(model.xi))
-    except proofs.interval.UnsupportedExpression as exc:
-        out["how"] = f"not proved: {exc}"
-        return out
-    margin, finite = -np.inf, True
-    for i in range(model.n_hat):
-        lo, hi, ok = proofs.range_on_box(mf, Y, index=i)
-        finite = finite and ok
-        margin = max(margin, V[i, 0] - lo, hi - V[i, 1]) if ok else np.inf
-    if not finite:
-        out["how"] = "not proved: the enclosure of m over Y is not finite"
-        return out
-    right = proofs.symbolic_zero(list(proofs.exact(model, kappa.xreplace(dict(zip(model.xi, m_of_y))) - sp.Matrix(ys))))
-    left = proofs.symbolic_zero(list(proofs.exact(model, sp.Matrix(composed) - model.xi)))
-    left_finite = all(proofs.range_on_box(mk, V, index=i)[2] for i in range(model.n_hat)) if left else False
-    out.update(real_on_Y=True, covers=bool(right and margin <= 0), covers_margin=float(margin), condition_ii=bool(right),
-               left_inverse=bool(left and left_finite))
-    out["how"] = ("ball arithmetic: m enclosed finite over Y" + (f" and inside V (margin {margin:.3g})" if margin <= 0 else "")
-                  + ("; kappa(m(y)) = y symbolically" if right else "") + ("; m(kappa(xi)) = xi symbolically, defined on all of V" if out["left_inverse"] else ""))
-    return out
-
-
-def _mark_proved(art: Artefact, proof: dict) -> None:
-    """Re-label the checks the proof covers as "proved" (their descriptions say how)."""
-    how = proof["how"]
-    values = {"kappa_monotone": proof.get("min_abs_dkappa"), "V_covers_Y": proof.get("covers_margin")}
-    relabel = {"kappa_monotone": proof["monotone"], "V_covers_Y": proof["covers"], "m_real_on_Y": proof["real_on_Y"],
-               "left_inverse": proof["left_inverse"], "condition_i": proof["left_inverse"], "condition_ii": proof["condition_ii"]}
-    for name, proved in relabel.items():
-        if proved:
-            _relabel_proved(art, name, how, values.get(name))
-
-
-def _relabel_proved(art: Artefact, name: str, how: str, value: float | None = None) -> None:
-    """Mark a passed check as proved, saying how (and with the proved number, when the proof gives one)."""
-    chk = art.checks.get(name)
-    if chk is not None and chk.passed:
-        art.checks[name] = replace(chk, value=chk.value if value is None else value, description=f"{chk.description}; proved ({how})",
-                                   evidence=proofs.PROVED)
 
 
 def summarise(art: Artefact) -> dict:
