@@ -75,7 +75,7 @@ def test_compiled_governor_run_is_the_scipy_run(cuk):
     tr, ctl = model.spec.simulate.tracking, model.spec.simulate.tracking.abstract_controller
     xi0, x0, W0, levels, refs = simulate.tracking_start(model, plant, up)
     lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
-    plan = simulate.guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
+    plan = reference.guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
     law = plan.law("governor", ctl.gain, model.m_hat, float(up["bound"].values.get("v_max_certified", np.inf)), lam, eps)
     loop = simulate.tracking_loop_for(model, up, law)
     assert loop is not None

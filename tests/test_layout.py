@@ -24,16 +24,14 @@ MAX_FUNCTION_LINES = 100
 MODULE_DEBTS = {
     "cli.py": 919,
     "design/stages/inverse.py": 823,
-    "design/stages/simulate.py": 1072,
     "numerics/interval.py": 1569,
     "outputs/export.py": 926,
-    "products/falsify.py": 1341,
+    "products/falsify.py": 1333,
 }
 FUNCTION_DEBTS = {
     "closedloop/falsify_core.py:run_one": 290,
     "closedloop/tracking_core.py:integrate": 203,
     "design/stages/inverse.py:run_explicit": 103,
-    "design/stages/simulate.py:run_m_relation": 105,
     "outputs/export.py:c_sources": 118,
     "products/falsify.py:_simulate": 201,
 }
@@ -129,7 +127,7 @@ def test_every_exception_class_lives_in_errors():
     assert not strays, strays
 
 
-#: Public functions whose docstring has no numpydoc Parameters section yet (2026-12-02: 272 of 337); it may only fall.
+#: Public functions whose docstring has no numpydoc Parameters section yet (2026-12-02: 272 of 340); it may only fall.
 UNDOCUMENTED_PARAMETERS = 272
 
 

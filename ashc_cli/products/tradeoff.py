@@ -23,6 +23,7 @@ import numpy as np
 from ashc_cli.design.artefacts import Artefact, write_artefact
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.spec import Spec
+from ashc_cli.closedloop import reference
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.stages import simulate as sim
 
@@ -105,7 +106,7 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
     loops = {}
     for k, tol in enumerate(tolerances):
         try:
-            plan = sim.guaranteed_plan(float(tol), "auto", W0, arts)
+            plan = reference.guaranteed_plan(float(tol), "auto", W0, arts)
         except DesignError as exc:            # neither mode certifies this tolerance from the start
             for mode in MODES:
                 refusal[mode][k] = exc.what
@@ -135,7 +136,7 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         values[f"proved_tolerance/{mode}"] = proved[mode]
         values[f"refusal/{mode}"] = refusal[mode]
     meta = {"dwell": float(tr.dwell), "horizon_dwells": int(horizon_dwells), "sample_dt": max(sim.SAMPLE_DT, sim.REACH_SAMPLE_DWELLS * tr.dwell),
-            "integrator": sim.TRACKING_TOL, "governor_rate": sim.GOVERNOR_RATE, "governor_margin": sim.GOVERNOR_MARGIN,
+            "integrator": sim.TRACKING_TOL, "governor_rate": reference.GOVERNOR_RATE, "governor_margin": reference.GOVERNOR_MARGIN,
             "implementation": {kind: "ashc_cli.closedloop.compiled (numba)" if loop is not None else "scipy.integrate.solve_ivp" for kind, loop in loops.items()}}
     return Artefact(stage=NAME, values=values, meta=meta)
 
