@@ -39,18 +39,13 @@ def design_at(eval_xi, eval_x, dims, z):
     return phi, delta, l, dpd, kap, pm, fb, g, h
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
-def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
-    """reference.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
-
-    dims = [n_hat, n, m, m_hat, p]; prm = [gain, v_max, lambda, eps]; q_ls = 1 for the least-squares q, 0 for
-    q = 0; sat = 0 (no saturation), 1 (clip each channel to U) or 2 (scale the correction).
-    """
+@njit(inline="always", **OPTIONS)
+def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
+    """:func:`closed_loop` given the design's values at z (``samples`` reuses them for psi and y)."""
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     # v = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max)
     dplus = pinv(delta)
     for a in range(MH):
@@ -118,6 +113,17 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
             s += L[k, i] * r[k]
         q2 += s * s
     dz[NH + N] = -(lam - eps) * z[NH + N] + q2 / eps
+
+
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
+def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
+    """reference.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
+
+    dims = [n_hat, n, m, m_hat, p]; prm = [gain, v_max, lambda, eps]; q_ls = 1 for the least-squares q, 0 for
+    q = 0; sat = 0 (no saturation), 1 (clip each channel to U) or 2 (scale the correction).
+    """
+    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+    _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz)
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, types.float64, F1, F1, F1, F1), **OPTIONS)
@@ -519,8 +525,8 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
     u = np.empty(M)
     for k in range(Z.shape[0]):
         z = Z[k]
-        closed_loop(eval_xi, eval_x, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+        _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
         # element by element, as in integrate
         for a in range(MH):
             V[k, a] = v[a]
