@@ -1,6 +1,6 @@
-"""The inverse stage's proofs: the left inverse m and conditions (i) and (ii) of Theorem 6 decided exactly
-(affine p, in rationals) or in ball arithmetic (one or several abstract states), and the stage's checks
-relabelled as proved where they are."""
+"""The inverse stage's exact decisions: where m is real (its radicands, solved by sympy), and the left inverse m
+with conditions (i) and (ii) of Theorem 6 decided exactly (affine p, in rationals) or in ball arithmetic (one or
+several abstract states); the stage's checks relabelled as proved where they are."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.design.artefacts import Artefact
+from ashc_cli.errors import DesignError
 from ashc_cli.numerics import proofs
 from ashc_cli.problem.model import Model, sparse_jacobian
 
@@ -223,3 +224,27 @@ def relabel_proved(art: Artefact, name: str, how: str, value: float | None = Non
     if chk is not None and chk.passed:
         art.checks[name] = replace(chk, value=chk.value if value is None else value, description=f"{chk.description}; proved ({how})",
                                    evidence=proofs.PROVED)
+
+
+def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, float, list[str]]:
+    """The interval of y on which every square-root argument of m(y) is non-negative.
+
+    Returns
+    -------
+    lo, hi : float
+        The interval (-inf / inf where unbounded).
+    radicands : list of str
+        The radicands, as formulas in y.
+    """
+    lo, hi, texts = -np.inf, np.inf, []
+    for power in m_of_y.atoms(sp.Pow):
+        if power.exp.is_Rational and power.exp.q % 2 == 0:
+            radicand = power.base
+            texts.append(str(radicand))
+            numeric = model.substitute(radicand)
+            region = sp.solve_univariate_inequality(numeric >= 0, y, relational=False)
+            hull = sp.Interval(region.inf, region.sup)
+            if region != hull:
+                raise DesignError("abstract", f"m is real on a union of intervals {region}", "a left inverse real on one interval of outputs")
+            lo, hi = max(lo, float(region.inf)), min(hi, float(region.sup))
+    return lo, hi, texts

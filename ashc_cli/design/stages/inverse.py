@@ -54,7 +54,7 @@ from ashc_cli.errors import DesignError
 from ashc_cli.numerics import chebyshev
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy, within_budget
-from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, relabel_proved
+from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
@@ -77,30 +77,6 @@ EXPLICIT = "explicit (spec)"
 def output_symbol() -> sp.Symbol:
     """The symbol standing for the output value y while solving kappa(mu) = y."""
     return sp.Symbol("_y", real=True)
-
-
-def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, float, list[str]]:
-    """The interval of y on which every square-root argument of m(y) is non-negative.
-
-    Returns
-    -------
-    lo, hi : float
-        The interval (-inf / inf where unbounded).
-    radicands : list of str
-        The radicands, as formulas in y.
-    """
-    lo, hi, texts = -np.inf, np.inf, []
-    for power in m_of_y.atoms(sp.Pow):
-        if power.exp.is_Rational and power.exp.q % 2 == 0:
-            radicand = power.base
-            texts.append(str(radicand))
-            numeric = model.substitute(radicand)
-            region = sp.solve_univariate_inequality(numeric >= 0, y, relational=False)
-            hull = sp.Interval(region.inf, region.sup)
-            if region != hull:
-                raise DesignError("abstract", f"m is real on a union of intervals {region}", "a left inverse real on one interval of outputs")
-            lo, hi = max(lo, float(region.inf)), min(hi, float(region.sup))
-    return lo, hi, texts
 
 
 def format_interval(lo: float, hi: float) -> str:
@@ -517,6 +493,36 @@ def _cover_by_search(model: Model, kap: Artefact) -> float:
     return worst / max(1.0, float(np.ptp(model.Y, axis=1).max()))
 
 
+def _explicit_covers(model: Model, kap: Artefact):
+    """(kappa affine, kappa's range, cover value, check text): eq. (10), kappa(V) covers Y, for a given m (linear
+    programs for an affine kappa, kappa's range for one state and one output, else a search per point of Y); a
+    DesignError when it does not."""
+    Y = model.Y
+    kappa_affine = proofs.affine_in(kap.expr("kappa"), list(model.xi))
+    if kappa_affine:
+        missing, k_range = _cover_affine(model, kap)
+        cover_value, covers = float(len(missing)), not missing
+        cover_text = "eq. (10): vertices of Y not reached from V (0)"
+        failure = f"no xi in V reaches the output(s) {missing}"
+    else:
+        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
+        if model.n_hat == 1 and model.p == 1:
+            # kappa is continuous and V an interval: kappa(V) is the interval between its extremes on V.
+            cover_value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
+            cover_text = "eq. (10): kappa(V) contains Y (<= 0)"
+            failure = f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}"
+            covers = cover_value <= 0
+        else:
+            cover_value = _cover_by_search(model, kap)
+            cover_text = f"eq. (10): largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)"
+            failure = f"some outputs of Y are not kappa(xi) for any xi in V (residual {cover_value:.3g})"
+            covers = cover_value <= 1e-9
+    if not covers:
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. (10)): {failure}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
+
+    return kappa_affine, k_range, cover_value, cover_text
+
+
 def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """Check the left inverse the spec gives (``abstract.m``) and store it like the constructed ones.
 
@@ -531,7 +537,7 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         If m is not a left inverse of p on V (check ``left_inverse``), is not real and finite on X_y
         (``m_real_on_Y``), fails condition (ii) (``condition_ii``), or kappa(V) does not cover Y (``V_covers_Y``).
     """
-    p, kappa = man.expr("p"), kap.expr("kappa")
+    p = man.expr("p")
     m = model.m_given
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     m_num = model.numeric(m, list(model.x))
@@ -563,29 +569,8 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
                           "x - p(m(x)) in Ker(h) for x in X_y (Corollary mRelateGeo): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
 
-    # eq. SimuLocalRequire: kappa(V) covers Y.
     Y, V = model.Y, model.V
-    kappa_affine = proofs.affine_in(kappa, list(model.xi))
-    if kappa_affine:
-        missing, k_range = _cover_affine(model, kap)
-        cover_value, covers = float(len(missing)), not missing
-        cover_text = "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
-        failure = f"no xi in V reaches the output(s) {missing}"
-    else:
-        k_range = np.asarray(kap.value("kappa_range"), dtype=float)
-        if model.n_hat == 1 and model.p == 1:
-            # kappa is continuous and V an interval: kappa(V) is the interval between its extremes on V.
-            cover_value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
-            cover_text = "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)"
-            failure = f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}"
-            covers = cover_value <= 0
-        else:
-            cover_value = _cover_by_search(model, kap)
-            cover_text = f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)"
-            failure = f"some outputs of Y are not kappa(xi) for any xi in V (residual {cover_value:.3g})"
-            covers = cover_value <= 1e-9
-    if not covers:
-        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}", "a larger domain V, or a smaller output_set", check="V_covers_Y")
+    kappa_affine, k_range, cover_value, cover_text = _explicit_covers(model, kap)
 
     grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
     art = Artefact(stage=NAME, meta={"method": "explicit m from the spec (abstract.m), checked", "construction": EXPLICIT, "samples": SAMPLES, "sample_seed": 0,
