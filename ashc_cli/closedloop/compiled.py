@@ -1,46 +1,12 @@
-"""The two closed loops of ``simulate`` as compiled (numba) code, with one DOP853 integrator.
-
-``simulate.run_tracking`` and ``simulate.run_m_relation`` integrate their loops with scipy's ``solve_ivp`` and
-a Python right-hand side (about 0.03-0.05 ms a call through :class:`~ashc_cli.closedloop.terms.DesignTerms`; 69 000
-calls on the Cuk converter's 30 s tracking run, 40 000 on its 10 s m-relation run).  This module runs the same
-loops in compiled code:
-
-* **the design's expressions** (f_bar, g, h from the model; phi_bar, l; delta, p, dp/dxi delta and kappa
-  from the artefacts) are printed from sympy, common subexpressions eliminated and the parameter values put in
-  as :func:`ashc_cli.problem.model.compile_flat` does, into two small numba functions (the *kernels*)
-  ``eval_xi(xi, phi_bar, delta, l, dp/dxi delta, kappa, p)`` and ``eval_x(x, f_bar, g, h)``; the m-relation
-  adds a *link module*, ``eval_link(x, b, c, m)`` (delta and inverse stages) and ``eval_u([t], u)`` (the spec's
-  ``simulate.m_relation.u``, its time signals triangle, square and step as in :mod:`ashc_cli.problem.expr`).  sympy
-  stays the single source of truth;
-* **the core** (the same for every design) holds the control laws and the integrator.  The tracking law is
-  :func:`ashc_cli.closedloop.reference.tracking_law` written out in loops (the set-point controller v = clip(delta^+
-  (gain (xi_ref - xi) - phi_bar), -v_max, v_max); the interface u = SAT(l + K (x - p) + q v) with q the
-  least-squares q of eq. egqLS or 0 and SAT as :func:`ashc_cli.problem.model.apply_saturation`; the comparison system
-  w' = -(lambda - eps) w + |L^T r|^2 / eps, r = dp/dxi delta v - g (u - l - K (x - p))); the m-relation's is
-  u = u(t), v = b(x) + c(x) u (eq. mRelateLink), xi' = phi_bar + delta v, x' = f_bar + g u.  The integrator
-  is scipy's DOP853 (scipy's coefficients, from ``scipy.integrate._ivp.dop853_coefficients``) with scipy's
-  initial step, error norm, step-size control and 7th-order dense output at the sample times, and
-  solve_ivp's terminal event (the m-relation run stops where h(x) leaves the certified set, the time found by
-  scipy's brentq on the dense output).  One ``integrate`` runs both loops, which reach it as a first-class
-  function of one signature (an indirect call costs the Cuk tracking run 15 ms of 75; inlining both loops at
-  each call made the core take 2-3 s longer to compile).  The right-hand sides are scipy's to round-off
-  (tests), and a run takes the steps ``solve_ivp`` takes (on the Cuk converter's tracking run the same
-  right-hand-side calls per segment); the samples differ by the round-off of the stage sums (BLAS's order
-  against a plain loop) as the loop amplifies it: 1e-9 of the scale on the Cuk tracking run (v, steeper, 3e-7
-  of v_max).  Where the step sequence depends on the last bit, it does for scipy too: on a stiff loop
-  (unstable_linear, K = [-1168, -484]), and at the kink of the Cuk m-relation's triangle input (t = 2 s), after
-  which the runs differ by the integration's accuracy (4e-11 of the scale, as scipy does from x0 moved by one
-  ulp).  The kernels reach the core as first-class functions (numba ``FunctionType``), so the core is compiled
-  once per machine and a new design compiles only its kernels.
-
-All are written to files in the cache directory (``$ASHC_CACHE/compiled``, else ``~/.cache/ashc/compiled``),
-named by a SHA-256 (of the core's text; of the kernels' sympy input), and imported from there with numba's
-``cache=True``: a later process loads the machine code instead of compiling.  ``ASHC_COMPILED=0`` turns the
-compiled path off (:class:`Unsupported` is raised and the caller uses scipy).
-
-Entry points: :func:`tracking_loop` (the compiled tracking loop of a design) and :meth:`TrackingLoop.run` (the
-tracking scenario's segments, as ``run_tracking``'s loop integrates them); :func:`m_relation_loop` and
-:meth:`MRelationLoop.run` (the m-relation scenario, as ``run_m_relation`` integrates it).
+"""The per-design half of the compiled closed loops: the design's expressions printed from sympy into small
+numba *kernels* (``eval_xi``, ``eval_x``; for the m-relation ``eval_link`` and ``eval_u``), common
+subexpressions eliminated and the parameter values put in as :func:`ashc_cli.problem.model.compile_flat` does,
+cached on disk under a SHA-256 of their sympy input (``$ASHC_CACHE/compiled``, else ``~/.cache/ashc/compiled``);
+and the loops that run them through the design-independent core (:mod:`ashc_cli.closedloop.tracking_core`,
+:mod:`ashc_cli.closedloop.governor`): :func:`tracking_loop` / :meth:`TrackingLoop.run` and
+:func:`m_relation_loop` / :meth:`MRelationLoop.run`, in ``simulate``'s shapes.  ``ASHC_COMPILED=0`` turns the
+compiled path off (:class:`Unsupported`; the caller uses scipy).  How the core agrees with scipy, and what it
+costs, is in docs/guide.md ("Compiled closed loops").
 """
 
 from __future__ import annotations
