@@ -10,23 +10,10 @@ r(s) through the actual interface (saturation included); then w <= W_max is inva
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop.laws import pinv, saturate
+from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
 from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at
 
 OPTIONS = dict(cache=True, error_model="numpy")
-
-
-@njit(**OPTIONS)
-def _q_of_L(L, u, r):
-    """|L^T r|^2 (u unused: keeps one call shape)."""
-    N = r.size
-    q2 = 0.0
-    for i in range(N):
-        acc = 0.0
-        for k in range(N):
-            acc += r[k] * L[k, i]
-        q2 += acc * acc
-    return q2
 
 
 @njit(**OPTIONS)
@@ -42,7 +29,7 @@ def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
         for j in range(M):
             acc += (u[j] - l[j] - feedback[j]) * g[i, j]
         r[i] = s * dv[i] - acc
-    return _q_of_L(L, u, r)
+    return weighted_norm2(L, r)
 
 
 @njit(**OPTIONS)
@@ -184,19 +171,10 @@ def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, 
     x = z[NH:NH + N].copy()
     w = z[NH + N]
     phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-    dplus = pinv(delta)
     v_sp = np.empty(MH)
-    for a in range(MH):
-        s = 0.0
-        for i in range(NH):
-            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
-        v_sp[a] = min(max(s, -v_max), v_max)
+    setpoint(delta, phi, xi, xi_ref, gain, v_max, v_sp)
     feedback = np.empty(M)
-    for j in range(M):
-        s = 0.0
-        for i in range(N):
-            s += K[j, i] * (x[i] - pm[i])
-        feedback[j] = s
+    feedback_of(K, x, pm, feedback)
     qv = np.zeros(M)
     if q_ls == 1:
         Ltg = L.T @ g
@@ -207,17 +185,8 @@ def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, 
     scale, _ = governor_scale(L, l, feedback, qv, dv, g, U, sat, eps * room, prm, u, r)
     for a in range(MH):
         v[a] = scale * v_sp[a]
-    for i in range(NH):
-        s = 0.0
-        for a in range(MH):
-            s += delta[i, a] * v[a]
-        dz[i] = phi[i] + s
-    for i in range(N):
-        s = 0.0
-        for j in range(M):
-            s += g[i, j] * u[j]
-        dz[NH + i] = fb[i] + s
-    q2 = _q_of_L(L, u, r)
+    state_derivatives(phi, delta, v, fb, g, u, dz)
+    q2 = weighted_norm2(L, r)
     dz[NH + N] = -(lam - eps) * w + q2 / eps
     out[0] = scale
     out[1] = room - q2 / eps

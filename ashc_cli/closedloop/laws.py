@@ -90,3 +90,86 @@ def pinv(a):
     out = np.empty((c, r))
     pinv_flat(a.reshape(r * c), 0, r, c, out.reshape(c * r), 0)
     return out
+
+
+@njit(**INLINE)
+def setpoint(delta, phi, xi, xi_ref, gain, v_max, v):
+    """The set-point controller into ``v``: clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max).
+
+    Parameters
+    ----------
+    delta : 2-D float array (n_hat, m_hat)
+    phi, xi, xi_ref : 1-D float arrays (n_hat,)
+        phi_bar(xi), the abstract state and its reference.
+    gain, v_max : float
+    v : 1-D float array (m_hat,)
+        Filled with the abstract input.
+    """
+    dplus = pinv(delta)
+    for a in range(v.size):
+        s = 0.0
+        for i in range(xi.size):
+            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
+        v[a] = min(max(s, -v_max), v_max)
+
+
+@njit(**INLINE)
+def feedback_of(K, x, pm, feedback):
+    """K (x - p(xi)) into ``feedback`` (0 for identity feedback).
+
+    Parameters
+    ----------
+    K : 2-D float array (m, n)
+    x, pm : 1-D float arrays (n,)
+        The concrete state and p(xi).
+    feedback : 1-D float array (m,)
+        Filled with K (x - p(xi)).
+    """
+    for j in range(feedback.size):
+        s = 0.0
+        for i in range(x.size):
+            s += K[j, i] * (x[i] - pm[i])
+        feedback[j] = s
+
+
+@njit(**INLINE)
+def state_derivatives(phi, delta, v, fb, g, u, dz):
+    """dz[:n_hat] = phi_bar + delta v and dz[n_hat:n_hat + n] = f_bar + g u.
+
+    Parameters
+    ----------
+    phi, delta, v : float arrays (n_hat,), (n_hat, m_hat), (m_hat,)
+    fb, g, u : float arrays (n,), (n, m), (m,)
+    dz : 1-D float array
+        Filled from its start (a longer dz keeps its tail).
+    """
+    NH, N = phi.size, fb.size
+    for i in range(NH):
+        s = 0.0
+        for a in range(v.size):
+            s += delta[i, a] * v[a]
+        dz[i] = phi[i] + s
+    for i in range(N):
+        s = 0.0
+        for j in range(u.size):
+            s += g[i, j] * u[j]
+        dz[NH + i] = fb[i] + s
+
+
+@njit(**INLINE)
+def weighted_norm2(L, r):
+    """|L^T r|^2 = |sqrt(M) r|^2 with M = L L^T (the comparison system's input).
+
+    Parameters
+    ----------
+    L : 2-D float array (n, n)
+        The Cholesky factor of M.
+    r : 1-D float array (n,)
+    """
+    q2 = 0.0
+    for i in range(r.size):
+        s = 0.0
+        for k in range(r.size):
+            s += L[k, i] * r[k]
+        q2 += s * s
+    return q2

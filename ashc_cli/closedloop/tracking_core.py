@@ -6,7 +6,7 @@ Design-independent: the per-design kernels reach these functions as numba first-
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop.laws import pinv, saturate
+from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
 
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
@@ -46,20 +46,10 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    # v = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max)
-    dplus = pinv(delta)
-    for a in range(MH):
-        s = 0.0
-        for i in range(NH):
-            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
-        v[a] = min(max(s, -v_max), v_max)
+    setpoint(delta, phi, xi, xi_ref, gain, v_max, v)
     # feedback = K (x - p); u_nominal = l + feedback; correction = feedback (+ q v)
     feedback = np.empty(M)
-    for j in range(M):
-        s = 0.0
-        for i in range(N):
-            s += K[j, i] * (x[i] - pm[i])
-        feedback[j] = s
+    feedback_of(K, x, pm, feedback)
     correction = feedback.copy()
     if q_ls == 1:
         # q = pinv(L^T g) (L^T dp/dxi delta), eq. egqLS
@@ -87,17 +77,9 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
             correction[j] = feedback[j] + s
     saturate(l, 0, correction, 0, U, sat, u, M)          # u = SAT(l + correction)
     # dxi = phi_bar + delta v; dx = f_bar + g u; r = dp/dxi delta v - g (u - u_nominal)
-    for i in range(NH):
-        s = 0.0
-        for a in range(MH):
-            s += delta[i, a] * v[a]
-        dz[i] = phi[i] + s
+    state_derivatives(phi, delta, v, fb, g, u, dz)
     r = np.empty(N)
     for i in range(N):
-        s = 0.0
-        for j in range(M):
-            s += g[i, j] * u[j]
-        dz[NH + i] = fb[i] + s
         s1 = 0.0
         for a in range(MH):
             s1 += dpd[i, a] * v[a]
@@ -106,13 +88,7 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
             s2 += g[i, j] * (u[j] - (l[j] + feedback[j]))
         r[i] = s1 - s2
     # w' = -(lambda - eps) w + |L^T r|^2 / eps
-    q2 = 0.0
-    for i in range(N):
-        s = 0.0
-        for k in range(N):
-            s += L[k, i] * r[k]
-        q2 += s * s
-    dz[NH + N] = -(lam - eps) * z[NH + N] + q2 / eps
+    dz[NH + N] = -(lam - eps) * z[NH + N] + weighted_norm2(L, r) / eps
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
