@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
-from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at
+from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at, store_sample
 
 OPTIONS = dict(cache=True, error_model="numpy")
 
@@ -161,16 +161,14 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
     return 0.0, q2[0] <= bound
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1, F1), **OPTIONS)
-def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
-    """reference.governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
-    out = [s, slack]."""
+@njit(inline="always", **OPTIONS)
+def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+    """:func:`governed_loop` given the design's values at z (``governor_samples`` reuses them for psi and y)."""
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps, w_level, rate = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
     w = z[NH + N]
-    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     v_sp = np.empty(MH)
     setpoint(delta, phi, xi, xi_ref, gain, v_max, v_sp)
     feedback = np.empty(M)
@@ -192,6 +190,14 @@ def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, 
     out[1] = room - q2 / eps
 
 
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1, F1), **OPTIONS)
+def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+    """reference.governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
+    out = [s, slack]."""
+    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+    _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out)
+
+
 @njit(RHS_SIGNATURE, **OPTIONS)
 def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
     """governed_loop behind the tracking core's RHS signature."""
@@ -201,21 +207,15 @@ def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), **OPTIONS)
 def governor_samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y, SCALE, SLACK):
     """At every row of Z: v, u, s and slack (governed_loop), psi = kappa(xi) and y = h(x)."""
-    NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
+    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
     u = np.empty(M)
     out = np.empty(2)
     for k in range(Z.shape[0]):
         z = Z[k]
-        governed_loop(eval_xi, eval_x, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz, out)
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-        for a in range(MH):
-            V[k, a] = v[a]
-        for j in range(M):
-            Uo[k, j] = u[j]
-        for i in range(P):
-            PSI[k, i] = kap[i]
-            Y[k, i] = h[i]
+        _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz, out)
+        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
         SCALE[k] = out[0]
         SLACK[k] = out[1]

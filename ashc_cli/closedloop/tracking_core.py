@@ -40,6 +40,27 @@ def design_at(eval_xi, eval_x, dims, z):
 
 
 @njit(inline="always", **OPTIONS)
+def store_sample(k, v, u, kap, h, V, Uo, PSI, Y):
+    """Row k of the sampled outputs: v, u, psi = kappa(xi) and y = h(x), element by element.
+
+    Parameters
+    ----------
+    k : int
+    v, u, kap, h : 1-D float arrays
+        The values at the sample.
+    V, Uo, PSI, Y : 2-D float arrays
+        The tables (one row per sample).
+    """
+    for a in range(v.size):
+        V[k, a] = v[a]
+    for j in range(u.size):
+        Uo[k, j] = u[j]
+    for i in range(kap.size):
+        PSI[k, i] = kap[i]
+        Y[k, i] = h[i]
+
+
+@njit(inline="always", **OPTIONS)
 def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
     """:func:`closed_loop` given the design's values at z (``samples`` reuses them for psi and y)."""
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
@@ -495,7 +516,7 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), **OPTIONS)
 def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y):
     """At every row of Z: v and u (tracking_law), psi = kappa(xi) and y = h(x)."""
-    NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
+    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
     u = np.empty(M)
@@ -503,20 +524,13 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
         z = Z[k]
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
         _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
-        # element by element, as in integrate
-        for a in range(MH):
-            V[k, a] = v[a]
-        for j in range(M):
-            Uo[k, j] = u[j]
-        for i in range(P):
-            PSI[k, i] = kap[i]
-            Y[k, i] = h[i]
+        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F2, F2, F2, F2, F2), **OPTIONS)
 def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, MX):
     """At every row of Z = [xi, x] (time t[k]): v and u (link_loop), psi = kappa(xi), y = h(x) and m(x)."""
-    NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
+    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N)
     v = np.empty(MH)
     u = np.empty(M)
@@ -529,12 +543,6 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
         x = z[NH:NH + N].copy()
         eval_link(x, b, c, mx)
-        for a in range(MH):
-            V[k, a] = v[a]
-        for j in range(M):
-            Uo[k, j] = u[j]
-        for i in range(P):
-            PSI[k, i] = kap[i]
-            Y[k, i] = h[i]
+        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
         for i in range(NH):
             MX[k, i] = mx[i]
