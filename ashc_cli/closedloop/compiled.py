@@ -16,6 +16,7 @@ import importlib.util
 import os
 import sys
 import tempfile
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -268,21 +269,6 @@ def kernel_key(model, up) -> str:
     return digest.hexdigest()[:24]
 
 
-def _dop853_tables() -> tuple[np.ndarray, ...]:
-    """scipy's DOP853 coefficients: A (16 x 16, the three extra stages of the dense output included), B, E3,
-    E5 and D (4 x 16)."""
-    from scipy.integrate._ivp import dop853_coefficients as c
-
-    return tuple(np.ascontiguousarray(a, dtype=float) for a in (c.A, c.B, c.E3, c.E5, c.D))
-
-
-def _dop853_nodes() -> np.ndarray:
-    """scipy's DOP853 stage nodes C (16, the extra stages included): stage s is evaluated at t + C[s] h."""
-    from scipy.integrate._ivp import dop853_coefficients as c
-
-    return np.ascontiguousarray(c.C, dtype=float)
-
-
 def _integrate(core, rhs, kernels, link, dims, z0, t_bounds, t_eval, offsets, refs, prm, L, K, U, q_ls, sat, edges, rtol, atol, what):
     """One call of the core's DOP853 ``integrate``; the samples (rows of t_eval) and the event.
 
@@ -305,13 +291,14 @@ def _integrate(core, rhs, kernels, link, dims, z0, t_bounds, t_eval, offsets, re
         As ``simulate._integrate``: the step size fell below the spacing of floating-point numbers, or a
         sample is not finite.
     """
+    from ashc_cli.closedloop import rk
+
     z0 = np.ascontiguousarray(z0, dtype=float).reshape(-1)
     out = np.full((t_eval.size, z0.size), np.nan)
     hit = np.full(z0.size + 1, np.nan)
-    A, B, E3, E5, D = _dop853_tables()
     status, written, seg, nfev, steps = core.integrate(rhs, kernels.eval_xi, kernels.eval_x, link[0], link[1], dims, z0, t_bounds, t_eval, offsets, refs,
                                                        prm, L, K, U, q_ls, sat, np.ascontiguousarray(edges, dtype=float), float(rtol), float(atol),
-                                                       A, B, _dop853_nodes(), E3, E5, D, out, hit)
+                                                       *rk.DOP853, out, hit)
     if status < 0:
         t_bad = t_eval[written - 1] if written > 0 else t_bounds[min(seg, len(t_bounds) - 1), 0]
         message = "Required step size is less than spacing between numbers." if status == -1 else "a sample is not finite"
@@ -474,8 +461,12 @@ def _design_kernels(model, up):
     if not available():
         raise Unsupported("numba is not installed (or ASHC_COMPILED=0)")
     key = kernel_key(model, up)
-    from ashc_cli.closedloop import tracking_core as core   # numba compiles (or loads from its cache) on import
+    from numba.core.errors import NumbaExperimentalFeatureWarning
 
+    with warnings.catch_warnings():
+        # The kernels reach the core as first-class functions, which numba calls experimental (tested here).
+        warnings.simplefilter("ignore", NumbaExperimentalFeatureWarning)
+        from ashc_cli.closedloop import tracking_core as core   # numba compiles (or loads from its cache) on import
     return core, _load_kernels(lambda: kernel_source(model, up), "ashc_kernels", key, model)
 
 

@@ -1,4 +1,5 @@
-"""The runs of ``ashc falsify`` in numba: the batch's laws, adversaries and Dormand-Prince 5(4).
+"""The runs of ``ashc falsify`` in numba: the batch's laws and adversaries, integrated hold by hold by the engine's
+Dormand-Prince 5(4) (:mod:`ashc_cli.closedloop.rk`).
 
 Design-independent: the per-design kernels reach these functions as numba first-class functions
 (:mod:`ashc_cli.closedloop.compiled` prints and caches them); numba caches this module's machine code
@@ -7,7 +8,9 @@ import math
 import numpy as np
 from numba import njit, types
 
+from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.laws import pinv_flat, saturate
+from ashc_cli.closedloop.rk import DP54_EXPONENT, error_norm, stage_input, step_factor
 
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
@@ -21,16 +24,8 @@ X_KERNEL = types.FunctionType(types.void(F1, F1))
 OPTIONS = dict(cache=True, error_model="numpy")
 
 SETPOINT, TABLE, GREEDY = 0, 1, 2
-#: Dormand-Prince 5(4): the stages (row s: the coefficients of k_0 .. k_{s-1}; row 6 is the 5th-order
-#: solution, FSAL) and the error estimate, as falsify._DP_A and falsify._DP_E.
-DP_A = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-                 [1 / 5, 0.0, 0.0, 0.0, 0.0, 0.0],
-                 [3 / 40, 9 / 40, 0.0, 0.0, 0.0, 0.0],
-                 [44 / 45, -56 / 15, 32 / 9, 0.0, 0.0, 0.0],
-                 [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0.0, 0.0],
-                 [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0.0],
-                 [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]])
-DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+#: The engine's Dormand-Prince 5(4) tableau (scipy's RK45), a global constant of the core.
+DP54 = rk.DP54
 
 
 #: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
@@ -172,6 +167,8 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     dt, v_limit, lam, eps, alpha_h, G, floor, rtol, diverge, lookahead = (fprm[0], fprm[1], fprm[2], fprm[3], fprm[4],
                                                                           fprm[5], fprm[6], fprm[7], fprm[8], fprm[9])
     d = nh + n
+    tab = DP54
+    ns = tab[1].size                 # the stages; ks[ns] is the slope at the step's end (FSAL)
     A = np.empty(off[19])
     B = np.empty(off[20])
     wk = np.empty(off[21])
@@ -184,7 +181,7 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     Z = np.empty(d)
     Zs = np.empty(d)
     zs = np.empty(d)
-    ks = np.empty((7, d))
+    ks = np.empty((DP54[0].shape[0], d))
     v_plan = np.empty(mh)
     plan0 = np.empty(mh)
     neg = np.empty(mh)
@@ -381,22 +378,22 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
         if not active:
             continue
 
-        # Hold k: Dormand-Prince 5(4) steps, this run's error against rtol and atol.  Stage 0 (the slope at the
-        # start) is evaluated at the start of the hold, later taken from the last stage (FSAL).
+        # Hold k: the engine's Dormand-Prince 5(4) steps, this run's error against rtol and atol.  Stage 0 (the slope
+        # at the start) is evaluated at the start of the hold, later taken from the last stage (FSAL).
         t = tgrid[k]
         t_end = tgrid[k + 1]
         first = 0
         while t < t_end - 1e-14 * max(1.0, t_end):
             h_nat = h_step
             h_step = min(h_step, t_end - t)
-            for s in range(first, 7):
-                for i in range(d):
-                    acc = 0.0
-                    for j in range(s):
-                        if DP_A[s, j] != 0.0:
-                            acc += DP_A[s, j] * ks[j, i]
-                    zs[i] = Z[i] + h_step * acc
+            for s in range(first, ns + 1):
+                if s == 0:
+                    for i in range(d):
+                        zs[i] = Z[i]
+                else:
+                    stage_input(tab, s, h_step, Z, ks, zs)
                 # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.
+                # (Written out here: a call with this many arrays costs their reference counts at every stage.)
                 _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
                 if setpoint:
                     _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)
@@ -409,15 +406,7 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                 for i in range(n):
                     ks[s, nh + i] = dx[i] if math.isfinite(dx[i]) else 0.0
             first = 1
-            e2 = 0.0
-            for i in range(d):
-                acc = 0.0
-                for j in range(7):
-                    if DP_E[j] != 0.0:
-                        acc += DP_E[j] * ks[j, i]
-                sc = atol[i] + rtol * max(abs(Z[i]), abs(zs[i]))
-                e2 += (h_step * acc / sc) ** 2
-            E = math.sqrt(e2 / d)
+            E = error_norm(tab, ks, h_step, Z, zs, atol, rtol)
             if not math.isfinite(E):
                 E = 0.0
             if E <= 1.0 or h_step <= h_min:
@@ -426,17 +415,14 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                 accepted += 1
                 for i in range(d):
                     Z[i] = zs[i]
-                    ks[0, i] = ks[6, i]
+                    ks[0, i] = ks[ns, i]
                 t += h_step
-                if E > 0:
-                    h_step = h_step * min(5.0, max(0.2, 0.9 * E ** -0.2))
-                else:
-                    h_step = h_step * 5.0
+                h_step = h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0)
                 restore = h_nat if (h_step < h_nat and E <= 0.5) else 0.0
                 h_step = min(max(h_step, h_min, restore), dt)
             else:
                 rejected += 1
-                h_step = max(h_min, h_step * max(0.2, 0.9 * E ** -0.2))
+                h_step = max(h_min, h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0))
     fout[r, 0] = ratio
     fout[r, 1] = ratio_late
     fout[r, 2] = max_err
