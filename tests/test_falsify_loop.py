@@ -1,15 +1,18 @@
 """Tests of ashc_cli.closedloop.falsify_loop: falsify's runs as compiled code, one adaptive integration per run.
 
-The reference is falsify._simulate, the numpy batch.  Integrated as a batch of one run, its step control is
-that run's alone, so each compiled run must reproduce it to round-off: the same held inputs (greedy choices,
-guard reversals), the same ratio, time of the worst ratio and states at every hold.
+The oracle is solve_ivp on the numpy form of the loop (falsify._controls): every hold of a compiled run is
+integrated again from the run's state with the input it held, and the error, bound and ratio are recomputed from
+its states; the greedy adversary's switches are checked against its law.
 """
 
 import numpy as np
 import pytest
+import scipy.integrate as sint
 
 from ashc_cli.products import falsify as F
 from ashc_cli.closedloop.compiled import Unsupported
+from ashc_cli.errors import DesignError
+from ashc_cli.numerics.linalg import pinv
 from ashc_cli.closedloop.falsify_loop import falsify_loop, layout
 from ashc_cli.design.pipeline import DESIGN, design_model, run
 from ashc_cli.problem.spec import load_spec
@@ -45,24 +48,87 @@ def _compiled(st, batch, tol=F.TOL, record=True):
 CASES = [CUK, COUNTER_SATURATION, SPECS / "bilinear_two_input.yaml", SPECS / "unstable_linear.yaml"]
 
 
+def _slope(st, z, v, setpoint, b, seg):
+    """[xi', x'] of the numpy loop (falsify._controls, the interface of the linearisation) at z with the held v, or
+    the random strategy's set-point law v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped."""
+    model, nh = st.model, st.model.n_hat
+    xi, x = z[:nh, None], z[nh:, None]
+    if setpoint:
+        a = st.plant.at_xi(xi)
+        v = pinv(a["delta"][0]) @ (b.gains[0] * (b.refs[seg][0] - z[:nh]) - a["phi"][0, :, 0]) + b.noise[seg][0]
+        v = v * min(1.0, st.v_limit / max(np.linalg.norm(v), 1e-300))
+    _, _, dxi, dx = F._controls(model, st.plant, xi, x, v[None, :])
+    return np.r_[dxi[0], dx[0]]
+
+
+def _greedy_choice_is_the_best(st, b, z, chosen):
+    """The greedy adversary's law at a switch: among the candidates (those that keep xi + 2 holds of xi' in V when
+    the run is guarded) the one that maximises rho W / alpha_h + (1 - rho) |dh/dx e|^2 one hold ahead, e = p(xi) - x,
+    computed afresh with numpy.  None when ``chosen`` is no candidate (the guard turned it round)."""
+    model, plant, nh, dt = st.model, st.plant, st.model.n_hat, st.hold
+    xi, x = z[:nh, None], z[nh:, None]
+    a, bx = plant.at_xi(xi), plant.at_x(x)
+    e = a["p"][0, :, 0] - z[nh:]
+    J, mine = [], None
+    for c in F._unit_candidates(model.m_hat):
+        vc = c * st.v_limit * b.amp[0]
+        _, _, dxi, dx = F._controls(model, plant, xi, x, vc[None, :])
+        ahead = z[:nh] + F.GUARD_LOOKAHEAD * dt * dxi[0]
+        if b.guard[0] and not np.all((ahead >= model.V[:, 0]) & (ahead <= model.V[:, 1])):
+            continue
+        ee = e + dt * (a["dp"][0] @ dxi[0] - dx[0])
+        J.append(b.rho[0] * ee @ plant.M @ ee / st.alpha_h + (1 - b.rho[0]) * np.sum((bx["dh"][0] @ ee) ** 2))
+        if np.allclose(vc, chosen, rtol=1e-12, atol=0):
+            mine = J[-1]
+    if mine is None:
+        return None
+    return bool(mine >= max(J) - 1e-9 * abs(max(J)))
+
+
 @pytest.mark.parametrize("spec", CASES, ids=lambda p: p.stem)
-def test_each_run_is_the_numpy_run_integrated_alone(spec, tmp_path):
+def test_each_run_is_solve_ivp_on_the_numpy_loop(spec, tmp_path):
+    """The oracle: every hold of every compiled run integrated again by solve_ivp (DOP853, 1e-10) on the numpy
+    form of the loop with the input the run held (or the set-point law); psi - y, the bound and the ratio
+    recomputed from the run's states; each greedy switch is the best candidate."""
     st, batch = _setting(spec, tmp_path, runs=11, t_final=1.0)
-    assert st.loop is not None
     assert {"random", "greedy", "square", "linearised", "off_manifold"} <= set(batch.strategy)
-    res = _compiled(st, batch)
+    res = _compiled(st, batch, tol=F.TOL_VERIFY)
+    nh, H, S = st.model.n_hat, st.holds, batch.refs.shape[0]
+    W0 = F._w0(st, batch)
+    switches = 0
     for i in range(len(batch)):
-        with np.errstate(all="ignore"):
-            ref = F._simulate(st, batch.take([i]), F.TOL, record=True)
-        what = f"run {i} ({batch.strategy[i]})"
-        assert res["k_at"][i] == ref["k_at"][0], what
-        for key in ("left_V", "diverged", "forced"):
-            assert res[key][i] == ref[key][0], (what, key)
-        for key in ("ratio", "ratio_late", "max_error", "vsup", "at_limit"):
-            assert res[key][i] == pytest.approx(ref[key][0], rel=1e-9, abs=1e-12), (what, key)
-        np.testing.assert_allclose(res["vused"][i], ref["vused"][0], rtol=1e-9, atol=1e-12 * st.v_limit, err_msg=what)
-        np.testing.assert_allclose(res["Z"][i], ref["Z"][0], rtol=1e-8, atol=1e-10 * st.scale.max(), err_msg=what)
-        np.testing.assert_allclose(res["bound"][i], ref["bound"][0], rtol=1e-9, err_msg=what)
+        b, Z, V, what = batch.take([i]), res["Z"][i], res["v"][i], f"run {i} ({batch.strategy[i]})"
+        setpoint = b.mode[0] == F.SETPOINT
+        vsup, ratio = 0.0, 0.0
+        for k in range(H + 1):
+            z = Z[k]
+            active = np.all(np.isfinite(z)) and np.all((z[:nh] >= st.model.V[:, 0] - 1e-9) & (z[:nh] <= st.model.V[:, 1] + 1e-9))
+            if not active:
+                assert res["left_V"][i] or res["diverged"][i], what
+                break
+            a, bx = st.plant.at_xi(z[:nh, None]), st.plant.at_x(z[nh:, None])
+            err = float(np.linalg.norm(a["kappa"][0, :, 0] - bx["h"][0, :, 0]))
+            vsup = max(vsup, float(np.linalg.norm(V[k])))
+            bound = np.sqrt(W0[i] * np.exp(-(st.lam - st.eps) * st.t[k]) / st.alpha_h) + st.G * vsup
+            assert res["err"][i, k] == pytest.approx(err, rel=1e-9, abs=1e-12), (what, k)
+            assert res["bound"][i, k] == pytest.approx(bound, rel=1e-9), (what, k)
+            if err > st.floor:
+                ratio = max(ratio, (err - st.floor) / bound)
+            if k == H:
+                break
+            if b.mode[0] == F.GREEDY and (k == 0 or np.any(V[k] != V[k - 1])):
+                best = _greedy_choice_is_the_best(st, b, z, V[k])
+                assert best is not False, (what, k)
+                switches += best is True
+            seg = min(k * S // H, S - 1)
+            sol = sint.solve_ivp(lambda t, y: _slope(st, y, V[k], setpoint, b, seg), (st.t[k], st.t[k + 1]), z, method="DOP853",
+                                 rtol=1e-10, atol=1e-12 * st.scale)
+            # The compiled run is at TOL_VERIFY (rtol 1e-7): about 1e-9 of the scale on smooth holds, but up to 3.7e-6
+            # of the scale (1.6e-6 of the value) on a hold where the interface's saturation switches, a kink the
+            # step-size control does not see (measured on these four designs; docs/guide.md).
+            np.testing.assert_allclose(Z[k + 1], sol.y[:, -1], rtol=1e-5, atol=1e-5 * st.scale.max(), err_msg=f"{what}, hold {k}")
+        assert res["ratio"][i] == pytest.approx(ratio, rel=1e-9, abs=1e-12), what
+    assert switches > 0                     # the adversary's law was checked
 
 
 def test_results_do_not_depend_on_threads_or_pieces(tmp_path):
@@ -93,21 +159,15 @@ def test_layout_has_room_for_every_term():
     assert off[0] == 0 and off[7] == 0 and off[11] == 0 and np.all(np.diff(off[:7]) > 0)
 
 
-def test_without_numba_the_numpy_batch_runs(tmp_path, monkeypatch):
-    """ASHC_COMPILED=0: no compiled loop; the search runs on the numpy batch and says so in the artefact."""
+def test_without_the_compiled_loop_falsify_says_why(tmp_path, monkeypatch):
+    """ASHC_COMPILED=0 (or an expression numba cannot run): no numpy fallback any more, a one-line DesignError."""
     spec = load_spec(CUK)
     arts = run(spec, tmp_path, DESIGN)
     monkeypatch.setenv("ASHC_COMPILED", "0")
     with pytest.raises(Unsupported):
         falsify_loop(design_model(spec, arts), arts, np.eye(4), np.eye(4), np.zeros((1, 4)))
-    art = F.falsify(design_model(spec, arts), arts, runs=6, seed=0, t_final=1.0)
-    assert art.meta["engine"].startswith("numpy")
-    monkeypatch.setenv("ASHC_COMPILED", "1")
-    fast = F.falsify(design_model(spec, arts), arts, runs=6, seed=0, t_final=1.0)
-    assert fast.meta["engine"].startswith("compiled")
-    # The batch's step is set by its worst run, the compiled one per run: the same runs, within the tolerance.
-    assert fast.values["max_ratio"] == pytest.approx(art.values["max_ratio"], rel=1e-4)
-    np.testing.assert_allclose(fast.values["run_ratio"], art.values["run_ratio"], rtol=1e-3, atol=1e-6)
+    with pytest.raises(DesignError, match="compiled closed loop"):
+        F.falsify(design_model(spec, arts), arts, runs=6, seed=0, t_final=1.0)
 
 
 def test_a_run_alone_is_the_run_in_its_batch(tmp_path):

@@ -157,7 +157,7 @@ def _nan_to_num(v):
 def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
             xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
             fout, iout, vused, recZ, recE, recB, recV):
-    """Run r, hold by hold: falsify._simulate for one run, with its own step-size control.
+    """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
 
     fout[r] = [ratio, ratio_late, max_error, vsup, at_limit, largest_bound];
     iout[r] = [k_at, left_V, diverged, forced, accepted steps, rejected steps].

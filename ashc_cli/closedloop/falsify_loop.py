@@ -4,8 +4,8 @@ Each run is integrated on its own with the Dormand-Prince 5(4) pair of :mod:`ash
 (its own step-size control), its right-hand side the design's kernels (printed from sympy by
 :func:`ashc_cli.closedloop.compiled.emit_kernel`) and the core's laws; a pool of Python threads runs the
 batch's runs over every core, the core releasing the GIL.  ``ASHC_COMPILED=0``, or a design whose expressions
-numba cannot run, keeps the numpy path of :mod:`ashc_cli.products.falsify` (:class:`ashc_cli.errors.Unsupported`);
-a run here and the same run integrated alone there agree to round-off (tests).  The rationale and the
+numba cannot run, raises :class:`ashc_cli.errors.Unsupported` (falsify then exits with a one-line error); the tests'
+oracle is solve_ivp on the numpy form of the loop.  The rationale and the
 measurements are in docs/guide.md ("Compiled closed loops").
 """
 
@@ -154,7 +154,7 @@ class FalsifyLoop:
         Returns
         -------
         dict
-            What falsify._simulate returns (``ratio``, ``ratio_late``, ``k_at``, ``max_error``, ``left_V``,
+            Per run (``ratio``, ``ratio_late``, ``k_at``, ``max_error``, ``left_V``,
             ``diverged``, ``vused`` (with ``keep_inputs``), ``W0``, ``forced``, ``vsup``, ``at_limit``,
             ``largest_bound``, ``steps``).
         """
@@ -223,7 +223,7 @@ def falsify_loop(model, arts, M: np.ndarray, L: np.ndarray, K: np.ndarray) -> Fa
     Raises
     ------
     Unsupported
-        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form: use the numpy path.
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form.
     """
     if not available():
         raise Unsupported("numba is not installed (or ASHC_COMPILED=0)")

@@ -49,8 +49,7 @@ reversed (or pointed at V's centre).  The strategies, each a share of the runs (
 
 Integration: hold by hold with an embedded Dormand-Prince 5(4) pair (:data:`TOL`).  Each run is compiled code
 with its own step-size control, the runs shared by a pool of threads over every core
-(:mod:`ashc_cli.closedloop.falsify_loop`); without numba (or with ``ASHC_COMPILED=0``) the whole batch is one vectorised
-numpy ODE whose error control takes the worst run of the batch (:func:`_simulate`, the reference).  The hold is at most the fastest linearised time
+(:mod:`ashc_cli.closedloop.falsify_loop`; the oracle of its tests is solve_ivp on :func:`_controls`).  The hold is at most the fastest linearised time
 constant and 1/16 of the shortest linearised oscillation period.  The runs that decide the two reported ratios are integrated again with a tolerance 100 times
 tighter (:data:`TOL_VERIFY`), replaying the same v; the reported numbers and the stored worst runs come from
 that verification.  The floor (1e-7 of the output span) is taken off every error, so that a start that is
@@ -59,7 +58,6 @@ tight by construction is not rounded above 1.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 
@@ -240,7 +238,7 @@ class Setup:
     v_max_spec: float
     delta_max: float = 1.0
     lin: dict | None = None
-    loop: object | None = None          # the compiled runs (falsify_loop.FalsifyLoop), None: numpy (_simulate)
+    loop: object | None = None          # the compiled runs (falsify_loop.FalsifyLoop)
     on_runs: Callable[[int, int, float], None] | None = None   # (runs done, of, seconds) after each compiled chunk
 
     @property
@@ -315,13 +313,6 @@ def _empty(st: Setup, count: int, strategy: str, mode: int) -> Batch:
 
 # --- integration -------------------------------------------------------------------------------------------
 
-_DP_A = [[], [1 / 5], [3 / 40, 9 / 40], [44 / 45, -56 / 15, 32 / 9],
-         [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
-         [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
-         [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]]
-_DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
-
-
 def _unit_candidates(m_hat: int) -> np.ndarray:
     """Inputs of unit norm the greedy adversary chooses from: +-e_j and +-(e_i +- e_j) / sqrt 2."""
     eye = np.eye(m_hat)
@@ -344,11 +335,8 @@ def _w0(st: Setup, b: Batch) -> np.ndarray:
 
 
 def _integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
-    """The runs of ``b``: compiled, each run with its own step size, over every core (:mod:`ashc_cli.closedloop.falsify_loop`),
-    else (numba missing, ``ASHC_COMPILED=0``, an expression numba cannot run) vectorised by :func:`_simulate`.
-    Returns what :func:`_simulate` returns; the compiled runs without ``vused`` (see :func:`_replay`)."""
-    if st.loop is None:
-        return _simulate(st, b, tol, record, progress)
+    """The runs of ``b``: compiled, each run with its own step size, over every core (:meth:`ashc_cli.closedloop.falsify_loop.FalsifyLoop.run`,
+    whose result this is, without ``vused``: see :func:`_replay`)."""
     def report(done: int, total: int, seconds: float) -> None:
         if st.on_runs is not None:
             st.on_runs(done, total, seconds)
@@ -356,216 +344,6 @@ def _integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: C
             progress(done / max(total, 1))
     return st.loop.run(st, b, tol, _unit_candidates(st.model.m_hat), _w0(st, b), DIVERGED, GUARD_LOOKAHEAD, record, report,
                        keep_inputs=False)
-
-
-def _simulate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Callable[[float], None] | None = None) -> dict:
-    """Integrate a batch hold by hold and measure the error / bound ratio at every hold boundary.
-
-    Returns per run: ``ratio`` (largest), ``ratio_late`` (largest after t = 0), ``k_at`` (hold boundary where),
-    ``max_error``, ``left_V``, ``diverged``, ``vused`` (the held inputs, for a replay), ``W0``, ``forced`` (steps
-    accepted at the smallest step without meeting the tolerance); with ``record`` also the series ``Z``,
-    ``err``, ``bound``, ``v`` at the hold boundaries.  The ratio at a boundary is (error - floor) / bound while
-    xi has stayed in V and the error is above the floor (the integrator's accuracy).
-    """
-    model, plant = st.model, st.plant
-    nh, n, mh = model.n_hat, model.n, model.m_hat
-    N, H, dt = len(b), st.holds, st.hold
-    tgrid = st.t
-    Z = np.c_[b.xi0, b.x0].astype(float)
-    W0 = _w0(st, b)
-    lo, hi = model.V[:, 0], model.V[:, 1]
-    centre = model.V.mean(axis=1)
-    cand = _unit_candidates(mh)
-    atol = tol["atol"] * st.scale
-    rtol = tol["rtol"]
-    h_min = dt / 4096.0
-    held = b.mode != SETPOINT
-    greedy = b.mode == GREEDY
-    setpoint = b.mode == SETPOINT
-
-    active = np.ones(N, dtype=bool)
-    left = np.zeros(N, dtype=bool)
-    diverged = np.zeros(N, dtype=bool)
-    ratio = np.zeros(N)
-    ratio_late = np.zeros(N)      # over t > 0 (the start of a run off the manifold can be tight, ratio 1)
-    k_at = np.zeros(N, dtype=int)
-    max_err = np.zeros(N)
-    vsup = np.zeros(N)
-    at_limit = np.zeros(N)
-    forced = np.zeros(N, dtype=int)
-    steps = [0, 0]   # accepted, rejected
-    vused = np.zeros((N, H, mh))
-    last_switch = np.full(N, -(10 ** 9))
-    prev = np.zeros((N, mh))
-    largest_bound = 0.0
-    if record:
-        Zs, errs, bnds, vs = np.zeros((N, H + 1, nh + n)), np.zeros((N, H + 1)), np.zeros((N, H + 1)), np.zeros((N, H + 1, mh))
-
-    def setpoint_v(pre, xi_rows, seg):
-        a = pre["a"]
-        v = _mv(pinv(a["delta"]), b.gains[:, None] * (b.refs[seg] - xi_rows) - a["phi"][:, :, 0]) + b.noise[seg]
-        nv = np.linalg.norm(v, axis=1)
-        return v * np.minimum(1.0, st.v_limit / np.maximum(nv, 1e-300))[:, None]
-
-    def rhs(Zc, vh, seg, pre=None):
-        xi, x = Zc[:, :nh].T, Zc[:, nh:].T
-        if pre is None:
-            pre = _interface(model, plant, xi, x)
-        v = vh
-        if setpoint.any():
-            v = np.where(setpoint[:, None], setpoint_v(pre, Zc[:, :nh], seg), vh)
-        _, dxi, dx = _apply(model, pre, v)
-        d = np.concatenate([dxi, dx], axis=1)
-        d[~active] = 0.0
-        return np.where(np.isfinite(d), d, 0.0)
-
-    h = dt
-    report_every = max(1, H // 10)
-    for k in range(H + 1):
-        seg = min(k * REF_SEGMENTS // H, REF_SEGMENTS - 1)
-        xi_rows, x_rows = Z[:, :nh], Z[:, nh:]
-        finite = np.all(np.isfinite(Z), axis=1) & np.all(np.abs(Z) <= DIVERGED * st.scale, axis=1)
-        newly = active & ~finite
-        diverged |= newly
-        active &= finite
-        Zsafe = np.where(np.isfinite(Z), Z, 0.0)
-        pre = _interface(model, plant, Zsafe[:, :nh].T, Zsafe[:, nh:].T)
-        a, bx = pre["a"], pre["b"]
-        inside = np.all((xi_rows >= lo - 1e-9) & (xi_rows <= hi + 1e-9), axis=1)
-        left |= active & ~inside
-        active &= inside
-        err = np.linalg.norm(a["kappa"][:, :, 0] - bx["h"][:, :, 0], axis=1)
-
-        # The input of hold k (held modes) or at t_k (set-point law).
-        v_now = np.zeros((N, mh))
-        if k < H:
-            if held.any():
-                v_plan = b.vtab[:, k].copy()
-                if greedy.any():
-                    decide = greedy & active & (k - last_switch >= b.dwell)
-                    keep = greedy & ~decide
-                    v_plan[keep] = prev[keep]
-                    if decide.any():
-                        e = a["p"][:, :, 0] - x_rows
-                        best = np.full(N, -np.inf)
-                        choice = np.zeros((N, mh))
-                        C = bx["dh"]
-                        for c in cand:
-                            vc = c[None, :] * (st.v_limit * b.amp)[:, None]
-                            _, dxi, dx = _apply(model, pre, vc)
-                            de = np.einsum("Nij,Nj->Ni", a["dp"], dxi) - dx
-                            ee = e + dt * de
-                            J = (b.rho * np.einsum("Ni,ij,Nj->N", ee, plant.M, ee) / st.alpha_h
-                                 + (1 - b.rho) * np.sum(np.einsum("Nij,Nj->Ni", C, ee) ** 2, axis=1))
-                            ok = ~b.guard | _stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi, lo, hi)
-                            J = np.where(ok, J, -np.inf)
-                            thr = best.copy()
-                            fin = np.isfinite(best)
-                            thr[fin] += 1e-12 * np.abs(best[fin])
-                            better = J > thr
-                            # Ties (on the manifold every sign of v gives the same growth) keep the previous input.
-                            tie = np.isclose(J, best, rtol=1e-9, atol=0.0) & np.all(np.isclose(vc, prev), axis=1)
-                            upd = better | tie
-                            best = np.where(upd, J, best)
-                            choice = np.where(upd[:, None], vc, choice)
-                        none = decide & ~np.isfinite(best)
-                        choice[none] = 0.0
-                        switched = decide & np.any(choice != prev, axis=1)
-                        last_switch = np.where(switched, k, last_switch)
-                        v_plan[decide] = choice[decide]
-                        v_plan[none] = np.nan   # turned inwards below
-                # Guard: a held input that would carry xi out of V is reversed, else turned to V's centre.
-                g_rows = b.guard & held & active
-                if g_rows.any():
-                    v_in = np.einsum("Nij,Nj->Ni", pinv(a["delta"]), centre - xi_rows)
-                    nin = np.linalg.norm(v_in, axis=1)
-                    v_in = v_in * (st.v_limit * b.amp / np.maximum(nin, 1e-300))[:, None]
-                    plan0 = np.nan_to_num(v_plan)
-                    _, dxi, _ = _apply(model, pre, plan0)
-                    out = g_rows & (~_stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi, lo, hi) | np.any(np.isnan(v_plan), axis=1))
-                    if out.any():
-                        _, dxi_r, _ = _apply(model, pre, -plan0)
-                        rev_ok = _stays(xi_rows + GUARD_LOOKAHEAD * dt * dxi_r, lo, hi) & np.any(plan0 != 0, axis=1)
-                        v_plan = np.where((out & rev_ok)[:, None], -plan0, v_plan)
-                        v_plan = np.where((out & ~rev_ok)[:, None], v_in, v_plan)
-                v_plan = np.nan_to_num(v_plan)
-                prev = np.where(greedy[:, None], v_plan, prev)
-                v_now = np.where(held[:, None], v_plan, 0.0)
-            if setpoint.any():
-                v_now = np.where(setpoint[:, None], setpoint_v(pre, Zsafe[:, :nh], seg), v_now)
-            vused[:, k] = v_now
-        elif setpoint.any():
-            v_now = np.where(setpoint[:, None], setpoint_v(pre, Zsafe[:, :nh], seg), 0.0)
-        vn = np.linalg.norm(v_now, axis=1)
-        vsup = np.where(active, np.maximum(vsup, vn), vsup)
-        at_limit += active & (vn >= st.v_limit * (1 - 1e-9))
-
-        bound = np.sqrt(W0 * math.exp(-(st.lam - st.eps) * tgrid[k]) / st.alpha_h) + st.G * vsup
-        # The integrator's accuracy (the floor) is taken off the error: errors below it count as zero, and the
-        # tight start of a run off the manifold in the worst direction (ratio 1 at t = 0) is not rounded above 1.
-        counted = active & (err > st.floor)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.where(counted, np.where(bound > 0, (err - st.floor) / np.maximum(bound, 1e-300), np.inf), 0.0)
-        higher = r > ratio
-        ratio = np.where(higher, r, ratio)
-        if k > 0:
-            ratio_late = np.maximum(ratio_late, r)
-        k_at = np.where(higher, k, k_at)
-        max_err = np.where(active, np.maximum(max_err, np.where(np.isfinite(err), err, 0.0)), max_err)
-        if active.any():
-            largest_bound = max(largest_bound, float(np.max(bound[active])))
-        if record:
-            Zs[:, k], errs[:, k], bnds[:, k], vs[:, k] = Z, err, bound, v_now
-        if k == H:
-            break
-        if progress is not None and (k + 1) % report_every == 0:
-            progress((k + 1) / H)
-        if not active.any():
-            continue
-
-        # Integrate hold k: Dormand-Prince 5(4) steps, error control over the active runs.
-        t, t_end = tgrid[k], tgrid[k + 1]
-        vh = v_now if held.any() else np.zeros((N, mh))
-        k1 = rhs(Z, vh, seg, pre)
-        while t < t_end - 1e-14 * max(1.0, t_end):
-            h_nat = h
-            h = min(h, t_end - t)
-            ks = [k1]
-            for s in range(1, 7):
-                zs = Z + h * sum(c * kk for c, kk in zip(_DP_A[s], ks) if c != 0.0)
-                ks.append(rhs(zs, vh, seg))
-            z_new = zs                                           # stage 7 is evaluated at the 5th-order solution
-            err_vec = h * sum(c * kk for c, kk in zip(_DP_E, ks) if c != 0.0)
-            sc = atol + rtol * np.maximum(np.abs(Z), np.abs(z_new))
-            e_run = np.sqrt(np.mean((err_vec / sc) ** 2, axis=1))
-            e_run = np.where(active & np.isfinite(e_run), e_run, 0.0)
-            E = float(e_run.max()) if N else 0.0
-            if E <= 1.0 or h <= h_min:
-                if E > 1.0:
-                    forced += e_run > 1.0
-                steps[0] += 1
-                Z = z_new
-                t += h
-                k1 = ks[6]
-                h = h * min(5.0, max(0.2, 0.9 * E ** -0.2)) if E > 0 else h * 5.0
-                h = min(max(h, h_min, h_nat if h < h_nat and E <= 0.5 else 0.0), dt)
-            else:
-                steps[1] += 1
-                h = max(h_min, h * max(0.2, 0.9 * E ** -0.2))
-
-    out = {"ratio": ratio, "ratio_late": ratio_late, "k_at": k_at, "max_error": max_err, "left_V": left, "diverged": diverged, "vused": vused,
-           "W0": W0, "forced": forced, "vsup": vsup, "at_limit": at_limit, "largest_bound": largest_bound,
-           "steps": np.array(steps)}
-    if record:
-        out.update({"Z": Zs, "err": errs, "bound": bnds, "v": vs})
-    return out
-
-
-def _stays(xi_rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return np.all((xi_rows >= lo) & (xi_rows <= hi), axis=1)
-
-
-# --- linearisation ------------------------------------------------------------------------------------------
 
 
 def _linearise(st: Setup, xi_grid: np.ndarray) -> dict:
@@ -1098,8 +876,8 @@ def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Se
     st.lin = lin
     try:
         st.loop = falsify_loop(model, arts, plant.M, plant.L, plant.K)
-    except Unsupported:
-        st.loop = None
+    except Unsupported as exc:
+        raise DesignError("falsify", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
     return st
 
 
@@ -1122,7 +900,7 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
     progress : callable, optional
         Called with the number of progress steps done (of :data:`SEGMENTS`).
     on_runs : callable, optional
-        Called with (runs integrated so far, runs per second) as the compiled runs go (not on the numpy path).
+        Called with (runs integrated so far, runs per second) as the compiled runs go.
 
     Returns
     -------
@@ -1262,8 +1040,7 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
     art = Artefact(stage=NAME, meta={
         "runs": runs, "seed": seed, "segments": SEGMENTS, "integrator": str(TOL), "verification": str(TOL_VERIFY),
         "bound": "sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup_{s<=t} ||v(s)||",
-        "engine": (f"compiled (numba): one integration per run with its own step-size control, {st.loop.threads} threads"
-                   if st.loop is not None else "numpy: one vectorised ODE over the whole batch, error control by its worst run"),
+        "engine": f"compiled (numba): one integration per run with its own step-size control, {st.loop.threads} threads",
         "strategies": ", ".join(STRATEGIES), "runs_per_strategy": {k: int(v) for k, v in counts.items()},
     })
     vals = {
