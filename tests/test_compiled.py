@@ -1,8 +1,8 @@
 """Tests of ashc_cli.closedloop.compiled: the tracking and m-relation closed loops and DOP853 in numba against the scipy
 path of simulate.
 
-The scipy path (``closedloop.reference.tracking_law``, ``simulate.run_tracking`` and ``simulate.run_m_relation``) is the
-reference.  The control laws are compared point by point (the same arithmetic, so to round-off); the runs
+The oracle (tests/oracle.py: solve_ivp on ``closedloop.reference``'s numpy laws, run by ``simulate.run_tracking`` and
+``simulate.run_m_relation`` in place of the compiled loops) is the reference.  The control laws are compared point by point (the same arithmetic, so to round-off); the runs
 sample by sample, to what the integration tolerance and the loop's sensitivity allow (see each test); the
 m-relation's terminal event by where it stops and what it reports.
 """
@@ -29,6 +29,7 @@ from ashc_cli.design.stages import simulate  # noqa: E402
 from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, reference_state, sample_times  # noqa: E402
 
 from .conftest import CUK, ROOT, SPECS  # noqa: E402
+from .oracle import MRelationOracle, use_oracles  # noqa: E402
 
 UNSTABLE = SPECS / "unstable_linear.yaml"      # feedback: linear_gain (K != 0), one input, saturate: true
 BILINEAR = SPECS / "bilinear_two_input.yaml"   # two inputs, two abstract inputs (2 x 2 delta), saturate: scale
@@ -80,8 +81,12 @@ class Design:
                              saturate=self.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"]), levels
 
     def scipy_run(self):
+        """run_tracking on the oracle (solve_ivp on the numpy laws) instead of the compiled loop."""
         if self._reference is None:
-            self._reference = simulate.run_tracking(self.model, self.plant, self.arts)[0]
+            with pytest.MonkeyPatch.context() as mp:
+                use_oracles(mp, simulate)
+                self._reference = simulate.run_tracking(self.model, self.plant, self.arts)[0]
+            assert not self._reference["tracking/compiled"]
         return self._reference
 
 
@@ -279,12 +284,12 @@ _M_RELATION_SERIES = ("xi", "x", "u", "v", "psi", "y")
 
 
 def _m_relation_both(d, monkeypatch):
-    """run_m_relation's values by the compiled loop, then by solve_ivp (ASHC_COMPILED=0)."""
+    """run_m_relation's values by the compiled loop, then by the oracle (solve_ivp)."""
     up = {k: d.arts[k] for k in simulate.UPSTREAM}
     mine, _ = simulate.run_m_relation(d.model, d.plant, up)
-    monkeypatch.setenv("ASHC_COMPILED", "0")
-    theirs, _ = simulate.run_m_relation(d.model, d.plant, up)
-    monkeypatch.delenv("ASHC_COMPILED")
+    with pytest.MonkeyPatch.context() as mp:
+        use_oracles(mp, simulate)
+        theirs, _ = simulate.run_m_relation(d.model, d.plant, up)
     assert mine["m_relation/compiled"] and not theirs["m_relation/compiled"]
     return mine, theirs
 
@@ -339,7 +344,7 @@ def test_m_relation_matches_scipy(designs, monkeypatch, path):
     d = designs(path)
     mine, theirs = _m_relation_both(d, monkeypatch)
     tol = dict(simulate.M_RELATION_TOL)
-    monkeypatch.setenv("ASHC_COMPILED", "0")
+    use_oracles(monkeypatch, simulate)
     monkeypatch.setitem(simulate.M_RELATION_TOL, "rtol", REFERENCE_TOL)
     monkeypatch.setitem(simulate.M_RELATION_TOL, "atol", REFERENCE_TOL)
     ref, _ = simulate.run_m_relation(d.model, d.plant, {k: d.arts[k] for k in simulate.UPSTREAM})
@@ -430,23 +435,21 @@ def test_leaving_the_certified_set_stops_both_paths_at_the_same_point(tmp_path, 
 
     model, plant, up = _leaving_cuk(tmp_path, domain)
     seen = {}
-    run_loop, integrate = compiled.MRelationLoop.run, simulate._integrate
+    run_loop, run_oracle = compiled.MRelationLoop.run, MRelationOracle.run
 
-    def spy_loop(self, *args, **kwargs):
-        res = run_loop(self, *args, **kwargs)
-        seen["compiled"] = res.left
-        return res
+    def spy(which, method):
+        def run(self, *args, **kwargs):
+            res = method(self, *args, **kwargs)
+            seen[which] = res.left
+            return res
+        return run
 
-    def spy_integrate(*args, **kwargs):
-        sol = integrate(*args, **kwargs)
-        seen["scipy"] = (sol.t_events[0][0], sol.y_events[0][0])
-        return sol
-
-    monkeypatch.setattr(compiled.MRelationLoop, "run", spy_loop)
-    monkeypatch.setattr(simulate, "_integrate", spy_integrate)
+    monkeypatch.setattr(compiled.MRelationLoop, "run", spy("compiled", run_loop))
+    monkeypatch.setattr(MRelationOracle, "run", spy("scipy", run_oracle))
     messages = []
-    for flag in ("1", "0"):
-        monkeypatch.setenv("ASHC_COMPILED", flag)
+    for oracle in (False, True):
+        if oracle:
+            use_oracles(monkeypatch, simulate)
         with pytest.raises(DesignError, match=r"simulate\.m_relation: at t = 0\.(78|79)\d* s the output y = -126\.\d+ leaves kappa\(V\)") as info:
             simulate.run_m_relation(model, plant, up)
         messages.append(str(info.value))

@@ -12,6 +12,7 @@ from ashc_cli.closedloop import governor as gov
 from ashc_cli.closedloop import reference
 from ashc_cli.design.stages import simulate
 
+from .oracle import TrackingOracle
 from .test_simulate import _random_interface
 
 GUARANTEED = Path(__file__).parent / "specs" / "cuk_guaranteed.yaml"
@@ -83,7 +84,7 @@ def test_compiled_governor_run_is_the_scipy_run(cuk):
     z0 = first["z_end"]
     segments = [(20.0, 23.0, simulate.sample_times(20.0, 23.0, simulate.SAMPLE_DT), 1)]
     mine = simulate.closed_loop_run(model, plant, up, law, z0, segments, refs, loop)
-    ref = simulate.closed_loop_run(model, plant, up, law, z0, segments, refs, None)
+    ref = simulate.closed_loop_run(model, plant, up, law, z0, segments, refs, TrackingOracle(model, plant, up, law))
     assert mine["compiled"] and not ref["compiled"]
     assert np.array_equal(mine["t"], ref["t"])
     # measured: 1e-14 of the scale on x and y, 1e-13 on w and v, 1e-11 on the slack (the same steps on this window;

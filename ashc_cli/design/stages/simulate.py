@@ -11,7 +11,7 @@ uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x
 |psi - y| <= EPS by construction (eq. TrackConst).  Budget mode: the set-point law with the largest uniform
 v_max = (EPS - sqrt(W0 / alpha_h)) / G (Theorem ErrorBound, eq. egErrorBound).  Governor mode: v = s v_sp with
 the largest s in [0, 1] keeping the comparison system w' = -(lambda - eps) w + |L^T r|^2 / eps below
-EPS^2 alpha_h (:func:`governor_law`); it runs on solve_ivp (the compiled loop knows only the set-point law).  The
+EPS^2 alpha_h (:mod:`ashc_cli.closedloop.governor`; the numpy form is reference.governor_law).  The
 run also reports the time each level is reached within EPS, deadlines of timed levels and, for the governor,
 its speed-up over the budget (:func:`reach_times`).
 
@@ -19,11 +19,10 @@ its speed-up over the budget (:func:`reach_times`).
 the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
 mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
 
-Both integrate with DOP853 at the tolerances recorded in the artefact (meta ``tracking_integrator`` and
-``m_relation_integrator``, with the implementation that ran): with a compiled closed loop (ashc_cli/closedloop/compiled.py:
-numba, scipy's DOP853 and solve_ivp's terminal event ported step for step; ``tracking/compiled`` and
-``m_relation/compiled`` say so), and with scipy's solve_ivp, the reference, where numba is missing, an
-expression has no numba form, or ASHC_COMPILED=0.
+Both run on the compiled closed loops (ashc_cli/closedloop/compiled.py) and the one Runge-Kutta engine
+(ashc_cli/closedloop/rk.py: DOP853 and solve_ivp's terminal event, step for step), at the tolerances recorded in the
+artefact (meta ``tracking_integrator`` and ``m_relation_integrator``).  solve_ivp on the numpy laws of
+ashc_cli/closedloop/reference.py is the tests' oracle (tests/oracle.py).
 """
 
 from __future__ import annotations
@@ -32,21 +31,19 @@ from dataclasses import replace
 
 import cvxpy as cp
 import numpy as np
-import scipy.integrate as sint
 import scipy.optimize as sopt
 import sympy as sp
 
 from ashc_cli.closedloop import compiled
-from ashc_cli.closedloop.reference import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, governor_law,
-                                           guaranteed_plan, tracking_law)
+from ashc_cli.closedloop.reference import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.numerics.proofs import SIMULATED
-from ashc_cli.errors import DesignError, NumericalError
+from ashc_cli.errors import DesignError
 from ashc_cli.problem.expr import parse_expression
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
-from ashc_cli.problem.model import TIME, Model, compile_flat
+from ashc_cli.problem.model import TIME, Model
 from ashc_cli.problem.spec import TimedLevel
 
 NAME = "simulate"
@@ -130,21 +127,6 @@ def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
     return np.r_[inner, t1]
 
 
-def _integrate(rhs, t_span, z0, t_eval, tol, what, events=None):
-    """solve_ivp with the given tolerances; a failure or a non-finite state is a NumericalError.
-
-    A terminal event (status 1) is returned to the caller, which says what it means.
-    """
-    with np.errstate(all="ignore"):  # non-finite values are detected below and reported with their time
-        sol = sint.solve_ivp(rhs, t_span, z0, t_eval=t_eval, dense_output=False, events=events, **tol)
-    if sol.status == 1:
-        return sol
-    if sol.status != 0 or not np.all(np.isfinite(sol.y)):
-        t_bad = sol.t[-1] if sol.t.size else t_span[0]
-        raise NumericalError(f"simulate.{what}", f"integration failed at t = {t_bad:.6g} s ({sol.message})", "a trajectory that stays finite")
-    return sol
-
-
 def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
     """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
 
@@ -179,22 +161,24 @@ def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = S
 
 
 def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
-    """The compiled tracking loop for ``law``, or None where the scipy path runs.
+    """The compiled tracking loop for ``law`` (:func:`ashc_cli.closedloop.compiled.tracking_loop`): the set-point law
+    (the budget mode is that law) or the governor (:mod:`ashc_cli.closedloop.governor`).
 
-    The compiled loop runs the set-point law (the budget mode is that law) and the governor
-    (:mod:`ashc_cli.closedloop.governor`, the same law as :func:`governor_law`).
+    Raises
+    ------
+    DesignError
+        The loop cannot be compiled (numba missing, ``ASHC_COMPILED=0``, an expression with no numba form).
     """
-    if law.kind not in ("setpoint", "governor") or TRACKING_TOL["method"] != "DOP853":
-        return None
     try:
         return compiled.tracking_loop(model, up)
-    except compiled.Unsupported:
-        return None
+    except compiled.Unsupported as exc:
+        raise DesignError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
 
 
 def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray,
-                    segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop=None) -> dict:
-    """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0].
+                    segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop) -> dict:
+    """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0], with
+    ``loop`` (:func:`tracking_loop_for`; the tests hand it scipy's oracle).
 
     Returns
     -------
@@ -203,57 +187,14 @@ def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], l
         each segment); z_end; compiled (whether the compiled loop ran); for the governor also scale (s) and slack
         (the margin of its invariance condition) at the samples.
     """
-    q_kind, saturate = model.spec.interface.q, model.spec.interface.saturate
-    lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
-    nh = model.n_hat
-    z = np.asarray(z0, dtype=float)
-    out: dict = {"compiled": loop is not None}
-    if loop is not None:
-        governor = (law.w_level, law.rate, GOVERNOR_GRID, GOVERNOR_BISECTIONS, GOVERNOR_BACKOFF) if law.kind == "governor" else None
-        res = loop.run(z, segments, refs, gain=law.gain, v_max=law.v_max, q_kind=q_kind, saturate=saturate,
-                       rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor)
-        if governor is not None:
-            out.update(scale=res.scale, slack=res.slack)
-        out.update(t=res.t, xi=res.xi, x=res.x, w=res.w, reference_index=res.reference_index, v=res.v, u=res.u, y=res.y,
-                   psi_end=[res.psi_end[j] for j in range(len(segments))], z_end=np.r_[res.xi[:, -1], res.x[:, -1], res.w[-1]])
-        return out
-
-    def rhs_for(xi_ref):
-        def rhs(t, z):
-            if law.kind == "governor":
-                _, _, dxi, dx, r, *_ = governor_law(plant, z[:nh], z[nh:-1], z[-1], xi_ref, law, q_kind, saturate, lam, eps)
-            else:
-                _, _, dxi, dx, r = tracking_law(plant, z[:nh], z[nh:-1], xi_ref, law.gain, law.v_max, q_kind, saturate)
-            # The comparison system of the a-posteriori bound: w' = -(lambda - eps) w + |sqrt(M) r|^2 / eps.
-            dw = -(lam - eps) * z[-1] + float(np.sum((plant.L.T @ r) ** 2)) / eps
-            return np.r_[dxi, dx, dw]
-        return rhs
-
-    ts, zs, ref_idx, psi_end = [], [], [], []
-    for t0, t1, t_eval, i in segments:
-        sol = _integrate(rhs_for(refs[i]), (t0, t1), z, t_eval, TRACKING_TOL, "tracking")
-        keep = slice(None) if not ts else slice(1, None)  # the segment start repeats the previous end
-        ts.append(sol.t[keep])
-        zs.append(sol.y[:, keep])
-        ref_idx.append(np.full(sol.t[keep].size, i))
-        z = sol.y[:, -1]
-        psi_end.append(plant.at_xi(z[:nh])[4][:, 0])
-    t = np.concatenate(ts)
-    Z = np.concatenate(zs, axis=1)
-    idx = np.concatenate(ref_idx)
-    xi, x, w = Z[:nh], Z[nh:-1], Z[-1]
-    v = np.empty((model.m_hat, t.size))
-    u = np.empty((model.m, t.size))
-    if law.kind == "governor":
-        scale, slack = np.empty(t.size), np.empty(t.size)
-        for k in range(t.size):
-            v[:, k], u[:, k], _, _, _, scale[k], slack[k] = governor_law(plant, xi[:, k], x[:, k], w[k], refs[idx[k]], law, q_kind, saturate, lam, eps)
-        out.update(scale=scale, slack=slack)
-    else:
-        for k in range(t.size):
-            v[:, k], u[:, k], *_ = tracking_law(plant, xi[:, k], x[:, k], refs[idx[k]], law.gain, law.v_max, q_kind, saturate)
-    y = np.stack([plant.at_x(x[:, k])[2][:, 0] for k in range(t.size)], axis=1)
-    out.update(t=t, xi=xi, x=x, w=w, reference_index=idx, v=v, u=u, y=y, psi_end=psi_end, z_end=z)
+    governor = (law.w_level, law.rate, GOVERNOR_GRID, GOVERNOR_BISECTIONS, GOVERNOR_BACKOFF) if law.kind == "governor" else None
+    res = loop.run(np.asarray(z0, dtype=float), segments, refs, gain=law.gain, v_max=law.v_max, q_kind=model.spec.interface.q,
+                   saturate=model.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor)
+    out: dict = {"compiled": getattr(loop, "compiled", True)}
+    if governor is not None:
+        out.update(scale=res.scale, slack=res.slack)
+    out.update(t=res.t, xi=res.xi, x=res.x, w=res.w, reference_index=res.reference_index, v=res.v, u=res.u, y=res.y,
+               psi_end=[res.psi_end[j] for j in range(len(segments))], z_end=np.r_[res.xi[:, -1], res.x[:, -1], res.w[-1]])
     return out
 
 
@@ -510,7 +451,7 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``.
 
     The closed loop is integrated by the compiled loop (:func:`ashc_cli.closedloop.compiled.m_relation_loop`, the same
-    right-hand side and event in numba) where it runs, else by solve_ivp; ``m_relation/compiled`` says which.
+    right-hand side and event in numba, on the engine of :mod:`ashc_cli.closedloop.rk`).
     """
     mr = model.spec.simulate.m_relation
     names = {**model.params, "t": TIME}
@@ -543,19 +484,10 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     lo_margin = EDGE_MARGIN * (d_hi - d_lo) if lo_edge else -tol
     hi_margin = EDGE_MARGIN * (d_hi - d_lo) if hi_edge else -tol
 
-    def leaves_certified_set(t, z):
-        """Positive while y = h(x) is inside the interval where m (and so b, c) is certified (less a margin where m stops being real).
-
-        The compiled loop evaluates the same expression (the core's _leaves, edges [d_lo, lo_margin, d_hi, hi_margin]).
-        """
-        y = plant.h_m(z[nh:])[0][0, 0]
-        return min(y - d_lo - lo_margin, d_hi - hi_margin - y)
-
-    leaves_certified_set.terminal = True
-    leaves_certified_set.direction = -1
     bounded = model.p == 1
     z0 = np.r_[xi0, x0]
-    if bounded and leaves_certified_set(0.0, z0) <= 0:
+    # The run stops where y = h(x) leaves [d_lo + lo_margin, d_hi - hi_margin] (the compiled loop's event).
+    if bounded and min(y0[0] - d_lo - lo_margin, d_hi - hi_margin - y0[0]) <= 0:
         raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {y0[0]:.6g} is within {EDGE_MARGIN:.1%} of the end of {set_name} = {format_box(box)} where m stops being real",
                           f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
 
@@ -569,17 +501,14 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
 
     t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
     try:
-        loop = compiled.m_relation_loop(model, up, u_expr) if M_RELATION_TOL["method"] == "DOP853" else None
-    except compiled.Unsupported:
-        loop = None
-    if loop is not None:
-        res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
-                       rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
-        if res.left is not None:
-            raise stopped(*res.left)
-        t, xi, x, u, v, psi, y, m_x = res.t, res.xi, res.x, res.u, res.v, res.psi, res.y, res.m
-    else:
-        t, xi, x, u, v, psi, y, m_x = _m_relation_scipy(model, plant, u_expr, z0, t_eval, [leaves_certified_set] if bounded else None, stopped)
+        loop = compiled.m_relation_loop(model, up, u_expr)
+    except compiled.Unsupported as exc:
+        raise DesignError("simulate.m_relation", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
+    res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
+                   rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
+    if res.left is not None:
+        raise stopped(*res.left)
+    t, xi, x, u, v, psi, y, m_x = res.t, res.xi, res.x, res.u, res.v, res.psi, res.y, res.m
     e = psi - y
     err = float(np.linalg.norm(e, axis=0).max())
     invariance = float(np.abs(m_x - xi).max())
@@ -587,38 +516,10 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
         "m_relation/t": t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
         "m_relation/psi": psi, "m_relation/y": y, "m_relation/e_y": e, "m_relation/xi0": xi0,
         "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
-        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": loop is not None,
+        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": getattr(loop, "compiled", True),
     }
     checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem mRelatOutMatch)")}
     return values, checks
-
-
-def _m_relation_scipy(model: Model, plant: DesignTerms, u_expr: sp.Matrix, z0: np.ndarray, t_eval: np.ndarray, events, stopped):
-    """The m-relation run on solve_ivp (the reference path): (t, xi, x, u, v, psi, y, m(x)) at the samples;
-    ``stopped(t, z)`` is raised when the event ``events`` ends the run."""
-    nh = model.n_hat
-    u_of_t = compile_flat(list(u_expr), [TIME], model.values)
-
-    def rhs(t, z):
-        """u(t), v = b(x) + c(x) u (eq. mRelateLink) and both state derivatives."""
-        xi, x = z[:nh], z[nh:]
-        u = np.array(u_of_t(t), dtype=float)
-        phi, delta, *_ = plant.at_xi(xi)
-        f_bar, g, _, b, c, _ = plant.at_x(x)
-        v = b[:, 0] + c @ u
-        return np.r_[phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u]
-
-    sol = _integrate(rhs, (0.0, float(t_eval[-1])), z0, t_eval, M_RELATION_TOL, "m_relation", events=events)
-    if sol.status == 1:
-        raise stopped(sol.t_events[0][0], sol.y_events[0][0])
-    t, xi, x = sol.t, sol.y[:nh], sol.y[nh:]
-    # The samples in one batch call of each compiled function (N points at once).
-    _, _, h_x, b, c, m_of_x = plant.at_x(x)
-    u = np.stack([np.broadcast_to(np.asarray(ui, dtype=float), t.shape) for ui in u_of_t(t)])
-    v = b[:, :, 0].T + np.einsum("Nij,jN->iN", c, u)
-    y, m_x = h_x[:, :, 0].T, m_of_x[:, :, 0].T
-    psi = plant.kappa(*xi)[:, 0, :]
-    return t, xi, x, u, v, psi, y, m_x
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
