@@ -115,7 +115,7 @@ class UnsupportedExpression(ValueError):
 class Unsupported(Exception):
     """The compiled closed loop cannot run this design (numba is missing, or an expression has no numba form).
 
-    The caller uses the scipy path.
+    simulate and falsify turn it into a one-line DesignError (there is no other integrator).
     """
 
 

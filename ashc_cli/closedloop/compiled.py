@@ -5,7 +5,7 @@ cached on disk under a SHA-256 of their sympy input (``$ASHC_CACHE/compiled``, e
 and the loops that run them through the design-independent core (:mod:`ashc_cli.closedloop.tracking_core`,
 :mod:`ashc_cli.closedloop.governor`): :func:`tracking_loop` / :meth:`TrackingLoop.run` and
 :func:`m_relation_loop` / :meth:`MRelationLoop.run`, in ``simulate``'s shapes.  ``ASHC_COMPILED=0`` turns the
-compiled path off (:class:`Unsupported`; the caller uses scipy).  How the core agrees with scipy, and what it
+compiled path off (:class:`Unsupported`, which simulate reports as a one-line error).  How the core agrees with scipy, and what it
 costs, is in docs/guide.md ("Compiled closed loops").
 """
 
@@ -491,7 +491,7 @@ def tracking_loop(model, up) -> TrackingLoop:
     Raises
     ------
     Unsupported
-        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form: use the scipy path.
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form (simulate then stops with a one-line error).
     """
     core, kernels = _design_kernels(model, up)
     return TrackingLoop(core, kernels, model, up)
@@ -606,7 +606,7 @@ def m_relation_loop(model, up, u) -> MRelationLoop:
     Raises
     ------
     Unsupported
-        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form: use the scipy path.
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form (simulate then stops with a one-line error).
     """
     core, kernels = _design_kernels(model, up)
     link = _load_kernels(lambda: link_source(model, up, u), "ashc_link", link_key(model, up, u), model)
