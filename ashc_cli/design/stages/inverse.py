@@ -24,20 +24,9 @@ Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m
 ``m_real_interval`` has an infinite end only where that is proved: symbolically (no radicand, or a radicand
 that stays non-negative), or because m is linear.
 
-When p is affine, p(xi) = P xi + p0 (the Sylvester case), the left inverse is m(x) = K (x - p0) for any
-numbers of abstract states and outputs: p is injective iff P has full column rank, m is real everywhere, and
-kappa(V) covers Y iff every vertex of the box Y is reached from V (a linear program per vertex, since kappa(V)
-is a convex polytope).  K is chosen in the family of left inverses of P, K = P^+ + Z (I - P P^+), with
-condition (ii) in view: for a linear h = C x, h(x - p(m(x))) = C (I - P K)(x - p0) vanishes for every x iff
-C (I - P K) = 0.  K = P^+ when it satisfies that; otherwise the least-norm K with K P = I and C P K = C (one
-linear system in vec(K), solved by least squares); when no K does, P^+ is kept and condition (ii) fails with
-that reason.  ``meta/construction`` names the construction used: ``pseudo-inverse``, ``least-norm left
-inverse with C(I - P K) = 0``, ``kappa^-1(h(x))`` (the nonlinear paths, m = kappa^-1(h(x)), which satisfies
-(ii) by construction) or ``explicit (spec)``.
-
-A spec may give m itself (``abstract.m``, n_hat expressions in the concrete states): it is checked, not
-trusted: m(p(xi)) = xi on a grid of V (and symbolically when sympy reduces it to 0), condition (ii) on samples
-of X_y (and symbolically), m real and finite there, and kappa(V) covering Y; any failure is refused (exit 3).
+When p is affine, p(xi) = P xi + p0, m(x) = K (x - p0) for any sizes, K the left inverse of P chosen for condition
+(ii); a spec may give m itself (``abstract.m``), checked, not trusted.  How K is chosen, and the checks of a given m,
+are in docs/guide.md ("Design options": the left inverse m); ``meta/construction`` names the construction used.
 """
 
 from __future__ import annotations
