@@ -1,6 +1,6 @@
 """Tests of ashc_cli.closedloop.falsify_loop: falsify's runs as compiled code, one adaptive integration per run.
 
-The oracle is solve_ivp on the numpy form of the loop (falsify._controls): every hold of a compiled run is
+The oracle is solve_ivp on the numpy form of the loop (closedloop.batch.controls): every hold of a compiled run is
 integrated again from the run's state with the input it held, and the error, bound and ratio are recomputed from
 its states; the greedy adversary's switches are checked against its law.
 """
@@ -10,6 +10,8 @@ import pytest
 import scipy.integrate as sint
 
 from ashc_cli.products import falsify as F
+from ashc_cli.closedloop import batch as CB
+from ashc_cli.products import strategies as ST
 from ashc_cli.closedloop.compiled import Unsupported
 from ashc_cli.errors import DesignError
 from ashc_cli.numerics.linalg import pinv
@@ -32,14 +34,14 @@ def _setting(spec_path, out, runs: int, t_final: float):
     model = design_model(spec, arts)
     with np.errstate(all="ignore"):
         st = F._setup(model, arts, t_final)
-        disc = F._discrete(st, st.lin)
-        batch = F._first_batch(st, F._allocate(runs), np.random.default_rng(1), st.lin, disc)
+        disc = ST._discrete(st, st.lin)
+        batch = ST._first_batch(st, ST._allocate(runs), np.random.default_rng(1), st.lin, disc)
     return st, batch
 
 
 def _compiled(st, batch, tol=F.TOL, record=True):
     with np.errstate(all="ignore"):
-        return st.loop.run(st, batch, tol, F._unit_candidates(st.model.m_hat), F._w0(st, batch), F.DIVERGED, F.GUARD_LOOKAHEAD, record)
+        return st.loop.run(st, batch, tol, ST.unit_candidates(st.model.m_hat), ST.w0(st, batch), ST.DIVERGED, ST.GUARD_LOOKAHEAD, record)
 
 
 # Cuk: one input, least-squares q, clipping; the counter-example: two inputs clipped channel by channel;
@@ -49,7 +51,7 @@ CASES = [CUK, COUNTER_SATURATION, SPECS / "bilinear_two_input.yaml", SPECS / "un
 
 
 def _slope(st, z, v, setpoint, b, seg):
-    """[xi', x'] of the numpy loop (falsify._controls, the interface of the linearisation) at z with the held v, or
+    """[xi', x'] of the numpy loop (closedloop.batch.controls, the interface of the linearisation) at z with the held v, or
     the random strategy's set-point law v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped."""
     model, nh = st.model, st.model.n_hat
     xi, x = z[:nh, None], z[nh:, None]
@@ -57,7 +59,7 @@ def _slope(st, z, v, setpoint, b, seg):
         a = st.plant.at_xi(xi)
         v = pinv(a["delta"][0]) @ (b.gains[0] * (b.refs[seg][0] - z[:nh]) - a["phi"][0, :, 0]) + b.noise[seg][0]
         v = v * min(1.0, st.v_limit / max(np.linalg.norm(v), 1e-300))
-    _, _, dxi, dx = F._controls(model, st.plant, xi, x, v[None, :])
+    _, _, dxi, dx = CB.controls(model, st.plant, xi, x, v[None, :])
     return np.r_[dxi[0], dx[0]]
 
 
@@ -70,10 +72,10 @@ def _greedy_choice_is_the_best(st, b, z, chosen):
     a, bx = plant.at_xi(xi), plant.at_x(x)
     e = a["p"][0, :, 0] - z[nh:]
     J, mine = [], None
-    for c in F._unit_candidates(model.m_hat):
+    for c in ST.unit_candidates(model.m_hat):
         vc = c * st.v_limit * b.amp[0]
-        _, _, dxi, dx = F._controls(model, plant, xi, x, vc[None, :])
-        ahead = z[:nh] + F.GUARD_LOOKAHEAD * dt * dxi[0]
+        _, _, dxi, dx = CB.controls(model, plant, xi, x, vc[None, :])
+        ahead = z[:nh] + ST.GUARD_LOOKAHEAD * dt * dxi[0]
         if b.guard[0] and not np.all((ahead >= model.V[:, 0]) & (ahead <= model.V[:, 1])):
             continue
         ee = e + dt * (a["dp"][0] @ dxi[0] - dx[0])
@@ -94,11 +96,11 @@ def test_each_run_is_solve_ivp_on_the_numpy_loop(spec, tmp_path):
     assert {"random", "greedy", "square", "linearised", "off_manifold"} <= set(batch.strategy)
     res = _compiled(st, batch, tol=F.TOL_VERIFY)
     nh, H, S = st.model.n_hat, st.holds, batch.refs.shape[0]
-    W0 = F._w0(st, batch)
+    W0 = ST.w0(st, batch)
     switches = 0
     for i in range(len(batch)):
         b, Z, V, what = batch.take([i]), res["Z"][i], res["v"][i], f"run {i} ({batch.strategy[i]})"
-        setpoint = b.mode[0] == F.SETPOINT
+        setpoint = b.mode[0] == ST.SETPOINT
         vsup, ratio = 0.0, 0.0
         for k in range(H + 1):
             z = Z[k]
@@ -116,7 +118,7 @@ def test_each_run_is_solve_ivp_on_the_numpy_loop(spec, tmp_path):
                 ratio = max(ratio, (err - st.floor) / bound)
             if k == H:
                 break
-            if b.mode[0] == F.GREEDY and (k == 0 or np.any(V[k] != V[k - 1])):
+            if b.mode[0] == ST.GREEDY and (k == 0 or np.any(V[k] != V[k - 1])):
                 best = _greedy_choice_is_the_best(st, b, z, V[k])
                 assert best is not False, (what, k)
                 switches += best is True
@@ -136,7 +138,7 @@ def test_results_do_not_depend_on_threads_or_pieces(tmp_path):
     st.loop.threads = 1
     a = _compiled(st, batch, record=False)
     st.loop.threads = 2
-    b = st.loop.run(st, batch, F.TOL, F._unit_candidates(1), F._w0(st, batch), F.DIVERGED, F.GUARD_LOOKAHEAD, chunk=1)
+    b = st.loop.run(st, batch, F.TOL, ST.unit_candidates(1), ST.w0(st, batch), ST.DIVERGED, ST.GUARD_LOOKAHEAD, chunk=1)
     for key in ("ratio", "ratio_late", "k_at", "max_error", "vused", "steps"):
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
@@ -144,7 +146,7 @@ def test_results_do_not_depend_on_threads_or_pieces(tmp_path):
 def test_progress_reports_every_run(tmp_path):
     st, batch = _setting(CUK, tmp_path, runs=11, t_final=0.5)
     seen = []
-    st.loop.run(st, batch, F.TOL, F._unit_candidates(1), F._w0(st, batch), F.DIVERGED, F.GUARD_LOOKAHEAD,
+    st.loop.run(st, batch, F.TOL, ST.unit_candidates(1), ST.w0(st, batch), ST.DIVERGED, ST.GUARD_LOOKAHEAD,
                 progress=lambda done, total, seconds: seen.append((done, total)), chunk=3)
     assert [d for d, _ in seen] == sorted(d for d, _ in seen)
     assert seen[-1] == (len(batch), len(batch))
@@ -171,7 +173,7 @@ def test_without_the_compiled_loop_falsify_says_why(tmp_path, monkeypatch):
 
 
 def test_a_run_alone_is_the_run_in_its_batch(tmp_path):
-    """What lets the search keep no inputs: the verification integrates a run again alone (falsify._replay)."""
+    """What lets the search keep no inputs: the verification integrates a run again alone (strategies.replay)."""
     st, batch = _setting(COUNTER_SATURATION, tmp_path, runs=11, t_final=1.0)
     res = _compiled(st, batch, record=False)
     for i in range(len(batch)):

@@ -43,7 +43,7 @@ def _norm(v):
 
 @njit(**OPTIONS)
 def _stays(z, dxi, step, lo, hi):
-    """xi + step dxi inside [lo, hi] (falsify._stays), xi = z[:n_hat]."""
+    """xi + step dxi inside [lo, hi], xi = z[:n_hat] (the guard of held inputs)."""
     for i in range(dxi.size):
         y = z[i] + step * dxi[i]
         if not (y >= lo[i] and y <= hi[i]):
@@ -53,7 +53,7 @@ def _stays(z, dxi, step, lo, hi):
 
 @njit(**OPTIONS)
 def _terms(exi, ex, z, dims, off, A, B, wk, K, L, q_ls):
-    """The closed loop at z = [xi, x] that does not depend on v (falsify._interface): the kernels into A and B;
+    """The closed loop at z = [xi, x] that does not depend on v (strategies._interface): the kernels into A and B;
     kx = K (x - p) and q = pinv(L^T g) L^T dp/dxi delta (eq. egqLS) or 0 into wk."""
     nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
     exi(z, A)

@@ -126,7 +126,7 @@ class FalsifyLoop:
     def run(self, st, b, tol: dict, cand: np.ndarray, W0: np.ndarray, divergence: float, lookahead: float,
             record: bool = False, progress: Callable[[int, int, float], None] | None = None, chunk: int | None = None,
             keep_inputs: bool = True) -> dict:
-        """Integrate the runs of batch ``b`` (falsify.Batch) with the setting ``st`` (falsify.Setup).
+        """Integrate the runs of batch ``b`` (strategies.Batch) with the setting ``st`` (strategies.Setup).
 
         Parameters
         ----------
@@ -139,7 +139,7 @@ class FalsifyLoop:
         W0 : ndarray (N,)
             W(xi0, x0) per run.
         divergence, lookahead : float
-            falsify.DIVERGED and falsify.GUARD_LOOKAHEAD.
+            strategies.DIVERGED and strategies.GUARD_LOOKAHEAD.
         record : bool
             Also return the series at the hold boundaries (``Z``, ``err``, ``bound``, ``v``).
         progress : callable, optional
