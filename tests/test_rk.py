@@ -105,3 +105,23 @@ def test_tableaus_are_consistent():
         np.testing.assert_allclose(A_[:ns, :ns].sum(axis=1), C[:ns], atol=1e-14)
         assert B.sum() == pytest.approx(1.0, abs=1e-14)
         assert E.sum() == pytest.approx(0.0, abs=1e-14)
+
+
+def test_a_span_of_length_zero_gives_its_start_and_a_backward_span_fails():
+    """Found by an independent attack: a zero span divided by a zero initial step, a backward one never returned."""
+    y0 = np.array([1.0, 2.0, 3.0])
+    status, written, nfev, steps, out, _ = _solve(rk.DOP853, rk.DOP853_EXPONENT, 3.0, 3.0, y0, np.array([3.0]), 1e-6, 1e-9, 0.0, False, A)
+    assert (status, written, nfev, steps) == (0, 1, 1, 0)
+    np.testing.assert_array_equal(out[0], y0)
+    status, written, nfev, _, _, _ = _solve(rk.DP54, rk.DP54_EXPONENT, 3.0, 1.0, y0, np.array([1.0]), 1e-6, 1e-9, 0.0, False, A)
+    assert (status, written, nfev) == (-1, 0, 0)
+
+
+def test_a_blow_up_fails_instead_of_hanging():
+    """y' = A y with A = 800 I overflows: the step falls below the spacing of floating-point numbers (status -1)."""
+    y0 = np.array([1.0, 1.0, 1.0])
+    for tab, exponent, method in ((rk.DOP853, rk.DOP853_EXPONENT, "DOP853"), (rk.DP54, rk.DP54_EXPONENT, "RK45")):
+        status, *_ = _solve(tab, exponent, 0.0, 10.0, y0, np.array([10.0]), 1e-8, 1e-10, 0.0, False, 800.0 * np.eye(3))
+        with np.errstate(all="ignore"):      # scipy's overflow on the way, as the engine's
+            ref = sint.solve_ivp(lambda t, y: 800.0 * y + np.array([np.sin(t), 0, 0]), (0.0, 10.0), y0, method=method, rtol=1e-8, atol=1e-10)
+        assert status == -1 and ref.status == -1

@@ -441,7 +441,8 @@ def solve(call, ctx, event, ectx, watch, tab, exponent, t, t_bound, y, t_eval, i
     """solve_ivp(call, (t, t_bound), y, t_eval=t_eval[i_eval:i_end], max_step = inf) with at most one terminal
     event (direction -1, watched when ``watch``): scipy's RungeKutta step for step.
 
-    The samples are written to the same rows of ``out``; y is left at t_bound.  Returns (status, rows written,
+    The span must run forward (t <= t_bound; a backward one fails at once); on a span of length zero every
+    sample is the start.  The samples are written to the same rows of ``out``; y is left at t_bound.  Returns (status, rows written,
     evaluations, accepted steps): status 0 on success, 1 at the event (hit = [t, z] there), -1 when the step fell
     below ten times the spacing of floating-point numbers (scipy's failure), -2 at a sample that is not finite.
 
@@ -472,18 +473,20 @@ def solve(call, ctx, event, ectx, watch, tab, exponent, t, t_bound, y, t_eval, i
     yk = np.empty(d)
     y_new = np.empty(d)
     F = np.empty((7, d))
-    call(t, y, K, 0, ctx)
-    nfev = 1
     steps = 0
     written = i_eval
-    g_old = event(y, ectx) if watch else 0.0
-    h_abs = initial_step(call, ctx, t, y, K, t_bound, rtol, atol, exponent, ys, F1)
-    nfev += 1
+    if not (t_bound >= t):                     # forward spans only (scipy would integrate backwards)
+        return -1, written, 0, steps
+    call(t, y, K, 0, ctx)
+    nfev = 1
     if t == t_bound:                           # a zero-length segment: every sample is its start
         for k in range(i_eval, i_end):
             for i in range(d):
                 out[k, i] = y[i]
         return 0, i_end, nfev, steps
+    g_old = event(y, ectx) if watch else 0.0
+    h_abs = initial_step(call, ctx, t, y, K, t_bound, rtol, atol, exponent, ys, F1)
+    nfev += 1
     finished = False
     while not finished:
         min_step = 10 * abs(np.nextafter(t, np.inf) - t)

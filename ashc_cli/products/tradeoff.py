@@ -137,7 +137,8 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         values[f"refusal/{mode}"] = refusal[mode]
     meta = {"dwell": float(tr.dwell), "horizon_dwells": int(horizon_dwells), "sample_dt": max(sim.SAMPLE_DT, sim.REACH_SAMPLE_DWELLS * tr.dwell),
             "integrator": sim.TRACKING_TOL, "governor_rate": reference.GOVERNOR_RATE, "governor_margin": reference.GOVERNOR_MARGIN,
-            "implementation": {kind: "ashc_cli.closedloop.compiled (numba)" if loop is not None else "scipy.integrate.solve_ivp" for kind, loop in loops.items()}}
+            "implementation": {kind: "ashc_cli.closedloop.compiled (numba)" if getattr(loop, "compiled", True) else "scipy.integrate.solve_ivp"
+                               for kind, loop in loops.items()}}
     return Artefact(stage=NAME, values=values, meta=meta)
 
 
