@@ -154,6 +154,66 @@ def _nan_to_num(v):
 
 
 @njit(**OPTIONS)
+def _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, amp, rho, alpha_h, dt, lookahead, guarded, k, last_switch, prev, vc, u, dxi, dx,
+            ee, choice, v_plan):
+    """The greedy adversary at hold k (the terms of A and B at Z): among the candidates of norm ``amp`` (those that
+    keep xi in V when ``guarded``), the one that maximises the one-hold look-ahead of rho W / alpha_h +
+    (1 - rho) |dh/dx e|^2, e = p - x, into v_plan (NaN when none is allowed); ties keep the previous input.
+    Returns the hold of the last switch."""
+    nh, n, mh, p = dims[0], dims[1], dims[3], dims[4]
+    o_pm, o_dp, o_dh = off[O_PM], off[O_DP], off[O_DH]
+    best = -np.inf
+    for a in range(mh):
+        choice[a] = 0.0
+    for c in range(cand.shape[0]):
+        for a in range(mh):
+            vc[a] = cand[c, a] * amp
+        _apply(dims, off, A, B, wk, U, sat, vc, u, dxi, dx)
+        for i in range(n):
+            s = 0.0
+            for j in range(nh):
+                s += A[o_dp + i * nh + j] * dxi[j]
+            ee[i] = (A[o_pm + i] - Z[nh + i]) + dt * (s - dx[i])
+        quad = 0.0
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += M[i, j] * ee[j]
+            quad += ee[i] * s
+        out2 = 0.0
+        for i in range(p):
+            s = 0.0
+            for j in range(n):
+                s += B[o_dh + i * n + j] * ee[j]
+            out2 += s * s
+        J = rho * quad / alpha_h + (1 - rho) * out2
+        if guarded and not _stays(Z, dxi, lookahead * dt, lo, hi):
+            J = -np.inf
+        thr = best
+        if math.isfinite(best):
+            thr = best + 1e-12 * abs(best)
+        tie = _isclose(J, best, 1e-9, 0.0)
+        if tie:
+            for a in range(mh):
+                if not _isclose(vc[a], prev[a], 1e-5, 1e-8):
+                    tie = False
+        if J > thr or tie:
+            best = J
+            for a in range(mh):
+                choice[a] = vc[a]
+    none = not math.isfinite(best)
+    if none:
+        for a in range(mh):
+            choice[a] = 0.0
+    for a in range(mh):
+        if choice[a] != prev[a]:
+            last_switch = k
+    for a in range(mh):
+        v_plan[a] = np.nan if none else choice[a]
+    return last_switch
+
+
+@njit(**OPTIONS)
 def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
             xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
             fout, iout, vused, recZ, recE, recB, recV):
@@ -172,7 +232,7 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     A = np.empty(off[19])
     B = np.empty(off[20])
     wk = np.empty(off[21])
-    o_kap, o_pm, o_dp, o_h, o_dh, o_vin = off[O_KAP], off[O_PM], off[O_DP], off[O_H], off[O_DH], off[O_VIN]
+    o_kap, o_h, o_vin = off[O_KAP], off[O_H], off[O_VIN]
     v = np.empty(mh)
     u = np.empty(m)
     dxi = np.empty(nh)
@@ -254,56 +314,8 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                         for a in range(mh):
                             v_plan[a] = prev[a]
                     else:
-                        # The candidate that maximises the one-hold look-ahead of
-                        # rho W / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x; ties keep the previous input.
-                        best = -np.inf
-                        for a in range(mh):
-                            choice[a] = 0.0
-                        for c in range(cand.shape[0]):
-                            for a in range(mh):
-                                vc[a] = cand[c, a] * (v_limit * amp[r])
-                            _apply(dims, off, A, B, wk, U, sat, vc, u, dxi, dx)
-                            for i in range(n):
-                                s = 0.0
-                                for j in range(nh):
-                                    s += A[o_dp + i * nh + j] * dxi[j]
-                                ee[i] = (A[o_pm + i] - Z[nh + i]) + dt * (s - dx[i])
-                            quad = 0.0
-                            for i in range(n):
-                                s = 0.0
-                                for j in range(n):
-                                    s += M[i, j] * ee[j]
-                                quad += ee[i] * s
-                            out2 = 0.0
-                            for i in range(p):
-                                s = 0.0
-                                for j in range(n):
-                                    s += B[o_dh + i * n + j] * ee[j]
-                                out2 += s * s
-                            J = rho[r] * quad / alpha_h + (1 - rho[r]) * out2
-                            if guarded and not _stays(Z, dxi, lookahead * dt, lo, hi):
-                                J = -np.inf
-                            thr = best
-                            if math.isfinite(best):
-                                thr = best + 1e-12 * abs(best)
-                            tie = _isclose(J, best, 1e-9, 0.0)
-                            if tie:
-                                for a in range(mh):
-                                    if not _isclose(vc[a], prev[a], 1e-5, 1e-8):
-                                        tie = False
-                            if J > thr or tie:
-                                best = J
-                                for a in range(mh):
-                                    choice[a] = vc[a]
-                        none = not math.isfinite(best)
-                        if none:
-                            for a in range(mh):
-                                choice[a] = 0.0
-                        for a in range(mh):
-                            if choice[a] != prev[a]:
-                                last_switch = k
-                        for a in range(mh):
-                            v_plan[a] = np.nan if none else choice[a]
+                        last_switch = _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, v_limit * amp[r], rho[r], alpha_h, dt, lookahead,
+                                              guarded, k, last_switch, prev, vc, u, dxi, dx, ee, choice, v_plan)
                 # Guard: a held input that would carry xi out of V is reversed, else turned to V's centre.
                 if guarded and active:
                     any_nan = False
