@@ -593,8 +593,8 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
     good: the budget (uniform v_max = (EPS - sqrt(W0 / alpha_h)) / G) and the governor (v scaled so that the
     comparison system stays below EPS^2 alpha_h). Prints one row per tolerance and mode with the seconds to
     reach each level ('-': not reached; a refused mode gives its reason), stores <out>/tradeoff.h5 and draws
-    <out>/plots/tradeoff.png, the speed/accuracy frontier. The governor runs on scipy: a wide range of
-    tolerances takes minutes.
+    <out>/plots/tradeoff.png, the speed/accuracy frontier. Both modes run as compiled closed loops (five
+    tolerances on the Cuk converter take about 17 s on two cores).
     """
     from ashc_cli.products import tradeoff as tradeoff_mod
 

@@ -1,6 +1,6 @@
 """The guaranteed governor of the tracking scenario (docs/guaranteed.md), compiled with numba: the same law as
-:func:`ashc_cli.closedloop.reference.governor_law` (the scipy path, the reference), run by the tracking
-core's integrator through :func:`governor_rhs`.
+:func:`ashc_cli.closedloop.reference.governor_law` (the reference of the tests), run by the
+engine of :mod:`ashc_cli.closedloop.rk` through :func:`governor_rhs`.
 
 v = s v_sp with the largest s in [0, 1] such that |L^T r(s)|^2 / eps <= (lambda - eps) W_max + c (W_max - w),
 r(s) through the actual interface (saturation included); then w <= W_max is invariant.  ``prm`` holds

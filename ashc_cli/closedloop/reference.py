@@ -1,5 +1,5 @@
 """The closed-loop laws in numpy, one point at a time: the set-point law and the guaranteed controller (its plan
-from the bound, the budget and the governor) with the interface and its saturation.  simulate's scipy path integrates them; the compiled loops
+from the bound, the budget and the governor) with the interface and its saturation.  The tests' oracle integrates them with solve_ivp; the compiled loops
 (:mod:`ashc_cli.closedloop.tracking_core`, :mod:`ashc_cli.closedloop.governor`) are tested against them."""
 
 from __future__ import annotations

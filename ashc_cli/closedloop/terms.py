@@ -14,7 +14,7 @@ class DesignTerms:
     ``at_xi(xi)`` gives phi_bar, delta, l, dp/dxi delta and kappa at one abstract state; ``at_x(x)`` gives
     f_bar, g, h, b and c at one concrete state.  One call each per right-hand side keeps the ODE fast.
     ``h_m(x)`` gives h and m alone, for the m-relation's start and stop.  The compiled loops
-    (ashc_cli.closedloop.compiled) call neither at_xi nor at_x, so they are compiled only when the scipy path runs (on the
+    (ashc_cli.closedloop.compiled) call neither at_xi nor at_x, so they are compiled only when something evaluates them (the tests' oracle; on the
     Cuk converter the two take 0.05-0.1 s to lambdify, b(x) the largest).
     """
 
