@@ -1,5 +1,6 @@
-"""The paper's numbering: its LaTeX labels (which the code and docs cite for grep) as the published paper
-numbers them, and :func:`cite`, which rewrites user-facing text ("eq. SimuFuncCondi1" -> "eq. (6)").
+"""The paper's numbering: its LaTeX labels as the published paper numbers them, and :func:`cite`, which rewrites
+text that quotes a label ("eq. SimuFuncCondi1" -> "eq. (6)").  The code cites the numbers (a test keeps labels out of
+it); docs/theory.md keeps both.
 
 The table is docs/labels.json (counted from the paper's source, see docs/theory.md); a test keeps the two equal.
 """
@@ -218,6 +219,14 @@ def cite(text: str) -> str:
     "eq. SimuFuncCondi1" -> "eq. (6)"; "Thm. mCondi (ii), Cor. mRelateGeo" -> "Theorem 6 (ii), Corollary 1";
     "eqs. mRelatSuffiDiff, mRelatSuffiIn" -> "eqs. (21a), (21b)".  Words after the labels ("step 1") and
     unknown names are left as they are.
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    str
     """
 
     def replace(match: re.Match) -> str:

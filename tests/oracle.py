@@ -1,5 +1,6 @@
-"""The tests' oracle of the compiled closed loops: scipy's solve_ivp on the numpy laws of
-:mod:`ashc_cli.closedloop.reference` (the same right-hand sides, written in numpy).
+"""The tests' oracle of the compiled closed loops: scipy's solve_ivp on the closed-loop laws written in numpy,
+one point at a time (the set-point law, the guaranteed governor with the interface and its saturation: the same
+right-hand sides as the compiled cores, :mod:`ashc_cli.closedloop.tracking_core` and :mod:`ashc_cli.closedloop.governor`).
 
 :class:`TrackingOracle` and :class:`MRelationOracle` have the ``run`` of the compiled loops
 (:class:`ashc_cli.closedloop.compiled.TrackingLoop`, :class:`~ashc_cli.closedloop.compiled.MRelationLoop`) and
@@ -13,9 +14,211 @@ import numpy as np
 import scipy.integrate as sint
 
 from ashc_cli.closedloop.compiled import MRelationRun, TrackingRun
-from ashc_cli.closedloop.reference import Law, governor_law, tracking_law
+from ashc_cli.closedloop.plan import GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, Law
+from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.numerics.linalg import pinv
 from ashc_cli.errors import NumericalError
-from ashc_cli.problem.model import TIME, compile_flat
+from ashc_cli.problem.model import TIME, apply_saturation, compile_flat
+
+
+def tracking_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
+                 q_kind: str, saturate: bool | str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed loop at one point: abstract input, interface output, both state derivatives and theta v.
+
+    Returns
+    -------
+    v : ndarray (m_hat,)
+        clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max).
+    u : ndarray (m,)
+        u_w = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (eqs. (15), (42), (44); q = 0 or
+        eq. (43); K = 0 unless feedback linear_gain).
+    dxi, dx : ndarray
+        phi_bar(xi) + delta(xi) v and f_bar(x) + g(x) u.
+    r : ndarray (n,)
+        dp/dxi delta v - g(x) (u - l(xi) - K (x - p(xi))): what drives W away from decay in
+        W' <= -lambda W + 2 (p - x)^T M r (eq. (37); r = theta v through sqrt(M)^-1 when u is not clipped).
+    """
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v = np.clip(pinv(delta) @ (gain * (xi_ref - xi) - phi[:, 0]), -v_max, v_max)
+    feedback = plant.K @ (x - p[:, 0])   # k(x, p(xi), l(xi)) - l(xi) of eq. (15) (0 for identity feedback)
+    u_nominal = l[:, 0] + feedback
+    correction = feedback
+    if q_kind == "least_squares":
+        q = pinv(plant.L.T @ g) @ (plant.L.T @ dpd)   # argmin ||sqrt(M)(dp/dxi delta - g q)||, eq. (43)
+        correction = correction + q @ v
+    u = apply_saturation(l[:, 0], correction, plant.U, saturate)
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, dpd @ v - g @ (u - u_nominal)
+
+
+def interface_r(s: np.ndarray, L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray,
+                 g: np.ndarray, U: np.ndarray, saturate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u(s), r(s) and |L^T r(s)|^2 for v = s v_sp, at each s of an array (one point (xi, x)).
+
+    u(s) = SAT(l + K e + s q v_sp) (the actual interface, eqs. (15), (44)) and
+    r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) (eq. (37): what drives W in W' <= -(lambda - eps) W + |L^T r|^2 / eps).
+    """
+    s = np.atleast_1d(np.asarray(s, dtype=float))
+    u = apply_saturation(l, feedback + s[:, None] * qv, U, saturate)          # (N, m)
+    r = s[:, None] * dv - (u - l - feedback) @ g.T                            # (N, n)
+    return u, r, np.sum((r @ L) ** 2, axis=1)
+
+
+def breakpoints(l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, U: np.ndarray, saturate) -> tuple[list[float], bool]:
+    """The s in (0, 1) where the interface changes form, and whether r(s) is affine between them.
+
+    ``saturate: true`` clips each channel of l + K e + s q v_sp, an affine function of s: the pieces end where a
+    channel meets a bound.  ``scale`` with K e = 0 applies min(s, s_c) q v_sp: one end, s_c.  ``false``: no end.
+    ``scale`` with K e != 0 is not piecewise affine in s (the factor divides the whole correction).
+    """
+    if saturate is False:
+        return [], True
+    if saturate == "scale" and np.any(feedback):
+        return [], False
+    ends, s_c = set(), np.inf
+    for j in range(qv.size):                        # a few channels: plain floats are faster than arrays here
+        d = float(qv[j])
+        if d == 0.0:
+            continue
+        lo = (float(U[j, 0]) - float(l[j]) - float(feedback[j])) / d
+        hi = (float(U[j, 1]) - float(l[j]) - float(feedback[j])) / d
+        if saturate is True:
+            ends.update(e for e in (lo, hi) if 0.0 < e < 1.0)
+        else:
+            s_c = min(s_c, hi if d > 0 else lo)
+    if saturate == "scale" and 0.0 < s_c < 1.0:
+        ends.add(s_c)
+    return sorted(ends), True
+
+
+def governor_scale(L: np.ndarray, l: np.ndarray, feedback: np.ndarray, qv: np.ndarray, dv: np.ndarray, g: np.ndarray,
+                   U: np.ndarray, saturate, bound: float) -> tuple[float, np.ndarray, np.ndarray, bool]:
+    """The largest s in [0, 1] with |L^T r(s)|^2 <= bound, r(s) through the actual interface (:func:`interface_r`).
+
+    Where r is piecewise affine in s (every ``saturate`` but ``scale`` with K e != 0), |L^T r(s)|^2 is a convex
+    quadratic on each piece, and the largest admissible s of a piece is a root found in closed form; the pieces
+    are searched from s = 1 down.  Elsewhere a grid of GOVERNOR_GRID + 1 values of s, then bisection between the
+    largest admissible one and the next.  Every s returned has been evaluated and found admissible: a root that
+    rounding puts just outside is bisected back inside.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        M = L L^T.
+    l, feedback, qv : ndarray (m,)
+        l(xi), K (x - p(xi)) and q(xi, x) v_sp.
+    dv : ndarray (n,)
+        dp/dxi delta(xi) v_sp.
+    g : ndarray (n, m)
+        g(x).
+    U : ndarray (m, 2)
+        The input box.
+    saturate : bool or str
+        ``interface.saturate``.
+    bound : float
+        eps ((lambda - eps) W_max + c (W_max - w)).
+
+    Returns
+    -------
+    s : float
+    u, r : ndarray
+        u(s) and r(s), as evaluated when s was accepted.
+    admissible : bool
+        False only when not even s = 0 is admissible (r(0) != 0: K e clipped, outside the region of the proof);
+        s = 0 is returned then.
+    """
+    def at(s_values):
+        return interface_r(s_values, L, l, feedback, qv, dv, g, U, saturate)
+
+    def largest_verified(lo: float, hi: float):
+        """The largest s in [lo, hi] found admissible by evaluation: hi, or hi a few roundings lower (a root in
+        closed form is accurate to a few ulps), else bisection from lo."""
+        for back in GOVERNOR_BACKOFF:
+            s_try = max(lo, hi * (1.0 - back))
+            u, r, q2 = at(s_try)
+            if q2[0] <= bound:
+                return s_try, u[0], r[0]
+        u, r, q2 = at(lo)
+        if not q2[0] <= bound:
+            return None
+        good = (lo, u[0], r[0])
+        for _ in range(GOVERNOR_BISECTIONS):
+            mid = 0.5 * (good[0] + hi)
+            if not good[0] < mid < hi:
+                break
+            u, r, q2 = at(mid)
+            if q2[0] <= bound:
+                good = (mid, u[0], r[0])
+            else:
+                hi = mid
+        return good
+
+    ends, affine = breakpoints(l, feedback, qv, U, saturate)
+    grid = np.array([0.0, *ends, 1.0]) if affine else np.linspace(0.0, 1.0, GOVERNOR_GRID + 1)
+    u, r, q2 = at(grid)
+    ok = q2 <= bound
+    if ok[-1]:
+        return 1.0, u[-1], r[-1], True
+    if affine:
+        R = r @ L
+        for k in range(grid.size - 2, -1, -1):
+            s0, s1 = grid[k], grid[k + 1]
+            if ok[k + 1]:
+                return float(s1), u[k + 1], r[k + 1], True
+            h = s1 - s0
+            D = (R[k + 1] - R[k]) / h
+            a, b, c0 = float(D @ D), float(R[k] @ D), float(R[k] @ R[k]) - bound
+            if a <= 0.0:
+                continue                                    # constant on the piece and inadmissible at its end
+            disc = b * b - a * c0
+            if disc < 0.0:
+                continue
+            root = np.sqrt(disc)
+            upper = -c0 / (b + root) if b > 0 else (root - b) / a         # the larger root, without cancellation
+            lower = (-b - root) / a if b > 0 else (c0 / (a * upper) if upper != 0 else (-b - root) / a)
+            if upper < 0.0 or lower > h:
+                continue
+            found = largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    else:
+        k = np.flatnonzero(ok)
+        if k.size:
+            found = largest_verified(float(grid[k[-1]]), float(grid[k[-1] + 1]))
+            if found is not None:
+                return float(found[0]), found[1], found[2], True
+    return 0.0, u[0], r[0], bool(ok[0])
+
+
+def governor_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, w: float, xi_ref: np.ndarray, law: Law, q_kind: str, saturate,
+                 lam: float, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """The governed closed loop at one point (docs/guaranteed.md).
+
+    v = s v_sp, v_sp = clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max), with the largest s in [0, 1]
+    such that |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w) (:func:`governor_scale`): then the comparison
+    system w' = -(lambda - eps) w + |L^T r|^2 / eps satisfies w' <= (lambda - eps + c) (W_max - w), so w <= W_max
+    is invariant.
+
+    Returns
+    -------
+    v, u, dxi, dx, r : ndarray
+        As :func:`tracking_law`.
+    s : float
+        The scale applied to v_sp.
+    slack : float
+        (lambda - eps) W_max + c (W_max - w) - |L^T r|^2 / eps (>= 0 where the condition holds).
+    """
+    phi, delta, l, dpd, _, p = plant.at_xi(xi)
+    f_bar, g, *_ = plant.at_x(x)
+    v_sp = np.clip(pinv(delta) @ (law.gain * (xi_ref - xi) - phi[:, 0]), -law.v_max, law.v_max)
+    feedback = plant.K @ (x - p[:, 0])
+    q = pinv(plant.L.T @ g) @ (plant.L.T @ dpd) if q_kind == "least_squares" else np.zeros((g.shape[1], v_sp.size))
+    room = (lam - eps) * law.w_level + law.rate * (law.w_level - w)
+    s, u, r, _ = governor_scale(plant.L, l[:, 0], feedback, q @ v_sp, dpd @ v_sp, g, plant.U, saturate, eps * room)
+    v = s * v_sp
+    slack = room - float(np.sum((plant.L.T @ r) ** 2)) / eps
+    return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, r, s, slack
+
 
 
 def integrate(rhs, t_span, z0, t_eval, tol, what, events=None):

@@ -1,7 +1,7 @@
 """Tests of ashc_cli.closedloop.compiled: the tracking and m-relation closed loops and DOP853 in numba against the scipy
 path of simulate.
 
-The oracle (tests/oracle.py: solve_ivp on ``closedloop.reference``'s numpy laws, run by ``simulate.run_tracking`` and
+The oracle (tests/oracle.py: solve_ivp on the numpy laws, run by ``simulate.run_tracking`` and
 ``simulate.run_m_relation`` in place of the compiled loops) is the reference.  The control laws are compared point by point (the same arithmetic, so to round-off); the runs
 sample by sample, to what the integration tolerance and the loop's sensitivity allow (see each test); the
 m-relation's terminal event by where it stops and what it reports.
@@ -24,12 +24,11 @@ from ashc_cli.closedloop import compiled
 from ashc_cli.errors import NumericalError  # noqa: E402
 from ashc_cli.design.pipeline import DESIGN, design_model, run  # noqa: E402
 from ashc_cli.problem.spec import load_spec  # noqa: E402
-from ashc_cli.closedloop import reference
 from ashc_cli.design.stages import simulate  # noqa: E402
 from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, reference_state, sample_times  # noqa: E402
 
 from .conftest import CUK, ROOT, SPECS  # noqa: E402
-from .oracle import MRelationOracle, use_oracles  # noqa: E402
+from .oracle import MRelationOracle, tracking_law, use_oracles  # noqa: E402
 
 UNSTABLE = SPECS / "unstable_linear.yaml"      # feedback: linear_gain (K != 0), one input, saturate: true
 BILINEAR = SPECS / "bilinear_two_input.yaml"   # two inputs, two abstract inputs (2 x 2 delta), saturate: scale
@@ -128,7 +127,7 @@ def test_law_matches_tracking_law(designs, path, q_kind, saturate):
         x = p + (0.05 * (1 + np.abs(p)) * rng.standard_normal(model.n) if k % 4 else 0.0)   # on and near the manifold
         w = float(rng.random())
         xi_ref = refs[k % len(refs)]
-        v, u, dxi, dx, r = reference.tracking_law(plant, xi, x, xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
+        v, u, dxi, dx, r = tracking_law(plant, xi, x, xi_ref, ctl.gain, ctl.v_max, q_kind, saturate)
         dw = -(lam - eps) * w + float(np.sum((plant.L.T @ r) ** 2)) / eps
         v2, u2, dz = loop.law(xi, x, xi_ref, ctl.gain, ctl.v_max, q_kind, saturate, w)
         expected = np.r_[dxi, dx, dw]

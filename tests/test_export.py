@@ -2,7 +2,7 @@
 
 Each exported function is compared with the tool's own evaluation at random points: p and kappa with the
 stored formulas lambdified, m with the formula and the certified set (``inverse.m_domain``), the interface and
-the abstract controller with :func:`ashc_cli.closedloop.reference.tracking_law`.  The C file is compiled with the
+the abstract controller with the oracle's ``tracking_law`` (tests/oracle.py).  The C file is compiled with the
 system compiler (``cc -std=c99 -Wall -Werror -O2``, as a shared library called through ctypes); the tests that
 need it are skipped, saying so, when there is none.  The tracking scenario of each spec is integrated again
 with the exported Python functions (scipy's DOP853 at simulate's tolerances) and must give simulate's
@@ -25,12 +25,14 @@ import pytest
 import scipy.integrate as sint
 
 from ashc_cli.errors import ArtefactError, SpecError
-from ashc_cli.outputs.export import c_sources, export_sources, gather, interface_value, python_source, require_current, write_export
+from ashc_cli.outputs.export import export_sources, interface_value, write_export
+from ashc_cli.outputs.export_design import gather, require_current
+from ashc_cli.outputs.printers import c_sources, python_source
 from ashc_cli.problem.model import compile_terms
 from ashc_cli.design.pipeline import design_model, load_all, run
 from ashc_cli.problem.spec import Interface, load_spec
 from ashc_cli.design.upstream import certified_set, outside_certified_set
-from ashc_cli.closedloop.reference import tracking_law
+from .oracle import tracking_law
 from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, DesignTerms, reference_state, sample_times
 
 from .conftest import CUK, SPECS, edited
@@ -489,7 +491,7 @@ def test_python_and_c_sources_from_one_gathering(designs):
 def test_c_pseudo_inverse_matches_numpy(tmp_path):
     # The C file's fixed-size pseudo-inverse (one-sided Jacobi SVD) against numpy.linalg.pinv, for tall, wide,
     # square and rank-deficient matrices up to 5 x 5 (the designs above use it on 2 x 2 and 3 x 2 only).
-    from ashc_cli.outputs.export import _c_pinv_small
+    from ashc_cli.outputs.printers import _c_pinv_small
 
     source = tmp_path / "pinv.c"
     source.write_text("#include <math.h>\n" + "\n".join(_c_pinv_small(25, 5)) +

@@ -1,5 +1,5 @@
 """The compiled guaranteed governor (ashc_cli/closedloop/governor.py) against the scipy path's law
-(reference.governor_scale, reference.governor_law), which stays the reference."""
+(tests/oracle.py: governor_scale, governor_law), which stays the reference."""
 
 from __future__ import annotations
 
@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 
 from ashc_cli.closedloop import governor as gov
-from ashc_cli.closedloop import reference
+from ashc_cli.closedloop import plan as gplan
 from ashc_cli.design.stages import simulate
 
+from . import oracle as reference
 from .oracle import TrackingOracle
 from .test_simulate import _random_interface
 
 GUARANTEED = Path(__file__).parent / "specs" / "cuk_guaranteed.yaml"
 SAT = {False: 0, True: 1, "scale": 2}
-PRM_TAIL = [np.inf, 0.0, 1.0, reference.GOVERNOR_GRID, reference.GOVERNOR_BISECTIONS, *reference.GOVERNOR_BACKOFF]
+PRM_TAIL = [np.inf, 0.0, 1.0, gplan.GOVERNOR_GRID, gplan.GOVERNOR_BISECTIONS, *gplan.GOVERNOR_BACKOFF]
 
 
 def _prm():
@@ -76,7 +77,7 @@ def test_compiled_governor_run_is_the_scipy_run(cuk):
     tr, ctl = model.spec.simulate.tracking, model.spec.simulate.tracking.abstract_controller
     xi0, x0, W0, levels, refs = simulate.tracking_start(model, plant, up)
     lam, eps = float(up["bound"].value("lambda")), float(up["bound"].value("epsilon"))
-    plan = reference.guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
+    plan = gplan.guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
     law = plan.law("governor", ctl.gain, model.m_hat, float(up["bound"].values.get("v_max_certified", np.inf)), lam, eps)
     loop = simulate.tracking_loop_for(model, up, law)
     assert loop is not None

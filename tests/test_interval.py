@@ -1,4 +1,4 @@
-"""Tests of the rigorous enclosure toolkit (ashc_cli.numerics.interval)."""
+"""Tests of the rigorous enclosure toolkit (ashc_cli.numerics.interval, boxsearch)."""
 
 from __future__ import annotations
 
@@ -13,18 +13,8 @@ from hypothesis import strategies as st
 
 from ashc_cli.errors import NumericalError
 from ashc_cli.problem.expr import FUNCTIONS, NUMERIC_MODULES, SIGNAL_FUNCTIONS, square, step, triangle
-from ashc_cli.numerics.interval import (
-    IntervalFunction,
-    UnsupportedExpression,
-    compile_interval,
-    enclose,
-    inf_on_box,
-    lambda_max_upper,
-    prove_positive,
-    prove_psd,
-    psd_lower_bound,
-    sup_on_box,
-)
+from ashc_cli.numerics.boxsearch import inf_on_box, lambda_max_upper, prove_positive, prove_psd, psd_lower_bound, sup_on_box
+from ashc_cli.numerics.interval import IntervalFunction, UnsupportedExpression, compile_interval, enclose
 
 x, y = sp.symbols("x y", real=True)
 

@@ -22,13 +22,9 @@ BIN = Path(sys.executable).parent
 MAX_MODULE_LINES = 800
 MAX_FUNCTION_LINES = 100
 MODULE_DEBTS = {
-    "cli.py": 919,
-    "numerics/interval.py": 1569,
-    "outputs/export.py": 926,
 }
 FUNCTION_DEBTS = {
     "closedloop/falsify_core.py:run_one": 233,
-    "outputs/export.py:c_sources": 118,
 }
 
 
@@ -122,12 +118,29 @@ def test_every_exception_class_lives_in_errors():
     assert not strays, strays
 
 
-#: Public functions whose docstring has no numpydoc Parameters section yet (2026-12-02: 272 of 340); it may only fall.
-UNDOCUMENTED_PARAMETERS = 271
+def _is_private_module(rel: str) -> bool:
+    """A module whose file name starts with ``_`` (not ``__init__``): its package's implementation, not public API."""
+    name = rel.rsplit("/", 1)[-1]
+    return name.startswith("_") and not name.startswith("__")
+
+
+def test_a_private_module_is_imported_only_by_its_own_package():
+    strays = []
+    for rel, text in _modules():
+        package = rel.rsplit("/", 1)[0] if "/" in rel else ""
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("ashc_cli"):
+                parts = node.module.split(".")[1:]
+                if parts and parts[-1].startswith("_") and not parts[-1].startswith("__") and "/".join(parts[:-1]) != package:
+                    strays.append(f"{rel}: {node.module}")
+    assert not strays, strays
 
 
 def _public_functions():
+    """Module-level public functions of the public modules (a private module's functions are not API)."""
     for rel, text in _modules():
+        if _is_private_module(rel):
+            continue
         for node in ast.parse(text).body:
             if isinstance(node, ast.FunctionDef) and not node.name.startswith("_"):
                 yield rel, node
@@ -153,8 +166,13 @@ def _documented_names(doc: str) -> list[str]:
     return names
 
 
+def _is_command(node: ast.FunctionDef) -> bool:
+    """A typer command: its docstring is its --help, its parameters are documented by their options (docs/cli.md)."""
+    return any(isinstance(d, ast.Call) and isinstance(d.func, ast.Attribute) and d.func.attr == "command" for d in node.decorator_list)
+
+
 def test_every_public_function_has_a_docstring_and_its_parameters_exist():
-    missing, wrong, undocumented = [], [], 0
+    missing, wrong, undocumented = [], [], []
     for rel, node in _public_functions():
         doc = ast.get_docstring(node)
         if not doc:
@@ -164,14 +182,35 @@ def test_every_public_function_has_a_docstring_and_its_parameters_exist():
         args |= {a.arg for a in (node.args.vararg, node.args.kwarg) if a is not None}
         documented = _documented_names(doc)
         wrong += [f"{rel}:{node.name}({name})" for name in documented if name not in args]
-        if args - {"self", "cls"} and not documented:
-            undocumented += 1
+        if args - {"self", "cls"} and not documented and not _is_command(node):
+            undocumented.append(f"{rel}:{node.name}")
     assert not missing, missing
     assert not wrong, f"documented parameters the function does not take: {wrong}"
-    assert undocumented <= UNDOCUMENTED_PARAMETERS, f"{undocumented} public functions without a Parameters section (at most {UNDOCUMENTED_PARAMETERS})"
+    assert not undocumented, f"public functions without a numpydoc Parameters section: {undocumented}"
 
 
 def test_the_parameters_parser_reads_numpydoc():
     doc = "Do it.\n\nParameters\n----------\na, b : int\n    The ends.\n*args : float\n    More.\n\nReturns\n-------\nint\n    The sum.\n"
     assert _documented_names(doc) == ["a", "b", "args"]
     assert _documented_names("No sections.") == []
+
+
+def test_the_code_cites_the_papers_numbers_not_its_labels():
+    import re
+
+    from ashc_cli.paper import LABELS, cite
+
+    # the camel-case labels ("SimuLocalRequire", "egLMI") wherever they stand, and any citation cite() rewrites
+    camel = re.compile(r"\b(" + "|".join(sorted((re.escape(k) for k in LABELS if re.search(r"[a-z][A-Z]", k) and ":" not in k), key=len, reverse=True)) + r")\b")
+    labelled = [f"{rel}: {sorted(set(camel.findall(text)))}" for rel, text in _modules()
+                if rel != "paper.py" and (cite(text) != text or camel.search(text))]
+    assert not labelled, f"LaTeX labels of the paper in {labelled}: write the paper's numbers (ashc_cli.paper.cite does most)"
+
+
+def test_no_module_defines_a_name_twice():
+    # the second definition silently replaces the first (ruff does not see it when the first is called later)
+    twice = []
+    for rel, text in _modules():
+        names = [n.name for n in ast.parse(text).body if isinstance(n, (ast.FunctionDef, ast.ClassDef))]
+        twice += [f"{rel}: {name}" for name in sorted(set(names)) if names.count(name) > 1]
+    assert not twice, twice

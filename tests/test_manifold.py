@@ -6,6 +6,7 @@ import sympy as sp
 from ashc_cli.errors import DesignError
 from ashc_cli.problem.model import build_model
 from ashc_cli.problem.spec import parse_spec_text
+from ashc_cli.design import manifold_numeric
 from ashc_cli.design.stages import manifold
 
 from .conftest import CUK
@@ -100,8 +101,8 @@ def test_sparse_newton_terms_match_the_dense_jacobians():
     from ashc_cli.problem.model import sparse_jacobian
 
     model = build_model(parse_spec_text(ladder(2)))
-    terms = manifold.field_terms(model)
-    F = manifold._manifold_field(model)
+    terms = manifold_numeric.field_terms(model)
+    F = manifold_numeric.manifold_field(model)
     rng = np.random.default_rng(3)
     x, at = rng.normal(size=model.n), np.array([0.37])
     value, Fx, Fxi = terms(x, at)
@@ -119,15 +120,15 @@ def test_singular_jacobians_are_refused_by_the_condition_estimate():
 
     rng = np.random.default_rng(0)
     A = rng.normal(size=(6, 6))
-    lu = manifold._factor(sps.csc_matrix(A))
+    lu = manifold_numeric._factor(sps.csc_matrix(A))
     assert lu is not None and np.allclose(A @ lu.solve(np.ones(6)), 1.0)
     # Hager's estimate is a lower bound of ||A^-1||_1 and, on small matrices, usually equal to it.
     true = np.linalg.norm(np.linalg.inv(A), 1)
-    assert true * 0.3 <= manifold._inverse_norm1(lu, 6) <= true * (1 + 1e-12)
+    assert true * 0.3 <= manifold_numeric._inverse_norm1(lu, 6) <= true * (1 + 1e-12)
     B = A.copy()
     B[:, 5] = B[:, 4] * (1 + 1e-15)                      # singular to working precision
-    assert manifold._factor(sps.csc_matrix(B)) is None
-    assert manifold._factor(sps.csc_matrix(np.diag([1.0, 0.0]))) is None   # exactly singular
+    assert manifold_numeric._factor(sps.csc_matrix(B)) is None
+    assert manifold_numeric._factor(sps.csc_matrix(np.diag([1.0, 0.0]))) is None   # exactly singular
 
 
 # --- issue 19: exact solutions where they exist; l(V) in U decided exactly ----------------------------------

@@ -5,7 +5,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from ashc_cli.design.artefacts import read_artefact
-from ashc_cli.closedloop import reference
+from ashc_cli.closedloop import plan as gplan
+
+from . import oracle as reference
 from ashc_cli.design.stages import simulate
 from ashc_cli.design.stages.simulate import SAMPLE_DT, sample_times
 
@@ -166,7 +168,7 @@ def test_governor_keeps_w_below_its_level_and_works_at_it(guaranteed):
     level = 5.0**2 * alpha_h
     w = v["tracking/w_comparison"]
     assert np.all(w <= level)                                         # the invariant: w(t) <= W_max for all t
-    assert w.max() >= (1 - 2 * reference.GOVERNOR_MARGIN) * level      # ... and the governor did push w to it
+    assert w.max() >= (1 - 2 * gplan.GOVERNOR_MARGIN) * level      # ... and the governor did push w to it
     assert np.all(v["tracking/governor_slack"] >= 0.0)                # its condition (G) at every sample
     s = v["tracking/governor_scale"]
     assert np.all((s >= 0.0) & (s <= 1.0)) and s.min() < 0.01 and s.max() == 1.0
@@ -207,7 +209,7 @@ def _adversarial_start(paper_design, paper_spec, fraction, sign):
 def test_governor_holds_the_tolerance_from_an_adversarial_start(paper_design, paper_spec, sign):
     # W0 = 0.98 W_max, along M^-1 C^T: the run starts with |psi - y| = sqrt(0.98) x 5 V and is asked for the farthest level.
     model, plant, xi0, x0, W0, alpha_h = _adversarial_start(paper_design, paper_spec, 0.98, sign)
-    plan = reference.guaranteed_plan(5.0, "governor", W0, paper_design)
+    plan = gplan.guaranteed_plan(5.0, "governor", W0, paper_design)
     law = plan.law("governor", 80.0, 1, np.inf, 2.0, 1.0)
     ref = simulate.reference_state(model, plant, np.array([-80.9]), 0, paper_design["kappa"].expr("kappa"))
     segments = simulate.tracking_segments(3.0, 3.0, 1)
@@ -218,7 +220,7 @@ def test_governor_holds_the_tolerance_from_an_adversarial_start(paper_design, pa
     assert np.all(res["slack"] >= 0.0)
     assert plant.kappa(*res["xi"][:, -1:])[0, 0, 0] < -25.0       # it still moves towards -80.9 (from -19.1)
     # The same start under the unchecked set-point law (v_max 60) leaves the tolerance: the test can fail.
-    free_law = reference.Law("setpoint", 80.0, 60.0)
+    free_law = gplan.Law("setpoint", 80.0, 60.0)
     free = simulate.closed_loop_run(model, plant, paper_design, free_law, np.r_[xi0, x0, W0], segments, [ref],
                                     simulate.tracking_loop_for(model, paper_design, free_law))
     assert np.abs(plant.kappa(*free["xi"])[:, 0, :] - free["y"]).max() > 5.5
@@ -229,13 +231,13 @@ def test_a_start_beyond_the_tolerance_is_refused_with_the_least_tolerance(paper_
     W0 = 1.2 * 5.0**2 * alpha_h                                   # sqrt(W0 / alpha_h) = 5.477 V > 5 V
     for mode in ("budget", "governor", "auto"):
         with pytest.raises(DesignError) as err:
-            reference.guaranteed_plan(5.0, mode, W0, paper_design)
+            gplan.guaranteed_plan(5.0, mode, W0, paper_design)
         line = err.value.line()
         assert err.value.exit_code == 3 and "\n" not in line
         assert line.startswith("simulate.tracking.abstract_controller.tolerance: 5 cannot be guaranteed")
-        assert f"a tolerance of at least {np.sqrt(1.2) * 5.0 * (1 + reference.BUDGET_MARGIN):.6g}" in line
+        assert f"a tolerance of at least {np.sqrt(1.2) * 5.0 * (1 + gplan.BUDGET_MARGIN):.6g}" in line
     # Just above the start's share, the budget exists and its v_max is what is left of the tolerance over G.
-    plan = reference.guaranteed_plan(6.0, "budget", W0, paper_design)
+    plan = gplan.guaranteed_plan(6.0, "budget", W0, paper_design)
     G = float(paper_design["bound"].value("gain"))
     assert plan.budget_v_max == pytest.approx((6.0 - np.sqrt(1.2) * 5.0) / G, rel=1e-12)
     assert plan.budget_tolerance == pytest.approx(6.0, rel=1e-12)
@@ -243,13 +245,13 @@ def test_a_start_beyond_the_tolerance_is_refused_with_the_least_tolerance(paper_
 
 def test_auto_takes_the_governor_only_when_it_can_run(paper_design):
     alpha_h = float(paper_design["bound"].value("alpha_h"))
-    assert reference.guaranteed_plan(5.0, "auto", 0.0, paper_design).mode == "governor"
+    assert gplan.guaranteed_plan(5.0, "auto", 0.0, paper_design).mode == "governor"
     # W0 between the governor's level (less its margin) and EPS^2 alpha_h: only the budget certifies EPS.
-    W0 = (1 - 0.5 * reference.GOVERNOR_MARGIN) * 5.0**2 * alpha_h
-    plan = reference.guaranteed_plan(5.0, "auto", W0, paper_design)
+    W0 = (1 - 0.5 * gplan.GOVERNOR_MARGIN) * 5.0**2 * alpha_h
+    plan = gplan.guaranteed_plan(5.0, "auto", W0, paper_design)
     assert plan.mode == "budget" and plan.governor_refusal is not None and plan.budget_v_max > 0
     with pytest.raises(DesignError, match="above the level the governor keeps"):
-        reference.guaranteed_plan(5.0, "governor", W0, paper_design)
+        gplan.guaranteed_plan(5.0, "governor", W0, paper_design)
 
 
 def _random_interface(rng, m, saturate):

@@ -56,7 +56,7 @@ class BatchPlant:
 
 def interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) -> dict:
     """Everything of the closed loop at the columns xi (n_hat, N), x (n, N) that does not depend on v: the terms
-    (``a`` of xi, ``b`` of x), K (x - p) and q (eq. (31), least squares, or 0).
+    (``a`` of xi, ``b`` of x), K (x - p) and q (eq. (43), least squares, or 0).
 
     Parameters
     ----------

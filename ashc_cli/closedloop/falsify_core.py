@@ -54,7 +54,7 @@ def _stays(z, dxi, step, lo, hi):
 @njit(**OPTIONS)
 def _terms(exi, ex, z, dims, off, A, B, wk, K, L, q_ls):
     """The closed loop at z = [xi, x] that does not depend on v (strategies._interface): the kernels into A and B;
-    kx = K (x - p) and q = pinv(L^T g) L^T dp/dxi delta (eq. egqLS) or 0 into wk."""
+    kx = K (x - p) and q = pinv(L^T g) L^T dp/dxi delta (eq. (43)) or 0 into wk."""
     nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
     exi(z, A)
     ex(z, B)
@@ -219,9 +219,9 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
             fout, iout, vused, recZ, recE, recB, recV):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
 
-    fout[r] = [ratio, ratio_late, max_error, vsup, at_limit, largest_bound];
-    iout[r] = [k_at, left_V, diverged, forced, accepted steps, rejected steps].
-    """
+    Parameters
+    ----------
+    r : int, the run: its row of the per-run arrays and of the outputs; the other arguments as :func:`run_batch`."""
     nh, n, m, mh, p, H, S, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7], dims[8]
     q_ls, sat = iprm[0], iprm[1]
     dt, v_limit, lam, eps, alpha_h, G, floor, rtol, diverge, lookahead = (fprm[0], fprm[1], fprm[2], fprm[3], fprm[4],
@@ -455,7 +455,50 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
 def run_batch(exi, ex, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid, rows,
               xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
               fout, iout, vused, recZ, recE, recB, recV):
-    """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs."""
+    """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs.
+
+    Parameters
+    ----------
+    exi, ex : XI_KERNEL, X_KERNEL
+        The design's falsify_xi(z, A) and falsify_x(z, B) (:mod:`ashc_cli.closedloop.falsify_loop`).
+    dims : 1-D int64 array (9,)
+        [n_hat, n, m, m_hat, p, H (holds), S (reference segments), record, keep_v] (the last two 0 or 1).
+    off : 1-D int64 array (22,)
+        falsify_loop.layout: the terms' offsets in A, B and wk (indexed by the O_* constants), then the lengths of A, B, wk.
+    fprm : 1-D float array (10,)
+        [dt (a hold), v_limit, lambda, eps, alpha_h, G, floor, rtol, divergence, lookahead (in holds)].
+    iprm : 1-D int64 array (2,)
+        [q_ls, sat]: 1 for the least-squares q of eq. (43), else 0; sat as :func:`~ashc_cli.closedloop.laws.saturate`.
+    M, L, K, U : 2-D float arrays (n, n), (n, n), (m, n), (m, 2)
+        The metric, its Cholesky factor, the feedback gain and the input box.
+    atol, scale : 1-D float arrays (n_hat + n,)
+        The absolute tolerance per state; the states' scale (a run diverges where |z_i| > divergence scale_i).
+    lo, hi, centre : 1-D float arrays (n_hat,)
+        V's bounds and its centre.
+    cand : 2-D float array (C, m_hat)
+        The greedy adversary's unit inputs.
+    tgrid : 1-D float array (H + 1,)
+        The hold boundaries.
+    rows : 1-D int64 array
+        The runs to integrate.
+    xi0, x0, W0 : float arrays (N, n_hat), (N, n), (N,)
+        Per run: the start and W(xi0, x0).
+    mode, vtab : int64 array (N,), float array (N, H, m_hat)
+        Per run: SETPOINT, TABLE or GREEDY; the input held at each hold (TABLE).
+    rho, dwell, amp, guard : arrays (N,), float, int64, float, int64
+        Per run: the greedy adversary's weight (rho e^T M e / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x a hold ahead),
+        the fewest holds between its switches, its input norm (and the guard's) as a fraction of v_limit; guard != 0:
+        a held input that would carry xi out of V is reversed, else turned to V's centre.
+    refs, gains, noise : float arrays (N, S, n_hat), (N,), (N, S, m_hat)
+        Per run: the set-point law's reference of each segment, its gain and the noise added to v (SETPOINT).
+    fout, iout : 2-D float array (N, 6), 2-D int64 array (N, 6)
+        Written at the rows ``rows``: [ratio, ratio_late, max_error, vsup, at_limit, largest_bound] and
+        [k_at, left_V, diverged, forced, accepted steps, rejected steps].
+    vused : 3-D float array (N, H, m_hat), or (0, H, m_hat) without keep_v
+        Written with keep_v: the input of each hold.
+    recZ, recE, recB, recV : float arrays (N, H + 1, n_hat + n), (N, H + 1), (N, H + 1), (N, H + 1, m_hat), N = 0 without record
+        Written with record: z, the error |kappa(xi) - h(x)|, the bound and v at each hold boundary.
+    """
     for j in range(rows.size):
         run_one(exi, ex, rows[j], dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
                 xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,

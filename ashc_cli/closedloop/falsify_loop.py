@@ -56,7 +56,19 @@ def _flat(terms) -> sp.Matrix:
 
 
 def layout(nh: int, n: int, m: int, mh: int, p: int) -> np.ndarray:
-    """Offsets of the terms in the flat buffers (the core's O_* indices), then the sizes of A, B and wk."""
+    """Offsets of the terms in the flat buffers (the core's O_* indices), then the sizes of A, B and wk.
+
+    Parameters
+    ----------
+    nh, n, m, mh, p : int
+        n_hat, n, m, m_hat and p of the model.
+
+    Returns
+    -------
+    ndarray (22,) of int64
+        The offsets of phi, delta, l, dpd, kappa, p, dp/dxi in A (7), of f_bar, g, h, dh/dx in B (4), of the
+        work terms in wk (8), then the lengths of A, B and wk.
+    """
     sizes_a = [nh, nh * mh, m, n * mh, p, n, n * nh]                 # phi, delta, l, dpd, kappa, p, dp/dxi
     sizes_b = [n, n * m, p, p * n]                                   # f_bar, g, h, dh/dx
     sizes_w = [m, m * mh, n * m, n * mh, m * n, mh * nh, m, mh]      # kx, q, L^T g, L^T dpd, pinv(L^T g), delta^+, corr, v_in
@@ -68,7 +80,25 @@ def layout(nh: int, n: int, m: int, mh: int, p: int) -> np.ndarray:
 
 
 def kernel_source(model, arts) -> str:
-    """The numba module of a design's expressions for the falsifier: ``falsify_xi(z, A)`` and ``falsify_x(z, B)``."""
+    """The numba module of a design's expressions for the falsifier: ``falsify_xi(z, A)`` and ``falsify_x(z, B)``.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (phi_bar, l, f_bar, g, h and the parameter values are read).
+    arts : dict
+        Artefacts by stage (``delta``, ``bound``, ``kappa`` and ``manifold`` are read).
+
+    Returns
+    -------
+    str
+        The module's source.
+
+    Raises
+    ------
+    Unsupported
+        A term does not have the shape the core expects.
+    """
     xi_terms, x_terms = _matrices(model, arts)
     # Both kernels read z = [xi, x]; the x kernel skips the first n_hat entries (placeholders).
     skip = [sp.Dummy(f"skip{i}") for i in range(model.n_hat)]
@@ -80,7 +110,18 @@ def kernel_source(model, arts) -> str:
 
 
 def kernel_key(model, arts) -> str:
-    """What the kernels are made from, hashed (every digit of the matrices, the symbols, the parameter values)."""
+    """What the kernels are made from, hashed (every digit of the matrices, the symbols, the parameter values).
+
+    Parameters
+    ----------
+    model, arts : Model, dict
+        As for :func:`kernel_source`.
+
+    Returns
+    -------
+    str
+        The first 24 hex digits of a SHA-256 (also of :data:`KERNEL_VERSION` and the sympy version).
+    """
     xi_terms, x_terms = _matrices(model, arts)
     digest = hashlib.sha256(f"ashc falsify kernels {KERNEL_VERSION} sympy {sp.__version__}".encode())
     for arr, matrix in xi_terms + x_terms:
@@ -220,10 +261,24 @@ class FalsifyLoop:
 def falsify_loop(model, arts, M: np.ndarray, L: np.ndarray, K: np.ndarray) -> FalsifyLoop:
     """The compiled runs of a design (``arts``: the artefacts of stabilise .. bound by stage).
 
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (its expressions, U, and the interface's ``q`` and ``saturate``).
+    arts : dict
+        Artefacts by stage (``delta``, ``bound``, ``kappa`` and ``manifold`` are read).
+    M, L, K : ndarray (n, n), (n, n), (m, n)
+        Stabilise's M, its Cholesky factor (M = L L^T) and the feedback gain (``BatchPlant.M``, ``.L``, ``.K``).
+
+    Returns
+    -------
+    FalsifyLoop
+
     Raises
     ------
     Unsupported
-        numba is missing, ``$ASHC_COMPILED`` is ``0``, or an expression has no numba form.
+        numba is missing, ``$ASHC_COMPILED`` is ``0``, an expression has no numba form, or the interface's ``q`` or
+        ``saturate`` is not one the core runs.
     """
     if not available():
         raise Unsupported("numba is not installed (or ASHC_COMPILED=0)")

@@ -1,10 +1,11 @@
 """The guaranteed governor of the tracking scenario (docs/guaranteed.md), compiled with numba: the same law as
-:func:`ashc_cli.closedloop.reference.governor_law` (the reference of the tests), run by the
+``governor_law`` of tests/oracle.py (its numpy form), run by the
 engine of :mod:`ashc_cli.closedloop.rk` through :func:`governor_rhs`.
 
 v = s v_sp with the largest s in [0, 1] such that |L^T r(s)|^2 / eps <= (lambda - eps) W_max + c (W_max - w),
 r(s) through the actual interface (saturation included); then w <= W_max is invariant.  ``prm`` holds
-[gain, v_max, lambda, eps, W_max, c, grid, bisections, backoff...] (the simulate stage's GOVERNOR_* constants).
+[gain, v_max, lambda, eps, W_max, c, 1 (a slot not read), grid, bisections, backoff...] (the GOVERNOR_* constants of
+closedloop/plan.py).
 """
 
 import numpy as np
@@ -19,7 +20,31 @@ OPTIONS = dict(cache=True, error_model="numpy")
 @njit(**OPTIONS)
 def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
     """u(s) = SAT(l + K e + s q v_sp) and r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) into u and r; returns
-    |L^T r(s)|^2 (reference.interface_r at one s)."""
+    |L^T r(s)|^2 (the oracle's interface_r at one s).
+
+    Parameters
+    ----------
+    s : float
+    L : 2-D float array (n, n)
+        M = L L^T.
+    l, feedback, qv : 1-D float arrays (m,)
+        l(xi), K e = K (x - p(xi)) and q v_sp.
+    dv : 1-D float array (n,)
+        dp/dxi delta v_sp.
+    g, U : 2-D float arrays (n, m), (m, 2)
+        g(x) and the input box.
+    sat : int
+        As :func:`~ashc_cli.closedloop.laws.saturate`.
+    u, r : 1-D float arrays (m,), (n,)
+        Written: u(s) and r(s).
+    corr : 1-D float array (m,)
+        Work array (left holding K e + s q v_sp).
+
+    Returns
+    -------
+    float
+        |L^T r(s)|^2.
+    """
     M, N = l.size, dv.size
     for j in range(M):
         corr[j] = feedback[j] + s * qv[j]
@@ -35,7 +60,21 @@ def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
 @njit(**OPTIONS)
 def breakpoints(l, feedback, qv, U, sat, ends):
     """The s in (0, 1) where the interface changes form, sorted and distinct, into ``ends``; returns (count,
-    affine) as reference.breakpoints."""
+    affine) as the oracle's breakpoints.
+
+    Parameters
+    ----------
+    l, feedback, qv, U, sat
+        As :func:`interface_at`.
+    ends : 1-D float array
+        Written: the breakpoints in ends[:count]; room for 2 m of them (sat = 1; one for sat = 2).
+
+    Returns
+    -------
+    count : int
+    affine : bool
+        Whether r(s) is affine between the breakpoints (not for sat = 2 with K e != 0, then count = 0).
+    """
     if sat == 0:
         return 0, True
     M = l.size
@@ -97,9 +136,28 @@ def _largest_verified(lo, hi, bound, prm, L, l, feedback, qv, dv, g, U, sat, u, 
 
 @njit(**OPTIONS)
 def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
-    """reference.governor_scale: the largest s in [0, 1] with |L^T r(s)|^2 <= bound, u(s) and r(s) into u and r;
+    """The oracle's governor_scale: the largest s in [0, 1] with |L^T r(s)|^2 <= bound, u(s) and r(s) into u and r;
     returns (s, admissible).  Closed-form roots on the pieces where r is affine in s, else a grid of prm[7] + 1
-    values of s and bisection."""
+    values of s and bisection.
+
+    Parameters
+    ----------
+    L, l, feedback, qv, dv, g, U, sat
+        As :func:`interface_at`.
+    bound : float
+        eps ((lambda - eps) W_max + c (W_max - w)).
+    prm : 1-D float array
+        The governor's parameters (:func:`governor_rhs`): prm[7] the grid, prm[8] the bisections, prm[9:] the
+        back-offs b (s = (1 - b) s_hi is tried first, s_hi the upper end found, then bisection).
+    u, r : 1-D float arrays (m,), (n,)
+        Written: u(s) and r(s).
+
+    Returns
+    -------
+    s : float
+    admissible : bool
+        False when not even s = 0 meets the bound (s is then 0).
+    """
     M, N = l.size, dv.size
     ends = np.empty(2 * M + 1)
     count, affine = breakpoints(l, feedback, qv, U, sat, ends)
@@ -163,7 +221,7 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
 
 @njit(inline="always", **OPTIONS)
 def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
-    """:func:`governed_loop` given the design's values at z (``governor_samples`` reuses them for psi and y)."""
+    """:func:`_governed_loop` given the design's values at z (``governor_samples`` reuses them for psi and y)."""
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps, w_level, rate = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     xi = z[:NH].copy()
@@ -191,8 +249,8 @@ def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1, F1), **OPTIONS)
-def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
-    """reference.governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
+def _governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+    """The oracle's governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
     out = [s, slack]."""
     phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out)
@@ -200,13 +258,39 @@ def governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
 def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
-    """governed_loop behind the tracking core's RHS signature."""
-    governed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz, np.empty(2))
+    """_governed_loop behind the tracking core's RHS signature.
+
+    Parameters
+    ----------
+    t : float
+        Not read.
+    z, dz : 1-D float arrays (n_hat + n + 1,)
+        [xi, x, w]; written: [dxi, dx, dw].
+    eval_xi, eval_x, dims, L, K, U, q_ls, sat, v, u
+        As :func:`~ashc_cli.closedloop.tracking_core.closed_loop` (v = s v_sp).
+    eval_link, eval_u : LINK_KERNEL, U_KERNEL
+        Not read.
+    ref : 1-D float array (n_hat,)
+        The reference xi_ref.
+    prm : 1-D float array
+        [gain, v_max, lambda, eps, W_max, c, 1.0 (not read), grid, bisections, backoffs...].
+    """
+    _governed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz, np.empty(2))
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), **OPTIONS)
 def governor_samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y, SCALE, SLACK):
-    """At every row of Z: v, u, s and slack (governed_loop), psi = kappa(xi) and y = h(x)."""
+    """At every row of Z: v, u, s and slack (_governed_loop), psi = kappa(xi) and y = h(x).
+
+    Parameters
+    ----------
+    eval_xi, eval_x, dims, Z, seg_of_row, refs, L, K, U, q_ls, sat, V, Uo, PSI, Y
+        As :func:`~ashc_cli.closedloop.tracking_core.samples`.
+    prm : 1-D float array
+        As :func:`governor_rhs`.
+    SCALE, SLACK : 1-D float arrays (N,)
+        Written: s and (lambda - eps) W_max + c (W_max - w) - |L^T r(s)|^2 / eps, row k at Z[k].
+    """
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)

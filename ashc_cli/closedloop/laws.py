@@ -64,7 +64,18 @@ def saturate(lb, lo, cb, co, U, sat, u, m):
 @njit(**INLINE)
 def pinv_flat(src, so, r, c, dst, do):
     """dst[do:do + c r] = the Moore-Penrose pseudo-inverse (c x r, row-major) of the r x c matrix src[so:so + r c]
-    (row-major): a single column or row in closed form a^T / |a|^2 (zero where a is), else numpy's (SVD) pinv."""
+    (row-major): a single column or row in closed form a^T / |a|^2 (zero where a is), else numpy's (SVD) pinv.
+
+    Parameters
+    ----------
+    src, so : 1-D float array, int
+        The matrix is ``src[so:so + r c]``, row-major.
+    r, c : int
+        Its rows and columns.
+    dst, do : 1-D float array, int
+        The pseudo-inverse (c x r, row-major) is written to ``dst[do:do + c r]`` (may be ``src``, at a range that does
+        not overlap).
+    """
     if r == 1 or c == 1:
         s = 0.0
         for k in range(r * c):
@@ -85,7 +96,18 @@ def pinv_flat(src, so, r, c, dst, do):
 
 @njit(**OPTIONS)
 def pinv(a):
-    """:func:`pinv_flat` of a 2-D C-contiguous array, in a new array."""
+    """:func:`pinv_flat` of a 2-D C-contiguous array, in a new array.
+
+    Parameters
+    ----------
+    a : 2-D float array (r, c)
+        C-contiguous (it is reshaped to a flat view).
+
+    Returns
+    -------
+    2-D float array (c, r)
+        The Moore-Penrose pseudo-inverse of ``a``.
+    """
     r, c = a.shape
     out = np.empty((c, r))
     pinv_flat(a.reshape(r * c), 0, r, c, out.reshape(c * r), 0)

@@ -25,7 +25,24 @@ OPTIONS = dict(cache=True, error_model='numpy')
 @njit(**OPTIONS)
 def design_at(eval_xi, eval_x, dims, z):
     """The kernels at z = [xi, x, ...], in fresh arrays: (phi_bar, delta, l, dp/dxi delta, kappa, p) of xi and
-    (f_bar, g, h) of x."""
+    (f_bar, g, h) of x.
+
+    Parameters
+    ----------
+    eval_xi, eval_x : XI_KERNEL, X_KERNEL
+        The design's kernels (:mod:`ashc_cli.closedloop.compiled`).
+    dims : 1-D int64 array
+        [n_hat, n, m, m_hat, p] (entries after these are not read).
+    z : 1-D float array
+        xi = z[:n_hat], x = z[n_hat:n_hat + n] (the rest is not read).
+
+    Returns
+    -------
+    phi, delta, l, dpd, kap, pm : float arrays (n_hat,), (n_hat, m_hat), (m,), (n, m_hat), (p,), (n,)
+        phi_bar(xi), delta(xi), l(xi), dp/dxi delta, kappa(xi) and p(xi).
+    fb, g, h : float arrays (n,), (n, m), (p,)
+        f_bar(x), g(x) and h(x).
+    """
     NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
     phi = np.empty(NH)
     delta = np.empty((NH, MH))
@@ -75,7 +92,7 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
     feedback_of(K, x, pm, feedback)
     correction = feedback.copy()
     if q_ls == 1:
-        # q = pinv(L^T g) (L^T dp/dxi delta), eq. egqLS
+        # q = pinv(L^T g) (L^T dp/dxi delta), eq. (43)
         Ltg = np.empty((N, M))
         Ltd = np.empty((N, MH))
         for i in range(N):
@@ -116,10 +133,27 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
 
 @njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
 def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
-    """reference.tracking_law and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
+    """The set-point law (tests/oracle.py ``tracking_law``) and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
 
     dims = [n_hat, n, m, m_hat, p]; prm = [gain, v_max, lambda, eps]; q_ls = 1 for the least-squares q, 0 for
     q = 0; sat = 0 (no saturation), 1 (clip each channel to U) or 2 (scale the correction).
+
+    Parameters
+    ----------
+    eval_xi, eval_x, dims
+        As :func:`design_at`.
+    z : 1-D float array (n_hat + n + 1,)
+        [xi, x, w].
+    xi_ref : 1-D float array (n_hat,)
+        The set-point controller's reference.
+    prm : 1-D float array
+        As above (entries after the fourth are not read).
+    L, K, U : 2-D float arrays (n, n), (m, n), (m, 2)
+        The Cholesky factor of M (M = L L^T), the feedback gain and the input box.
+    q_ls, sat : int
+        As above.
+    v, u, dz : 1-D float arrays (m_hat,), (m,), (n_hat + n + 1,)
+        Written: the abstract input, the concrete input and [dxi, dx, dw].
     """
     phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
     _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz)
@@ -129,7 +163,19 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
 def link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz):
     """simulate.run_m_relation's right-hand side at (t, z = [xi, x]); fills u = u(t), v and dz = [dxi, dx].
 
-    v = b(x) + c(x) u (eq. mRelateLink); dxi = phi_bar(xi) + delta(xi) v; dx = f_bar(x) + g(x) u.
+    v = b(x) + c(x) u (eq. (22)); dxi = phi_bar(xi) + delta(xi) v; dx = f_bar(x) + g(x) u.
+
+    Parameters
+    ----------
+    eval_xi, eval_x, dims
+        As :func:`design_at`.
+    eval_link, eval_u : LINK_KERNEL, U_KERNEL
+        The m-relation's kernels: b(x), c(x), m(x) and u(t).
+    t : float
+    z : 1-D float array (n_hat + n,)
+        [xi, x].
+    v, u, dz : 1-D float arrays (m_hat,), (m,), (n_hat + n,)
+        Written.
     """
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     tt = np.empty(1)
@@ -160,12 +206,24 @@ def link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz):
 
 @njit(types.void(F1, F1, F2, F1), **OPTIONS)
 def no_link(x, b, c, m):
-    """The eval_link of the tracking runs (``integrate`` takes one; it is never called there)."""
+    """The eval_link of the tracking runs (``integrate`` takes one; it is never called there).
+
+    Parameters
+    ----------
+    x, b, c, m : float arrays, 1-D, 1-D, 2-D, 1-D
+        eval_link's arguments, neither read nor written.
+    """
 
 
 @njit(types.void(F1, F1), **OPTIONS)
 def no_signal(t, u):
-    """The eval_u of the tracking runs (never called there)."""
+    """The eval_u of the tracking runs (never called there).
+
+    Parameters
+    ----------
+    t, u : 1-D float arrays
+        eval_u's arguments, neither read nor written.
+    """
 
 
 #: rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u): the right-hand side
@@ -178,13 +236,36 @@ RHS = types.FunctionType(RHS_SIGNATURE)
 
 @njit(RHS_SIGNATURE, **OPTIONS)
 def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
-    """closed_loop behind the RHS signature (t, eval_link and eval_u unused)."""
+    """closed_loop behind the RHS signature (t, eval_link and eval_u unused).
+
+    Parameters
+    ----------
+    t : float
+    z, dz : 1-D float arrays (n_hat + n + 1,)
+        [xi, x, w]; written: [dxi, dx, dw].
+    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat, v, u
+        As :func:`closed_loop`.
+    eval_link, eval_u : LINK_KERNEL, U_KERNEL
+    ref : 1-D float array (n_hat,)
+        closed_loop's xi_ref.
+    """
     closed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
 def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
-    """link_loop behind the RHS signature (ref, prm, L, K, U, q_ls and sat unused)."""
+    """link_loop behind the RHS signature (ref, prm, L, K, U, q_ls and sat unused).
+
+    Parameters
+    ----------
+    t : float
+    z, dz : 1-D float arrays (n_hat + n,)
+        [xi, x]; written: [dxi, dx].
+    eval_xi, eval_x, eval_link, eval_u, dims, v, u
+        As :func:`link_loop`.
+    ref, prm, L, K, U, q_ls, sat
+        The tracking loop's arguments (:func:`closed_loop`).
+    """
     link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz)
 
 
@@ -219,7 +300,7 @@ def _leaves_event(z, ectx):
 
 @njit(types.UniTuple(types.int64, 5)(RHS, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F1, I1, F2, F1, F2, F2, F2,
                                      types.int64, types.int64, F1, types.float64, types.float64, F2, F1, F1, F1, F1, F2, F2, F1),
-      **OPTIONS)
+      nogil=True, **OPTIONS)
 def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eval, offsets, refs, prm, L, K, U, q_ls, sat, edges,
               rtol, atol, A, B, C, E, E3, D, out, hit):
     """The engine's :func:`~ashc_cli.closedloop.rk.solve` with the tableau (A, B, C, E, E3, D), segment after segment.
@@ -231,6 +312,46 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
     the run stops where h(x) leaves [lo + lo_margin, hi - hi_margin] (simulate's leaves_certified_set, direction
     -1, terminal): hit = [t, z] there.  Returns (status, rows written, segment, nfev, accepted steps), status as
     rk.solve's.
+
+    Parameters
+    ----------
+    rhs : RHS
+        tracking_rhs, governor_rhs (:mod:`ashc_cli.closedloop.governor`) or link_rhs.
+    eval_xi, eval_x, eval_link, eval_u, dims
+        As :func:`link_loop`.
+    z0 : 1-D float array (d,)
+        The start: [xi0, x0, W0] (d = n_hat + n + 1) or, for link_rhs, [xi0, x0] (d = n_hat + n).
+    t_bounds : 2-D float array (segments, 2)
+        Each segment's [t0, t1], t0 <= t1.
+    t_eval : 1-D float array (N,)
+        Every segment's sample times, one segment after the other; a segment's last is its t1.
+    offsets : 1-D int64 array (segments + 1,)
+        Segment k's samples are t_eval[offsets[k]:offsets[k + 1]] (offsets[0] = 0, offsets[-1] = N).
+    refs : 2-D float array (segments, n_hat)
+        Each segment's xi_ref.
+    prm : 1-D float array
+        [gain, v_max, lambda, eps] (:func:`closed_loop`), for governor_rhs followed by [W_max, c, 1.0 (not read),
+        grid, bisections, backoffs...].
+    L, K, U, q_ls, sat
+        As :func:`closed_loop`.
+    edges : 1-D float array (4,) or (0,)
+        [lo, lo_margin, hi, hi_margin] of the event on y = h(x)[0]; empty: no event.
+    rtol, atol : float
+        The tolerances (atol for every component).
+    A, B, C, E, E3, D : float arrays
+        The tableau (:data:`~ashc_cli.closedloop.rk.DOP853`, or DP54 with E3 empty): the square A (DOP853's with the
+        dense output's extra stages), the weights B, the nodes C, the error estimates E and E3, the dense output D.
+    out : 2-D float array (N, d)
+        Written: row i the state at t_eval[i].
+    hit : 1-D float array (1 + d,)
+        Written at the event.
+
+    Returns
+    -------
+    status, written, segment, nfev, steps : int
+        0 (every sample written), 1 (the event), -1 (the step fell below the spacing of floating-point numbers, or a
+        backward span) or -2 (a sample is not finite); the rows of out written are those before ``written``;
+        the segment it stopped in (the number of segments when it did not); evaluations and accepted steps.
     """
     tab = (A, B, C, E, E3, D)
     exponent = -1.0 / 8.0 if E3.size > 0 else -1.0 / 5.0
@@ -255,9 +376,23 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
     return 0, written, t_bounds.shape[0], nfev, steps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), **OPTIONS)
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), nogil=True, **OPTIONS)
 def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y):
-    """At every row of Z: v and u (tracking_law), psi = kappa(xi) and y = h(x)."""
+    """At every row of Z: v and u (tracking_law), psi = kappa(xi) and y = h(x).
+
+    Parameters
+    ----------
+    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat
+        As :func:`closed_loop`.
+    Z : 2-D float array (N, n_hat + n + 1)
+        The samples [xi, x, w] (integrate's out).
+    seg_of_row : 1-D int64 array (N,)
+        Each row's segment, its row of refs.
+    refs : 2-D float array (segments, n_hat)
+        Each segment's xi_ref.
+    V, Uo, PSI, Y : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p)
+        Written: v, u, psi and y, row k at Z[k].
+    """
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
@@ -271,7 +406,19 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F2, F2, F2, F2, F2), **OPTIONS)
 def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, MX):
-    """At every row of Z = [xi, x] (time t[k]): v and u (link_loop), psi = kappa(xi), y = h(x) and m(x)."""
+    """At every row of Z = [xi, x] (time t[k]): v and u (link_loop), psi = kappa(xi), y = h(x) and m(x).
+
+    Parameters
+    ----------
+    eval_xi, eval_x, eval_link, eval_u, dims
+        As :func:`link_loop`.
+    t : 1-D float array (N,)
+        The sample times.
+    Z : 2-D float array (N, n_hat + n)
+        The samples (integrate's out).
+    V, Uo, PSI, Y, MX : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p), (N, n_hat)
+        Written: v, u, psi, y and m(x), row k at Z[k].
+    """
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N)
     v = np.empty(MH)

@@ -209,7 +209,18 @@ def package_versions() -> dict[str, str]:
 
 
 def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes."""
+    """SHA-256 of a file's bytes.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, read in 1 MiB chunks.
+
+    Returns
+    -------
+    str
+        The digest as 64 lowercase hex digits.
+    """
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):

@@ -34,6 +34,15 @@ def prove_affine_inverse(model: Model, man: Artefact, kap: Artefact, T: np.ndarr
     * eq. (10) for an affine kappa = C P xi + C p0: for one output the exact range of kappa over V's corners
       contains Y; otherwise each vertex of Y is reached from V (an exact linear program, sympy's simplex).
 
+    Parameters
+    ----------
+    model, man, kap : Model, Artefact, Artefact
+        The spec's systems, the manifold artefact (``p``, ``dp_dxi``) and the kappa artefact (not read).
+    T, K : ndarray (r, n), (n_hat, n)
+        The rows h reads x through (C, or the unit rows of the states h names); the stage's floating-point K.
+    kappa_affine : bool
+        Whether kappa is affine in xi; only then is eq. (10) decided exactly (when C P and C p0 are constant).
+
     Returns
     -------
     dict
@@ -117,13 +126,27 @@ def prove_scalar_inverse(model: Model, kappa: sp.Expr, dkappa: sp.Expr, m_of_y: 
     """Prove the inverse stage's claims for one abstract state and one output, in ball arithmetic over V and Y.
 
     * kappa strictly monotone on V: dkappa/dxi enclosed away from 0 on V (so p is injective on V);
-    * eq. SimuLocalRequire: kappa(V) = [kappa(a), kappa(b)] (monotone) with the end values enclosed, Y inside;
+    * eq. (10): kappa(V) = [kappa(a), kappa(b)] (monotone) with the end values enclosed, Y inside;
     * m real and finite on Y: the enclosure of m over Y is finite (a square root of a ball reaching below 0,
       or a division by a ball containing 0, is not);
     * conditions (i) and (ii): kappa(m(y)) = y simplifies to 0 (sympy) wherever m is defined, so
       h(p(m(x))) = kappa(m(h(x))) = h(x) on X_y; and m maps kappa(V) into an interval V' around V on which
       kappa is strictly monotone, so m(kappa(xi)) is the only preimage of kappa(xi) in V', xi itself:
       m(p(xi)) = xi on V.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V, Y, xi and the parameter values).
+    kappa, dkappa : sympy Expr
+        kappa(xi) and dkappa/dxi, in the one abstract state.
+    m_of_y : sympy Expr
+        The branch of m as a function of the output y.
+    y : Symbol
+        The output symbol of ``m_of_y``.
+    symbolic_ii : bool
+        Whether kappa(m(y)) - y simplified to 0 (the caller's sympy check); without it neither condition (ii)
+        nor the left inverse is claimed.
 
     Returns
     -------
@@ -175,6 +198,17 @@ def prove_multi_inverse(model: Model, kappa: sp.Matrix, m_of_y: sp.Matrix, ys: l
     * p injective on V with m as left inverse (and condition (i)): m(kappa(xi)) - xi simplifies to 0 and
       m(kappa(xi)) is enclosed finite over V (so the identity holds at every xi of V).
 
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V, Y, xi and the parameter values).
+    kappa : sympy Matrix (p, 1)
+        kappa(xi).
+    m_of_y : sympy Matrix (n_hat, 1)
+        m = kappa^-1 in the outputs ``ys``.
+    ys : list of Symbol
+        The p output symbols.
+
     Returns
     -------
     dict
@@ -208,7 +242,16 @@ def prove_multi_inverse(model: Model, kappa: sp.Matrix, m_of_y: sp.Matrix, ys: l
 
 
 def mark_proved(art: Artefact, proof: dict) -> None:
-    """Re-label the checks the proof covers as "proved" (their descriptions say how)."""
+    """Re-label the checks the proof covers as "proved" (their descriptions say how).
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact; its checks are replaced in place.
+    proof : dict
+        The result of :func:`prove_scalar_inverse` or :func:`prove_multi_inverse`; ``min_abs_dkappa`` and
+        ``covers_margin``, where present, become the values of ``kappa_monotone`` and ``V_covers_Y``.
+    """
     how = proof["how"]
     values = {"kappa_monotone": proof.get("min_abs_dkappa"), "V_covers_Y": proof.get("covers_margin")}
     relabel = {"kappa_monotone": proof["monotone"], "V_covers_Y": proof["covers"], "m_real_on_Y": proof["real_on_Y"],
@@ -219,7 +262,19 @@ def mark_proved(art: Artefact, proof: dict) -> None:
 
 
 def relabel_proved(art: Artefact, name: str, how: str, value: float | None = None) -> None:
-    """Mark a passed check as proved, saying how (and with the proved number, when the proof gives one)."""
+    """Mark a passed check as proved, saying how (and with the proved number, when the proof gives one).
+
+    Parameters
+    ----------
+    art : Artefact
+        The artefact holding the check; changed in place (nothing happens if the check is absent or failed).
+    name : str
+        The check's name.
+    how : str
+        How it was proved, appended to the description.
+    value : float, optional
+        The proved number, replacing the check's value; None keeps the value.
+    """
     chk = art.checks.get(name)
     if chk is not None and chk.passed:
         art.checks[name] = replace(chk, value=chk.value if value is None else value, description=f"{chk.description}; proved ({how})",
@@ -228,6 +283,15 @@ def relabel_proved(art: Artefact, name: str, how: str, value: float | None = Non
 
 def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, float, list[str]]:
     """The interval of y on which every square-root argument of m(y) is non-negative.
+
+    Parameters
+    ----------
+    m_of_y : sympy Expr
+        m as a function of the output y.
+    y : Symbol
+        The output symbol.
+    model : Model
+        For the parameter values substituted into each radicand.
 
     Returns
     -------

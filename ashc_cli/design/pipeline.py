@@ -35,7 +35,13 @@ PRODUCTS: dict = {}
 
 
 def register_product(module) -> None:
-    """Let :func:`load_all` and ``ashc summary`` know a product's artefact ``<module.NAME>.h5``."""
+    """Let :func:`load_all` and ``ashc summary`` know a product's artefact ``<module.NAME>.h5``.
+
+    Parameters
+    ----------
+    module : module
+        A product module with ``NAME`` and ``summarise``; registered in ``PRODUCTS`` under ``module.NAME``.
+    """
     PRODUCTS[module.NAME] = module
 
 
@@ -54,12 +60,36 @@ OnStart = Callable[[str, str], None]
 
 
 def default_out(spec: Spec) -> Path:
-    """Where a spec's artefacts go unless ``--out`` says otherwise: ``outputs/<name>``."""
+    """Where a spec's artefacts go unless ``--out`` says otherwise: ``outputs/<name>``.
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec (its ``name`` is read).
+
+    Returns
+    -------
+    Path
+        Relative to the working directory.
+    """
     return Path("outputs") / spec.name
 
 
 def artefact_path(out: str | Path, stage: str) -> Path:
-    """The artefact file of a stage."""
+    """The artefact file of a stage.
+
+    Parameters
+    ----------
+    out : str or Path
+        The artefact folder.
+    stage : str
+        The stage (or product) name.
+
+    Returns
+    -------
+    Path
+        ``<out>/<stage>.h5``.
+    """
     return Path(out) / f"{stage}.h5"
 
 
@@ -97,11 +127,22 @@ class Folder:
 
 
 def as_folder(out: str | Path | Folder) -> Folder:
-    """A :class:`Folder` for ``out`` (itself if it is one already)."""
+    """A :class:`Folder` for ``out`` (itself if it is one already).
+
+    Parameters
+    ----------
+    out : str, Path or Folder
+        The artefact folder.
+
+    Returns
+    -------
+    Folder
+        A new, empty one unless ``out`` is already a Folder.
+    """
     return out if isinstance(out, Folder) else Folder(Path(out))
 
 
-def upstream_of(name: str, spec: Spec | None = None) -> tuple[str, ...]:
+def _upstream_of(name: str, spec: Spec | None = None) -> tuple[str, ...]:
     """The stages ``name`` reads: its module's ``upstream(spec)`` where it has one (stabilise reads the manifold for
     ``objective: min_gain``), else its ``UPSTREAM``."""
     mod = STAGES[name]
@@ -110,14 +151,26 @@ def upstream_of(name: str, spec: Spec | None = None) -> tuple[str, ...]:
 
 
 def needed(targets: Iterable[str], spec: Spec | None = None) -> list[str]:
-    """The targets and every stage upstream of them, in flow-chart order (an upstream stage always first)."""
+    """The targets and every stage upstream of them, in flow-chart order (an upstream stage always first).
+
+    Parameters
+    ----------
+    targets : iterable of str
+        Stage names.
+    spec : Spec, optional
+        Lets a stage's ``upstream(spec)`` choose what it reads; None uses every stage's ``UPSTREAM``.
+
+    Returns
+    -------
+    list of str
+    """
     want: set[str] = set()
     stack = list(targets)
     while stack:
         name = stack.pop()
         if name not in want:
             want.add(name)
-            stack.extend(upstream_of(name, spec))
+            stack.extend(_upstream_of(name, spec))
     order: list[str] = []
     for name in STAGES:          # flow-chart order, with each stage moved after the stages it reads
         if name in want:
@@ -128,7 +181,7 @@ def needed(targets: Iterable[str], spec: Spec | None = None) -> list[str]:
 def _place(name: str, spec, want: set[str], order: list[str]) -> None:
     if name in order:
         return
-    for up in upstream_of(name, spec):
+    for up in _upstream_of(name, spec):
         if up in want:
             _place(up, spec, want, order)
     order.append(name)
@@ -190,7 +243,7 @@ def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
             elif prov["spec_sha256"] != spec.sha256:
                 reason = "made from another spec (SHA-256 differs)"
             else:
-                for up in upstream_of(stage, spec):
+                for up in _upstream_of(stage, spec):
                     if staleness(spec, folder, up) is not None:
                         reason = f"upstream stage {up} is not up to date"
                         break
@@ -202,7 +255,18 @@ def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
 
 
 def remove_leftovers(out: str | Path) -> list[Path]:
-    """Delete temporary files a killed run left in the artefact folder (the artefacts themselves are whole)."""
+    """Delete temporary files a killed run left in the artefact folder (the artefacts themselves are whole).
+
+    Parameters
+    ----------
+    out : str or Path
+        The artefact folder (nothing happens if it is not a directory).
+
+    Returns
+    -------
+    list of Path
+        The files removed (``.<stage>.h5.*.tmp``).
+    """
     removed = []
     folder = Path(out)
     if folder.is_dir():
@@ -213,7 +277,18 @@ def remove_leftovers(out: str | Path) -> list[Path]:
 
 
 def declared_names(spec: Spec) -> dict[str, list[str]]:
-    """The names a spec declares (stored with every artefact, for ``ashc eval``)."""
+    """The names a spec declares (stored with every artefact, for ``ashc eval``).
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec.
+
+    Returns
+    -------
+    dict of str to list of str
+        ``states``, ``inputs``, ``abstract_states`` and ``abstract_inputs``.
+    """
     return {"states": list(spec.concrete.states), "inputs": list(spec.concrete.inputs),
             "abstract_states": list(spec.abstract.states), "abstract_inputs": list(spec.abstract.inputs)}
 
@@ -221,12 +296,21 @@ def declared_names(spec: Spec) -> dict[str, list[str]]:
 def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
     """Refuse to run a stage on an upstream artefact made from another spec or schema.
 
+    Parameters
+    ----------
+    spec : Spec
+        The spec the stage is run with.
+    stage : str
+        The stage about to run.
+    arts : dict of str to Artefact
+        The artefacts so far; must hold every stage ``stage`` reads.
+
     Raises
     ------
     ArtefactError
         Naming the upstream stage to rerun.
     """
-    for up in upstream_of(stage, spec):
+    for up in _upstream_of(stage, spec):
         prov = arts[up].provenance
         if prov.get("schema_version") != SCHEMA_VERSION:
             raise ArtefactError(f"{up}.h5", f"has schema {prov.get('schema_version')}, {stage} needs {SCHEMA_VERSION}", f"rerun `ashc {up} SPEC`")
@@ -301,7 +385,7 @@ def run(
             if on_start is not None:
                 on_start(name, reason)
             check_upstream(spec, name, arts)
-            reads = upstream_of(name, spec)
+            reads = _upstream_of(name, spec)
             art = mod.run(model, {up: arts[up] for up in reads})
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in reads},
@@ -310,7 +394,7 @@ def run(
             status = "ran"
         arts[name] = art
         if name == "manifold":
-            model = with_domain(model, art)
+            model = _with_domain(model, art)
         if on_stage is not None:
             on_stage(StageReport(name, status, time.perf_counter() - start, mod.headline(art)))
     return arts
@@ -318,6 +402,16 @@ def run(
 
 def load_all(out: str | Path) -> dict[str, Artefact]:
     """Every artefact present in a folder, by stage (for summary and eval, which need no spec).
+
+    Parameters
+    ----------
+    out : str or Path
+        The artefact folder.
+
+    Returns
+    -------
+    dict of str to Artefact
+        The stages present, in flow-chart order, then the other ``*.h5`` files (products) by name.
 
     Raises
     ------
@@ -332,7 +426,7 @@ def load_all(out: str | Path) -> dict[str, Artefact]:
     return arts
 
 
-def with_domain(model, manifold: Artefact):
+def _with_domain(model, manifold: Artefact):
     """The model with V fixed: ``abstract.domain: auto`` takes the manifold stage's choice."""
     if model.V is not None:
         return model
@@ -340,8 +434,20 @@ def with_domain(model, manifold: Artefact):
 
 
 def design_model(spec: Spec, arts: dict[str, Artefact]):
-    """The spec's model with V fixed, for work on a finished design (falsify)."""
-    return with_domain(build_model(spec), arts["manifold"])
+    """The spec's model with V fixed, for work on a finished design (falsify).
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec.
+    arts : dict of str to Artefact
+        The design's artefacts (``manifold`` is read for V when ``abstract.domain`` is ``auto``).
+
+    Returns
+    -------
+    Model
+    """
+    return _with_domain(build_model(spec), arts["manifold"])
 
 
 def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False, frozen: bool = False,

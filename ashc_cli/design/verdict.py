@@ -1,10 +1,10 @@
 """The verdict on Problem 1 (Nonlinear ASHC): one row per condition of the paper, each with its number.
 
-Problem 1 asks for (1) a local simulation function on some V satisfying eq. SimuLocalRequire and (2) an
-m-relation on Y.  By Theorem SimuDesign with Proposition condB, (1) holds when Assumption 1, the
-stabilisability certificate, the invariance PDE, l(V) in U, eq. SimuLocalRequire and condition (B) hold; by
-Lemma mRelatePDE with Theorems mRelateDelta and mCondi, (2) holds when p is injective on V, conditions (i)
-and (ii), m is real on Y, delta has full row rank and b, c solve eqs. mRelatSuffiDiff/In.  Each row reads
+Problem 1 asks for (1) a local simulation function on some V satisfying eq. (10) and (2) an
+m-relation on Y.  By Theorem 4 with Proposition 1, (1) holds when Assumption 1, the
+stabilisability certificate, the invariance PDE, l(V) in U, eq. (10) and condition (B) hold; by
+Lemma 1 with Theorems 5 and 6, (2) holds when p is injective on V, conditions (i)
+and (ii), m is real on Y, delta has full row rank and b, c solve eqs. (21a), (21b).  Each row reads
 a check a design stage stored; :func:`verdict` is a pure function of the artefacts (and of the error that
 stopped the design, if one did).
 
@@ -49,21 +49,21 @@ class Row:
 
 #: (condition, paper reference, requirement of Problem 1, stage, stored check name)
 ROWS = (
-    ("Assumption 1: h Lipschitz", "Assumption outputLipstchiz", "simulation function", "bound", "h_lipschitz"),
-    ("alpha_h > 0 (W bounds the output error)", "eq. SimuFuncCondi1", "simulation function", "bound", "alpha_h"),
-    ("stabilisability certificate (LMI margin)", "eq. egLMI, Thm. StabiliseLyap", "simulation function", "stabilise", "lmi_margin"),
-    ("M positive definite", "eq. egV", "simulation function", "stabilise", "M_positive"),
-    ("invariance PDE residual", "eq. SimuDesignCond1", "simulation function", "manifold", "pde_residual"),
-    ("l maps V into U", "Thm. SimuDesign", "simulation function", "manifold", "l_in_U"),
-    ("V covers Y", "eq. SimuLocalRequire", "simulation function", "inverse", "V_covers_Y"),
-    ("condition (B)", "Prop. condB", "simulation function", "bound", "condition_B"),
-    ("region where the bound is certified", "Thm. ErrorBound, Def. simuFunction", "simulation function", "bound", "certified_region"),
-    ("p injective on V (left inverse)", "Thm. mCondi, step 1", "m-relation", "inverse", "left_inverse"),
-    ("condition (i)", "Thm. mCondi (i)", "m-relation", "inverse", "condition_i"),
-    ("condition (ii)", "Thm. mCondi (ii), Cor. mRelateGeo", "m-relation", "inverse", "condition_ii"),
-    ("m real on Y", "eq. mEquation", "m-relation", "inverse", "m_real_on_Y"),
-    ("delta full row rank on V", "Thm. mRelateDelta", "m-relation", "delta", "rank_delta"),
-    ("b, c solve the m-relation PDEs", "eqs. mRelatSuffiDiff, mRelatSuffiIn", "m-relation", "delta", "m_relation_link"),
+    ("Assumption 1: h Lipschitz", "Assumption 1", "simulation function", "bound", "h_lipschitz"),
+    ("alpha_h > 0 (W bounds the output error)", "eq. (6)", "simulation function", "bound", "alpha_h"),
+    ("stabilisability certificate (LMI margin)", "eq. (28), Theorem 1", "simulation function", "stabilise", "lmi_margin"),
+    ("M positive definite", "eq. (30)", "simulation function", "stabilise", "M_positive"),
+    ("invariance PDE residual", "eq. (14a)", "simulation function", "manifold", "pde_residual"),
+    ("l maps V into U", "Theorem 4", "simulation function", "manifold", "l_in_U"),
+    ("V covers Y", "eq. (10)", "simulation function", "inverse", "V_covers_Y"),
+    ("condition (B)", "Proposition 1", "simulation function", "bound", "condition_B"),
+    ("region where the bound is certified", "Theorem 2, Definition 3", "simulation function", "bound", "certified_region"),
+    ("p injective on V (left inverse)", "Theorem 6, step 1", "m-relation", "inverse", "left_inverse"),
+    ("condition (i)", "Theorem 6 (i)", "m-relation", "inverse", "condition_i"),
+    ("condition (ii)", "Theorem 6 (ii), Corollary 1", "m-relation", "inverse", "condition_ii"),
+    ("m real on Y", "eq. (33)", "m-relation", "inverse", "m_real_on_Y"),
+    ("delta full row rank on V", "Theorem 5", "m-relation", "delta", "rank_delta"),
+    ("b, c solve the m-relation PDEs", "eqs. (21a), (21b)", "m-relation", "delta", "m_relation_link"),
 )
 
 

@@ -5,7 +5,7 @@ T_k1(s_1) ... T_kd(s_d) of Chebyshev polynomials, s_i = (2 z_i - a_i - b_i) / (b
 A coefficient array has shape (rows, deg + 1, ..., deg + 1) (one series per row).  numpy's Chebyshev module
 does the 1-D work; these functions add the tensor product, the derivative along an axis, the fit to values
 and the conversion to a sympy polynomial, so that downstream stages can treat the result like any closed
-form (Remark solvePDE leaves p to "numerical methods"; this is ours).
+form (Remark 5 leaves p to "numerical methods"; this is ours).
 
 :class:`Series` keeps a fitted matrix (p, dp/dxi, dp/dxi delta) numeric: the design stages evaluate it with
 numpy, and its sympy form (:meth:`Series.to_sympy`, Horner in the scaled variable for one axis) is built only
@@ -37,7 +37,20 @@ def _scaled(box: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def nodes(box: np.ndarray, count: int) -> np.ndarray:
-    """Tensor grid of ``count`` Chebyshev points of the first kind per axis, shape (d, count**d)."""
+    """Tensor grid of ``count`` Chebyshev points of the first kind per axis, shape (d, count**d).
+
+    Parameters
+    ----------
+    box : ndarray (d, 2)
+        One [lo, hi] row per axis.
+    count : int
+        Points per axis.
+
+    Returns
+    -------
+    ndarray (d, count**d)
+        The points as columns, each axis's points ascending, the last axis varying fastest.
+    """
     box = np.asarray(box, dtype=float)
     s = np.cos(np.pi * (np.arange(count) + 0.5) / count)[::-1]
     axes = [(lo + hi) / 2 + (hi - lo) / 2 * s for lo, hi in box]
@@ -55,13 +68,42 @@ def _vander(box: np.ndarray, z: np.ndarray, degree: int) -> np.ndarray:
 
 
 def evaluate(coeffs: np.ndarray, box: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Values of each row's series at the points z (d, N): shape (rows, N)."""
+    """Values of each row's series at the points z (d, N): shape (rows, N).
+
+    Parameters
+    ----------
+    coeffs : ndarray (rows, deg + 1, ..., deg + 1)
+        One series per row, d axes of coefficients.
+    box : ndarray (d, 2)
+        The box the series lives on.
+    z : ndarray (d, N)
+        The points, as columns.
+
+    Returns
+    -------
+    ndarray (rows, N)
+    """
     rows, degree = coeffs.shape[0], coeffs.shape[1] - 1
     return coeffs.reshape(rows, -1) @ _vander(box, z, degree).T
 
 
 def derivative(coeffs: np.ndarray, box: np.ndarray, axis: int) -> np.ndarray:
-    """Coefficients of the derivative along ``axis`` (same shape, padded with a zero degree)."""
+    """Coefficients of the derivative along ``axis`` (same shape, padded with a zero degree).
+
+    Parameters
+    ----------
+    coeffs : ndarray (rows, deg + 1, ..., deg + 1)
+        One series per row.
+    box : ndarray (d, 2)
+        The box the series lives on (the derivative is in its unscaled variable).
+    axis : int
+        The variable, 0 to d - 1 (axis ``axis + 1`` of ``coeffs``).
+
+    Returns
+    -------
+    ndarray
+        The same shape as ``coeffs``.
+    """
     scale = 2.0 / (box[axis, 1] - box[axis, 0])
     d = cheb.chebder(coeffs, axis=axis + 1) * scale
     pad = [(0, 0)] * coeffs.ndim
@@ -70,7 +112,23 @@ def derivative(coeffs: np.ndarray, box: np.ndarray, axis: int) -> np.ndarray:
 
 
 def fit(values: np.ndarray, box: np.ndarray, z: np.ndarray, degree: int) -> np.ndarray:
-    """Least-squares coefficients of degree ``degree`` per axis for values (rows, N) at points z."""
+    """Least-squares coefficients of degree ``degree`` per axis for values (rows, N) at points z.
+
+    Parameters
+    ----------
+    values : ndarray (rows, N)
+        The values to fit, one row per series.
+    box : ndarray (d, 2)
+        The box of the series.
+    z : ndarray (d, N)
+        The points the values were taken at (e.g. :func:`nodes`).
+    degree : int
+        The degree per axis.
+
+    Returns
+    -------
+    ndarray (rows, degree + 1, ..., degree + 1)
+    """
     V = _vander(box, z, degree)
     c, *_ = np.linalg.lstsq(V, values.T, rcond=None)
     return c.T.reshape((values.shape[0],) + (degree + 1,) * len(box))
@@ -78,7 +136,18 @@ def fit(values: np.ndarray, box: np.ndarray, z: np.ndarray, degree: int) -> np.n
 
 def power_coefficients(coeffs: np.ndarray) -> np.ndarray:
     """The series in the power basis of the scaled variables s_i: same shape, entry [row, k_1, ..., k_d] the
-    coefficient of s_1**k_1 ... s_d**k_d."""
+    coefficient of s_1**k_1 ... s_d**k_d.
+
+    Parameters
+    ----------
+    coeffs : ndarray (rows, deg + 1, ..., deg + 1)
+        Chebyshev coefficients, one series per row.
+
+    Returns
+    -------
+    ndarray
+        The same shape as ``coeffs``.
+    """
     d, degree = coeffs.ndim - 1, coeffs.shape[1] - 1
     # cheb -> power basis along each axis: T has column k = power coefficients of T_k.
     T = np.zeros((degree + 1, degree + 1))
@@ -110,6 +179,20 @@ def to_sympy(coeffs: np.ndarray, box: np.ndarray, symbols) -> sp.Matrix:
 
     Terms below ``CHOP_RTOL`` of the largest coefficient are dropped; a polynomial of low degree (an exact
     solution) therefore comes out with few terms.
+
+    Parameters
+    ----------
+    coeffs : ndarray (rows, deg + 1, ..., deg + 1)
+        One series per row.
+    box : ndarray (d, 2)
+        The box of the series.
+    symbols : sequence of Symbol
+        The d variables, in the order of the box's rows.
+
+    Returns
+    -------
+    sympy Matrix (rows, 1)
+        Expanded in ``symbols`` up to degree ``EXPAND_MAX_DEGREE``, above it kept in the scaled variables.
     """
     d, degree = len(box), coeffs.shape[1] - 1
     scaled = _scaled_symbols(box, symbols)

@@ -8,7 +8,16 @@ import numpy as np
 def pinv(a: np.ndarray) -> np.ndarray:
     """Moore-Penrose pseudo-inverse of a matrix (r, c) or of a stack (N, r, c): a single column or row in closed
     form a^T / |a|^2 (zero where a is), else numpy's (SVD) pinv; the same arithmetic as the compiled loops'
-    :func:`ashc_cli.closedloop.laws.pinv`."""
+    :func:`ashc_cli.closedloop.laws.pinv`.
+
+    Parameters
+    ----------
+    a : ndarray (r, c) or (N, r, c)
+
+    Returns
+    -------
+    ndarray (c, r) or (N, c, r)
+    """
     if a.shape[-2] == 1 or a.shape[-1] == 1:
         if a.ndim == 2:
             v = a.reshape(-1)
@@ -24,6 +33,17 @@ def sqrt_M_times(L: np.ndarray, w: np.ndarray) -> np.ndarray:
 
     One matrix product over all points (BLAS), or a scaling when L is diagonal (a diagonal M, as found for large
     plants): ``einsum`` without BLAS took 8 s for n = 512 on 20001 points.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        A factor of M = L L^T (the stages pass the Cholesky factor).
+    w : ndarray (n, k, N)
+        k columns at each of N points (e.g. dp/dxi delta on a grid of V).
+
+    Returns
+    -------
+    ndarray (N, n, k)
     """
     n, k, N = w.shape
     d = np.diag(L)

@@ -4,7 +4,7 @@ Every check a stage stores says how it was established (``Check.evidence``):
 
 * ``proved``: the claim holds on the whole set it is about.  Three kinds of proof are used here:
   a sympy identity (a residual that simplifies to 0), a rigorous enclosure by arb ball arithmetic over the
-  set (:mod:`ashc_cli.numerics.interval`, branch and bound for sups and infs), and positive semidefiniteness of a
+  set (:mod:`ashc_cli.numerics.interval`; branch and bound for sups and infs, :mod:`ashc_cli.numerics.boxsearch`), and positive semidefiniteness of a
   matrix whose entries are enclosed in balls (an arb Cholesky factorisation);
 * ``sampled``: the claim was checked on a finite set of points and could fail between them;
 * ``simulated``: the claim was observed along simulated runs.
@@ -23,7 +23,7 @@ import numpy as np
 import sympy as sp
 from flint import arb
 
-from ashc_cli.numerics import interval
+from ashc_cli.numerics import boxsearch, interval
 from ashc_cli.problem.model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
@@ -45,6 +45,20 @@ def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, tim
 
     sympy's ``simplify`` never claims 0 for a non-zero expression; it may fail to find a true 0, which only
     means the claim is left "sampled".
+
+    Parameters
+    ----------
+    exprs : sequence of sympy Expr
+        The residuals (anything ``sympify`` takes).
+    max_ops : int
+        An expression with more operations (``count_ops``) is not simplified: the answer is then False.
+    time_limit : float
+        Seconds after which no further ``simplify`` is started (the answer is then False).
+
+    Returns
+    -------
+    bool
+        True when every expression is proved 0; False when one is not, or was skipped.
     """
     start = time.perf_counter()
     for e in exprs:
@@ -59,7 +73,19 @@ def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, tim
 
 
 def affine_in(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> bool:
-    """True when every entry is affine in ``symbols`` (its derivatives by them are free of them)."""
+    """True when every entry is affine in ``symbols`` (its derivatives by them are free of them).
+
+    Parameters
+    ----------
+    exprs : sympy Matrix
+        The entries to test (any iterable of expressions).
+    symbols : sequence of Symbol
+        The variables (e.g. ``model.u``).
+
+    Returns
+    -------
+    bool
+    """
     syms = set(symbols)
     for e in exprs:
         for s in symbols:
@@ -69,17 +95,48 @@ def affine_in(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> bool:
 
 
 def ball(lo: float, hi: float) -> arb:
-    """An arb ball containing the float interval [lo, hi]."""
+    """An arb ball containing the float interval [lo, hi].
+
+    Parameters
+    ----------
+    lo, hi : float
+        The ends (taken as exact doubles).
+
+    Returns
+    -------
+    arb
+    """
     return arb(lo).union(arb(hi))
 
 
 def ball_box(box: np.ndarray) -> list[arb]:
-    """One ball per row [lo, hi] of a box."""
+    """One ball per row [lo, hi] of a box.
+
+    Parameters
+    ----------
+    box : ndarray (d, 2)
+        One [lo, hi] row per coordinate.
+
+    Returns
+    -------
+    list of arb
+        d balls, each containing its row's interval (:func:`ball`).
+    """
     return [ball(float(lo), float(hi)) for lo, hi in np.asarray(box, dtype=float)]
 
 
 def upper(x: arb) -> float:
-    """A float >= every point of the ball (inf if it is not finite)."""
+    """A float >= every point of the ball (inf if it is not finite).
+
+    Parameters
+    ----------
+    x : arb
+
+    Returns
+    -------
+    float
+        The ball's upper end, rounded up to a double.
+    """
     if not x.is_finite():
         return np.inf
     v = float(x.upper())
@@ -87,7 +144,17 @@ def upper(x: arb) -> float:
 
 
 def lower(x: arb) -> float:
-    """A float <= every point of the ball (-inf if it is not finite)."""
+    """A float <= every point of the ball (-inf if it is not finite).
+
+    Parameters
+    ----------
+    x : arb
+
+    Returns
+    -------
+    float
+        The ball's lower end, rounded down to a double.
+    """
     if not x.is_finite():
         return -np.inf
     v = float(x.lower())
@@ -127,6 +194,21 @@ def compile_claims(model: Model, exprs: Sequence[sp.Expr], args: Sequence[sp.Sym
     """Scalar expressions compiled for the branch-and-bound searches (with derivatives: tight enclosures).
 
     Raises ``interval.UnsupportedExpression`` for an expression ball arithmetic cannot enclose.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values (``model.values``, each taken as its exact double).
+    exprs : sequence of sympy Expr
+        The scalar claims.
+    args : sequence of Symbol
+        The arguments, in the order of the box's rows.
+
+    Returns
+    -------
+    IntervalFunction
+        ``fun(balls) -> list[arb]``: one ball per expression enclosing its range over the balls' box
+        (:func:`interval.compile_interval`).
     """
     return interval.compile_interval([sp.sympify(e) for e in exprs], list(args), model.values)
 
@@ -134,20 +216,69 @@ def compile_claims(model: Model, exprs: Sequence[sp.Expr], args: Sequence[sp.Sym
 def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
                time_budget: float = TIME_BUDGET) -> tuple[float, bool, np.ndarray]:
     """A proved upper bound of sup over the box of output ``index`` of fun, whether it is finite, and where the
-    largest value found lies (:func:`interval.sup_on_box`)."""
-    res = interval.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    largest value found lies (:func:`boxsearch.sup_on_box`).
+
+    Parameters
+    ----------
+    fun : IntervalFunction or callable
+        From :func:`compile_claims`, or any interval extension ``fun(list[arb]) -> list[arb]``.
+    box : ndarray (d, 2)
+        One [lo, hi] row per argument of fun.
+    index : int
+        Which output of fun.
+    seeds : ndarray (k, d), optional
+        Points evaluated first (e.g. a grid's argmax); clipped into the box.
+    rtol : float
+        The search stops once the bound is within rtol (relative) of the largest value found.
+    time_budget : float
+        Seconds of branch and bound; when spent, the bound reached so far is returned (still rigorous).
+
+    Returns
+    -------
+    upper : float
+        The proved bound (inf when the enclosure stayed non-finite).
+    finite : bool
+        Whether ``upper`` is finite.
+    argmax : ndarray (d,)
+        Where the largest value found lies (nan if none).
+    """
+    res = boxsearch.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
     return float(res.upper), bool(np.isfinite(res.upper)), np.asarray(res.argmax, dtype=float)
 
 
 def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
                time_budget: float = TIME_BUDGET) -> tuple[float, bool]:
-    """A proved lower bound of inf over the box of output ``index`` of fun and whether it is finite."""
-    res = interval.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    """A proved lower bound of inf over the box of output ``index`` of fun and whether it is finite.
+
+    Parameters
+    ----------
+    fun, box, index, seeds, rtol, time_budget
+        As for :func:`sup_on_box`.
+
+    Returns
+    -------
+    lower : float
+        The proved bound (-inf when the enclosure stayed non-finite).
+    finite : bool
+        Whether ``lower`` is finite.
+    """
+    res = boxsearch.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
     return float(res.lower), bool(np.isfinite(res.lower))
 
 
 def range_on_box(fun, box: np.ndarray, index: int = 0, rtol: float = 1e-6) -> tuple[float, float, bool]:
-    """Proved bounds lo <= f <= hi of output ``index`` over the box, and whether both are finite."""
+    """Proved bounds lo <= f <= hi of output ``index`` over the box, and whether both are finite.
+
+    Parameters
+    ----------
+    fun, box, index, rtol
+        As for :func:`sup_on_box` (each end gets the default time budget).
+
+    Returns
+    -------
+    lo, hi : float
+    finite : bool
+    """
     lo, ok_lo = inf_on_box(fun, box, index, rtol=rtol)
     hi, ok_hi, _ = sup_on_box(fun, box, index, rtol=rtol)
     return lo, hi, ok_lo and ok_hi
@@ -156,7 +287,19 @@ def range_on_box(fun, box: np.ndarray, index: int = 0, rtol: float = 1e-6) -> tu
 def norm_expr(M: np.ndarray, w: sp.MatrixBase) -> sp.Expr:
     """||sqrt(M) w||_2 as a sympy expression, M's entries exact doubles: sqrt(w^T M w) for a column w, and
     sqrt(lambda_max(G)) with the closed form of the largest eigenvalue of the 2 x 2 Gram matrix G = w^T M w
-    for two columns."""
+    for two columns.
+
+    Parameters
+    ----------
+    M : ndarray (n, n)
+        Symmetric; only its non-zero entries enter, each as a sympy Float.
+    w : sympy Matrix (n, k), k = 1 or 2
+        The columns (ValueError for more).
+
+    Returns
+    -------
+    sympy Expr
+    """
     M = np.asarray(M, dtype=float)
     nz = [(i, j) for i, j in zip(*np.nonzero(M))]
 
@@ -182,7 +325,17 @@ def psd_lower_bound_balls(S: Sequence[Sequence[arb]]) -> float:
     """A proved lower bound of lambda_min of every symmetric matrix inside the ball matrix S.
 
     lambda_min(S) >= lambda_min(mid S) - ||S - mid S||_2 (Weyl), and ||E||_2 <= ||E||_F <= n max |E_ij|;
-    lambda_min(mid S) is bounded below by an arb Cholesky factorisation (:func:`interval.psd_lower_bound`).
+    lambda_min(mid S) is bounded below by an arb Cholesky factorisation (:func:`boxsearch.psd_lower_bound`).
+
+    Parameters
+    ----------
+    S : list of lists of arb (n, n)
+        The ball matrix (rows of entries).
+
+    Returns
+    -------
+    float
+        The proved bound; -inf if an entry is not finite or the Cholesky proves nothing.
     """
     n = len(S)
     if any(not S[i][j].is_finite() for i in range(n) for j in range(n)):
@@ -191,21 +344,53 @@ def psd_lower_bound_balls(S: Sequence[Sequence[arb]]) -> float:
     mid = 0.5 * (mid + mid.T)
     # Distance of every ball entry from the (symmetrised) midpoint, rounded up.
     rad = max(upper(abs(S[i][j] - arb(mid[i, j]))) for i in range(n) for j in range(n))
-    return float(interval.psd_lower_bound(mid)) - np.nextafter(n * rad, np.inf)
+    return float(boxsearch.psd_lower_bound(mid)) - np.nextafter(n * rad, np.inf)
 
 
 def lambda_min_lower(S: np.ndarray) -> float:
-    """A proved lower bound of lambda_min of a symmetric float matrix (entries exact doubles)."""
-    return float(interval.psd_lower_bound(np.asarray(S, dtype=float)))
+    """A proved lower bound of lambda_min of a symmetric float matrix (entries exact doubles).
+
+    Parameters
+    ----------
+    S : ndarray (n, n)
+        Its symmetric part (S + S^T) / 2 is used if S is not exactly symmetric.
+
+    Returns
+    -------
+    float
+        The bound (-inf if nothing could be proved).
+    """
+    return float(boxsearch.psd_lower_bound(np.asarray(S, dtype=float)))
 
 
 def matrix_balls(A: np.ndarray) -> list[list[arb]]:
-    """A float matrix as exact balls."""
+    """A float matrix as exact balls.
+
+    Parameters
+    ----------
+    A : ndarray (r, c)
+
+    Returns
+    -------
+    list of lists of arb (r, c)
+        One radius-0 ball per entry, rows of columns.
+    """
     return [[arb(float(a)) for a in row] for row in np.asarray(A, dtype=float)]
 
 
 def quadratic_form_terms(M: np.ndarray, A: Sequence[Sequence[arb]]) -> list[list[arb]]:
-    """A^T M A in ball arithmetic (A a ball matrix n x k, M a float matrix): the Gram matrix of sqrt(M) A."""
+    """A^T M A in ball arithmetic (A a ball matrix n x k, M a float matrix): the Gram matrix of sqrt(M) A.
+
+    Parameters
+    ----------
+    M : ndarray (n, n)
+        Entries taken as exact doubles.
+    A : list of lists of arb (n, k)
+
+    Returns
+    -------
+    list of lists of arb (k, k)
+    """
     n, k = len(A), len(A[0])
     Mb = matrix_balls(M)
     MA = [[sum((Mb[i][l] * A[l][j] for l in range(n)), arb(0)) for j in range(k)] for i in range(n)]
@@ -215,7 +400,21 @@ def quadratic_form_terms(M: np.ndarray, A: Sequence[Sequence[arb]]) -> list[list
 def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
     """||sqrt(M) A||_2 enclosed from above: exact for one column; for several, sqrt of an upper bound of the largest
     eigenvalue of the Gram matrix A^T M A, the smaller of Gershgorin's and Weyl's around the midpoint's (an arb
-    Cholesky of lambda I - mid; tight when the balls are narrow, Gershgorin when they are wide)."""
+    Cholesky of lambda I - mid; tight when the balls are narrow, Gershgorin when they are wide).
+
+    Parameters
+    ----------
+    M : ndarray (n, n)
+        Symmetric positive semidefinite, entries taken as exact doubles.
+    A : list of lists of arb (n, k)
+        The ball matrix (e.g. dp/dxi delta enclosed over a box).
+
+    Returns
+    -------
+    arb
+        For one column, a ball containing the norm (non-finite if the Gram entry is); for several, the upper
+        bound as an exact ball, or a nan ball when no finite bound was found.
+    """
     G = quadratic_form_terms(M, A)
     if len(G) == 1:
         g = G[0][0]
@@ -223,7 +422,7 @@ def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
         if not g.is_finite():
             return g
         return g.sqrt() if g.lower() >= 0 else ball(0.0, upper(g)).nonnegative_part().sqrt()
-    top = float(interval.lambda_max_upper(G))
+    top = float(boxsearch.lambda_max_upper(G))
     if np.isfinite(top):
         weyl = -psd_lower_bound_balls([[-g for g in row] for row in G])
         top = min(top, weyl) if np.isfinite(weyl) else top
@@ -235,7 +434,17 @@ def norm_sqrt_M(M: np.ndarray, A: Sequence[Sequence[arb]]) -> arb:
 
 def exact_number(x: float) -> sp.Rational:
     """The number a double stands for, as an exact rational: the shortest decimal that reads back as the same double
-    (Python's repr), so 0.1 is 1/10, as the spec wrote it; an integer-valued double is that integer."""
+    (Python's repr), so 0.1 is 1/10, as the spec wrote it; an integer-valued double is that integer.
+
+    Parameters
+    ----------
+    x : float
+        Finite (ValueError otherwise).
+
+    Returns
+    -------
+    sympy Rational
+    """
     x = float(x)
     if not np.isfinite(x):
         raise ValueError(f"exact_number: {x} is not finite")
@@ -250,6 +459,17 @@ def exact(model: Model, expr) -> sp.Matrix:
     kappa(V) = Y at a vertex is decided as equal rather than by the rounding of 0.3 - 0.1 in doubles.  Ball
     arithmetic (:mod:`ashc_cli.numerics.interval`) takes each number as its double; the two readings differ by the last
     bit of the parameters, far below any margin a certificate relies on.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values (``model.values``).
+    expr : sympy Matrix or list of expressions
+        What to convert (a list becomes a column); a bare scalar is not accepted by ``sp.Matrix``.
+
+    Returns
+    -------
+    sympy Matrix
     """
     e = sp.Matrix(sp.sympify(expr)) if not isinstance(expr, sp.MatrixBase) else sp.Matrix(expr)
     e = e.xreplace({k: exact_number(v) for k, v in model.values.items()})
@@ -261,6 +481,23 @@ def jump_inside(model: Model, fun: sp.Expr, args: Sequence[sp.Symbol], box: np.n
     enclosure over the box reaches its jump points (0 for sign and step; the zeros of sin for square).
 
     Returns (True, where) when it can, or when ball arithmetic cannot tell; (False, "") when z keeps off them.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values.
+    fun : sympy Expr
+        One application sign(z), square(z), step(z) or Heaviside(z), as :func:`~ashc_cli.problem.model.jumps` finds them.
+    args : sequence of Symbol
+        The symbols z may depend on, in the order of the box's rows.
+    box : ndarray (d, 2)
+        The set, one [lo, hi] row per symbol of ``args``.
+
+    Returns
+    -------
+    inside : bool
+    where : str
+        The jump and the range of z on the box (or why it cannot be enclosed); "" when it cannot jump.
     """
     from ashc_cli.problem.expr import square
 
@@ -279,7 +516,25 @@ def jump_inside(model: Model, fun: sp.Expr, args: Sequence[sp.Symbol], box: np.n
 def refuse_jumps(model: Model, fields: Sequence[tuple[str, sp.Expr]], args: Sequence[sp.Symbol], box: np.ndarray,
                  what: str, expected: str, check: str) -> None:
     """Raise a DesignError naming the field and the function when a jump of sign, square or step of the states
-    lies inside the box (:func:`jump_inside`); ``what`` says what fails there (it follows the jump's description)."""
+    lies inside the box (:func:`jump_inside`); ``what`` says what fails there (it follows the jump's description).
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values; only jumps whose argument depends on its states ``model.x`` count.
+    fields : sequence of (str, sympy Expr)
+        Each spec field (``concrete.f_bar[0]``) with its expression.
+    args : sequence of Symbol
+        The symbols of the box's rows.
+    box : ndarray (d, 2)
+        The set the jump must keep off.
+    what : str
+        What fails there (the DesignError's message, after the jump's description).
+    expected : str
+        The start of the DesignError's expected text (a concrete.state_box on one side of the jump is offered after it).
+    check : str
+        The check the DesignError names (e.g. ``lmi_margin``).
+    """
     from ashc_cli.errors import DesignError
     from ashc_cli.problem.model import jumps
 
@@ -301,6 +556,19 @@ def sparse_psd_lower_bound(S: dict, n: int) -> float:
     Up to :data:`MAX_PROOF_STATES` states the dense arb path (:func:`psd_lower_bound_balls`); above it, with tau half of
     a float estimate of lambda_min, the float banded Cholesky factor of S - tau I and its residual bounded in ball
     arithmetic along the band (:func:`_banded_cholesky_bound`; n w^2 operations for bandwidth w).
+
+    Parameters
+    ----------
+    S : dict of (int, int) to arb
+        The entries of the n x n matrix, both triangles; a missing entry is 0.
+    n : int
+        The size of the matrix.
+
+    Returns
+    -------
+    float
+        The proved bound; -inf when an entry is not finite, the band is too wide (:data:`BANDED_PROOF_OPS`), the
+        estimate of lambda_min is not positive, or the factorisation fails.
     """
     if n <= MAX_PROOF_STATES:
         dense = [[S.get((i, j), arb(0)) for j in range(n)] for i in range(n)]

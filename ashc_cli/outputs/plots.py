@@ -9,14 +9,14 @@ Legends sit above their panel, outside the data.
 =========================  ===============================================================
 file                       the paper's figure
 =========================  ===============================================================
-``kappa_xi.png``           Fig. kappa_xi: kappa(xi) over V with the output region Y
-``delta_compare.png``      Fig. delta_Compare: ||theta(xi, .)|| (q = 0) for delta = I and the design's delta
-``tracking_inputs.png``    Fig. Example_BoundedIn: v (with +-v_max) and u (with U) of the tracking run
-``tracking_outputs.png``   Fig. Example_BoundedOut: psi, y and the reference per output, and |psi - y| with the
+``kappa_xi.png``           Fig. 5: kappa(xi) over V with the output region Y
+``delta_compare.png``      Fig. 6: ||theta(xi, .)|| (q = 0) for delta = I and the design's delta
+``tracking_inputs.png``    Fig. 7: v (with +-v_max) and u (with U) of the tracking run
+``tracking_outputs.png``   Fig. 8: psi, y and the reference per output, and |psi - y| with the
                            uniform and a-posteriori bounds
-``m_relation_inputs.png``  Fig. Example_mRelationIn: v = b(x) + c(x) u and u (with U), panels in the order of
+``m_relation_inputs.png``  Fig. 9: v = b(x) + c(x) u and u (with U), panels in the order of
                            the tracking figure
-``m_relation_outputs.png`` Fig. Example_mRelationOut: psi and y
+``m_relation_outputs.png`` Fig. 10: psi and y
 ``falsify.png``            (ashc's own) largest error / bound of each falsification run, by strategy, log scale
 =========================  ===============================================================
 """
@@ -70,7 +70,19 @@ def _tex_part(text: str) -> str:
 
 
 def math_name(name: str) -> str:
-    """A spec name as mathtext: ``xi`` -> ``$\\xi$``, ``xi1`` -> ``$\\xi_{1}$``, ``G_L`` -> ``$G_{L}$``, ``v`` -> ``$v$``."""
+    """A spec name as mathtext: ``xi`` -> ``$\\xi$``, ``xi1`` -> ``$\\xi_{1}$``, ``G_L`` -> ``$G_{L}$``, ``v`` -> ``$v$``.
+
+    Parameters
+    ----------
+    name : str
+        A name of the spec (a state or an input), or ``t``.
+
+    Returns
+    -------
+    str
+        The mathtext; a name of another form (a letter and letters or digits, then optionally ``_`` and letters, digits
+        or ``_``) as it is, ``$`` escaped.
+    """
     base, sep, sub = name.partition("_")
     if not sep:
         m = re.fullmatch(r"([A-Za-z]+?)(\d+)", name)
@@ -112,7 +124,20 @@ def _figure(rows: int = 1, height: float | None = None, width: float = COLUMN_WI
 
 def legend_above(ax, ncol: int | None = None):
     """The axis' legend above the panel (outside the data), entries side by side in as many columns (at most
-    ``ncol``) as fit in 80 % of the figure's width, so the layout never narrows the panel for it."""
+    ``ncol``) as fit in 80 % of the figure's width, so the layout never narrows the panel for it.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+        The panel; its labelled artists are the entries.
+    ncol : int, optional
+        The most columns [default: one per entry].
+
+    Returns
+    -------
+    matplotlib Legend or None
+        None when the panel has no labelled artist.
+    """
     handles, labels = ax.get_legend_handles_labels()
     if not handles:
         return None
@@ -128,7 +153,13 @@ def legend_above(ax, ncol: int | None = None):
 
 
 def plain_log_ticks(ax):
-    """A log axis spanning less than a decade labelled 1.5, 2, ... rather than 1.5 x 10^0."""
+    """A log axis spanning less than a decade labelled 1.5, 2, ... rather than 1.5 x 10^0.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+        The panel; its y axis (log scale, limits already set) is relabelled, otherwise left as it is.
+    """
     lo, hi = ax.get_ylim()
     if lo > 0 and hi / lo < 10:
         fmt = mticker.FuncFormatter(lambda value, _: f"{value:g}")
@@ -162,7 +193,19 @@ def _delta_label(spec: Spec) -> str:
 
 
 def kappa_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. kappa_xi: psi = kappa(xi) over V, the output region Y shaded."""
+    """Fig. 5: psi = kappa(xi) over V, the output region Y shaded.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (state names, ``units``, ``concrete.output_set``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``kappa`` is read (``xi_grid``, ``kappa_grid``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     kap = arts["kappa"].values
     xi, k = np.asarray(kap["xi_grid"]), np.asarray(kap["kappa_grid"])
     Y = np.asarray(spec.concrete.output_set, dtype=float)
@@ -207,10 +250,23 @@ def kappa_figure(spec: Spec, arts: dict[str, Artefact]):
 
 
 def delta_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. delta_Compare: ||theta(xi, .)|| with q = 0, for delta = I and the design's delta (log scale).
+    """Fig. 6: ||theta(xi, .)|| with q = 0, for delta = I and the design's delta (log scale).
 
     With several abstract states the values over the grid of V are drawn sorted (a quantile curve), not in the
-    grid's order."""
+    grid's order.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (state names, ``units``, ``abstract.delta``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``bound`` is read (``xi_grid``, ``theta_norm_q0``, ``theta_norm_q0_identity``, ``dbar_q0``,
+        ``dbar_q0_identity``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     bd = arts["bound"].values
     xi = np.asarray(bd["xi_grid"])
     ident, design = np.asarray(bd["theta_norm_q0_identity"]), np.asarray(bd["theta_norm_q0"])
@@ -327,13 +383,39 @@ def _outputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str, log_er
 
 
 def tracking_inputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_BoundedIn: the abstract input v (with +-v_max) and the concrete input u (with U)."""
+    """Fig. 7: the abstract input v (with +-v_max) and the concrete input u (with U).
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (input names, ``units``, ``concrete.input_bounds``, ``simulate.tracking.abstract_controller.v_max``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``simulate`` is read (``tracking/t``, ``tracking/v``, ``tracking/u``, and
+        ``tracking/budget_v_max`` in budget mode).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     return _inputs_figure(spec, arts, "tracking")
 
 
 def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_BoundedOut: psi, y and the reference levels; |psi - y| with the uniform and a-posteriori
-    bounds (log scale)."""
+    """Fig. 8: psi, y and the reference levels; |psi - y| with the uniform and a-posteriori
+    bounds (log scale).
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (``units``, the number of outputs).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``simulate`` is read (``tracking/t``, ``/psi``, ``/y``, ``/e_y``, ``/uniform_bound``, and if
+        present ``/reference_levels``, ``/reference_index``, ``/posterior_bound``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     fig, ax_e, t, err, s = _outputs_figure(spec, arts, "tracking", log_error=True)
     tops = [float(err.max())]
     if "tracking/posterior_bound" in s:
@@ -352,12 +434,36 @@ def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
 
 
 def m_relation_inputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_mRelationIn: v = b(x) + c(x) u and u (with U), in the panel order of the tracking figure."""
+    """Fig. 9: v = b(x) + c(x) u and u (with U), in the panel order of the tracking figure.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (input names, ``units``, ``concrete.input_bounds``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``simulate`` is read (``m_relation/t``, ``m_relation/v``, ``m_relation/u``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     return _inputs_figure(spec, arts, "m_relation")
 
 
 def m_relation_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
-    """Fig. Example_mRelationOut: psi and y coincide (Theorem mRelatOutMatch); their difference below."""
+    """Fig. 10: psi and y coincide (Theorem 3); their difference below.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (output names, ``units``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``simulate`` is read (its ``m_relation/*`` entries).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     fig, *_ = _outputs_figure(spec, arts, "m_relation", log_error=False)
     return fig
 
@@ -369,7 +475,19 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
     """Largest measured error / guaranteed bound of each falsification run (all must be <= 1), one column of
     points per search strategy on a log scale; each strategy's largest ratio marked, the run closest to
     violating the bound (the search's best) highlighted and named.  A ratio of exactly 0 is drawn at the
-    bottom edge."""
+    bottom edge.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (not read; the signature of every figure).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``falsify`` is read (``run_ratio``, and if present ``strategy`` and ``worst_run``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
     v = arts["falsify"].values
     ratios = np.asarray(v["run_ratio"], dtype=float)
     strategies = np.asarray(v["strategy"]).astype(str) if "strategy" in v else np.full(ratios.size, "random")
@@ -429,7 +547,27 @@ def _format(path: Path, fmt: str | None) -> str:
 def save(fig, path: Path, fmt: str | None = None) -> Path:
     """Save a figure atomically (a reader never sees half a file) and close it; ``fmt`` png, pdf or svg
     (default: the path's suffix).  The page keeps the figure's size, so a column-wide figure stays exactly
-    one column wide."""
+    one column wide.
+
+    Parameters
+    ----------
+    fig : matplotlib Figure
+        Closed once saved (also when saving fails).
+    path : Path or str
+        The file; its folder is created.
+    fmt : str, optional
+        ``png``, ``pdf`` or ``svg`` [default: the path's suffix, else ``png``].
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    ValueError
+        For a format not in :data:`FORMATS`.
+    """
     path = Path(path)
     fmt = _format(path, fmt)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -94,17 +94,39 @@ def no_negative_zero(obj):
 
 
 def number_text(value: float, spec: str = ".6g") -> str:
-    """``format(value, spec)`` with -0.0 shown as 0 (see :func:`no_negative_zero`)."""
+    """``format(value, spec)`` with -0.0 shown as 0 (see :func:`no_negative_zero`).
+
+    Parameters
+    ----------
+    value : float
+        The number.
+    spec : str
+        A format specification (``.4g``, ``g``, ...).
+
+    Returns
+    -------
+    str
+    """
     return format(no_negative_zero(value), spec)
 
 
 def parse_point(text: str) -> dict[str, float]:
     """Parse ``--at a=1,b=2`` into a mapping.
 
+    Parameters
+    ----------
+    text : str
+        Comma-separated ``name=number`` items (spaces around them are ignored, as are empty items).
+
+    Returns
+    -------
+    dict of str to float
+        Name -> value, in the order given (a repeated name keeps its last value); -0 read as 0.
+
     Raises
     ------
     SpecError
-        Naming the malformed item.
+        Naming the malformed item (no ``=``, no name, a value that is not a finite number), or when no item is given.
     """
     point: dict[str, float] = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
@@ -224,7 +246,7 @@ def _require_certified(arts: dict[str, Artefact], name: str, point: dict[str, fl
 
 
 def _theta(art: Artefact, point: dict[str, float], params: dict[str, float]) -> np.ndarray:
-    """theta(xi, x) = sqrt(M) (dp/dxi delta - g(x) q(xi, x)) (eq. iota) with the design's q."""
+    """theta(xi, x) = sqrt(M) (dp/dxi delta - g(x) q(xi, x)) (eq. (37)) with the design's q."""
     dpd = _values(art.expr("dp_delta"), point, params, "theta").reshape(art.expr("dp_delta").shape)
     g = _values(art.expr("g"), point, params, "theta").reshape(art.expr("g").shape)
     L = np.asarray(art.value("L"))

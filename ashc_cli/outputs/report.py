@@ -47,13 +47,13 @@ figure img { max-width: 100%; height: auto; } figcaption { font-size: 0.8rem; co
 VERDICT_CLASS = {"proved": "pass", "sampled": "sampled", "fails": "fail"}
 
 CAPTIONS = {
-    "kappa_xi.png": "κ(ξ) over V, output region Y shaded (Fig. kappa_xi).",
-    "delta_compare.png": "‖θ(ξ, ·)‖ with q = 0 for δ = I and the design's δ (Fig. delta_Compare).",
-    "tracking_inputs.png": "Tracking run: abstract input v with ±v_max and concrete input u with the limits of U (Fig. Example_BoundedIn).",
+    "kappa_xi.png": "κ(ξ) over V, output region Y shaded (Fig. 5).",
+    "delta_compare.png": "‖θ(ξ, ·)‖ with q = 0 for δ = I and the design's δ (Fig. 6).",
+    "tracking_inputs.png": "Tracking run: abstract input v with ±v_max and concrete input u with the limits of U (Fig. 7).",
     "tracking_outputs.png": "Tracking run: ψ, y and the reference levels; |ψ − y| (upper envelope) against the a-posteriori "
-                            "and uniform bounds, log scale (Fig. Example_BoundedOut).",
-    "m_relation_inputs.png": "m-relation run: v = b(x) + c(x) u and u with the limits of U (Fig. Example_mRelationIn).",
-    "m_relation_outputs.png": "m-relation run: ψ and y coincide; |ψ − y| below (Fig. Example_mRelationOut).",
+                            "and uniform bounds, log scale (Fig. 8).",
+    "m_relation_inputs.png": "m-relation run: v = b(x) + c(x) u and u with the limits of U (Fig. 9).",
+    "m_relation_outputs.png": "m-relation run: ψ and y coincide; |ψ − y| below (Fig. 10).",
     "falsify.png": "Falsification: largest |ψ − y| / guaranteed bound of each run by search strategy, log scale; "
                    "the best run (closest to the bound) starred. Every point must stay below 1.",
 }
@@ -174,7 +174,7 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
                   else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.6g} and ||v||_inf &lt;= {b['v_max_certified']:.6g} ({html.escape(b.get('region_limits', ''))})")
         ev = b.get("evidence", {})
         sampled = "" if b.get("bound_evidence") == "proved" else f" <span class=\"sampled\">(sampled: {html.escape(str(b.get('bound_sampled', '')))})</span>"
-        parts.append(f"<tr><th>uniform gain G (eq. egErrorBound, paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf when W(xi0, x0) = 0</td></tr>"
+        parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf when W(xi0, x0) = 0</td></tr>"
                      f"<tr><th>how each number was established</th><td>{html.escape(', '.join(f'{k}: {v}' for k, v in ev.items()))}</td></tr>"
                      f"<tr><th>certified region</th><td>{region}</td></tr>"
                      f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.6g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"

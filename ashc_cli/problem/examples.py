@@ -38,12 +38,34 @@ TOTALS = {"E": 10.0, "L": 1.0e-2, "C": 1.0e-2, "r": 0.2, "G_c": 0.02}
 
 
 def parameters(stages: int) -> dict[str, float]:
-    """The per-cell parameters of the N-stage ladder: E, and L, C, r, G_c = the totals / N."""
+    """The per-cell parameters of the N-stage ladder: E, and L, C, r, G_c = the totals / N.
+
+    Parameters
+    ----------
+    stages : int
+        N.
+
+    Returns
+    -------
+    dict of str to float
+        Keyed as ``TOTALS``.
+    """
     return {k: v if k == "E" else v / stages for k, v in TOTALS.items()}
 
 
 def ladder(stages: int) -> str:
-    """The YAML text of the N-stage ladder spec (n = 4 N states)."""
+    """The YAML text of the N-stage ladder spec (n = 4 N states).
+
+    Parameters
+    ----------
+    stages : int
+        N, at least 1 (not checked).
+
+    Returns
+    -------
+    str
+        A comment line naming the generator, then the spec.
+    """
     n = 4 * stages
     values = parameters(stages)
     E = values["E"]
@@ -136,6 +158,16 @@ def rc_ladder(stages: int) -> str:
     l(xi) = xi, and kappa(xi) = x*(xi) rises from 0 at xi = 0 to about 0.0101 at xi = 0.5.  Each diode is one
     nonlinear term of slope g' = 40 exp(40 v) + 1 >= 1 over the state box: a network whose every term dissipates
     with the storage function M = I (the stage finds it: :mod:`ashc_cli.design.contraction.network`).
+
+    Parameters
+    ----------
+    stages : int
+        N, at least 2 (ValueError otherwise).
+
+    Returns
+    -------
+    str
+        A comment line naming the generator, then the spec.
     """
     if stages < 2:
         raise ValueError("an RC ladder needs at least 2 stages")
@@ -180,6 +212,16 @@ def chain(masses: int) -> str:
     with the last cell's right-hand neighbour missing and the force u on the last mass; y = q_N.  A linear plant with a
     constant input matrix: one matrix A, whose certificate for large N comes from the Lyapunov equation, not an SDP.  At
     a constant force every spring carries u: p(xi) = (xi / k, 0, 2 xi / k, 0, ..., N xi / k, 0) with l(xi) = xi.
+
+    Parameters
+    ----------
+    masses : int
+        N, at least 1 (ValueError otherwise).
+
+    Returns
+    -------
+    str
+        A comment line naming the generator, then the spec.
     """
     if masses < 1:
         raise ValueError("a chain needs at least one mass")

@@ -1,9 +1,8 @@
 """The concrete and abstract systems of a spec, symbolic (sympy) and numeric (lambdified).
 
 :func:`build_model` parses every expression of a :class:`~ashc_cli.problem.spec.Spec` through the whitelist
-parser and returns a :class:`Model`: the concrete system x' = f_bar(x) + g(x) u, y = h(x) (eq.
-concreteAffine) and the abstract system's design choices xi' = phi_bar(xi) + delta(xi) v with l(xi)
-(eq. abstractAffine).  Parameters stay symbols in the formulas (so results read like the paper's);
+parser and returns a :class:`Model`: the concrete system x' = f_bar(x) + g(x) u, y = h(x) (eq. (13)) and the abstract system's design choices xi' = phi_bar(xi) + delta(xi) v with l(xi)
+(eq. (12)).  Parameters stay symbols in the formulas (so results read like the paper's);
 :func:`lambdify` substitutes their values and compiles an expression matrix for numpy, with common
 subexpressions eliminated.
 """
@@ -34,7 +33,19 @@ TIME = sp.Symbol("t", real=True)
 
 
 def parameter_symbol(name: str, value: float) -> sp.Symbol:
-    """The symbol of a parameter, carrying the sign of its value so sympy can simplify sqrt and abs."""
+    """The symbol of a parameter, carrying the sign of its value so sympy can simplify sqrt and abs.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name (a key of ``parameters``).
+    value : float
+        Its value; only its sign is used (positive, negative, or real for 0).
+
+    Returns
+    -------
+    Symbol
+    """
     if value > 0:
         return sp.Symbol(name, positive=True)
     if value < 0:
@@ -43,12 +54,22 @@ def parameter_symbol(name: str, value: float) -> sp.Symbol:
 
 
 def state_symbol(name: str) -> sp.Symbol:
-    """The symbol of a state or input (real)."""
+    """The symbol of a state or input (real).
+
+    Parameters
+    ----------
+    name : str
+        The name the spec gives it.
+
+    Returns
+    -------
+    Symbol
+    """
     return sp.Symbol(name, real=True)
 
 
 def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode: bool | str) -> np.ndarray:
-    """The interface's input u_w from l(xi) and the correction K (x - p) + q v (eqs. Interface, egInterfaceSat).
+    """The interface's input u_w from l(xi) and the correction K (x - p) + q v (eqs. (15), (44)).
 
     Parameters
     ----------
@@ -76,7 +97,20 @@ def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode:
 def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Matrix:
     """d exprs / d symbols, differentiating only where the symbol occurs (the same matrix as sympy's
     ``jacobian``, 15 times faster on the sparse ladder at n = 128: 0.05 s against 0.8 s), with the derivatives
-    of sign, abs, min and max written as functions (:func:`almost_everywhere`)."""
+    of sign, abs, min and max written as functions (:func:`almost_everywhere`).
+
+    Parameters
+    ----------
+    exprs : sympy Matrix (r, 1)
+        The expressions, taken in order (a column).
+    symbols : sequence of Symbol
+        The c variables.
+
+    Returns
+    -------
+    sympy Matrix (r, c)
+        Dense, or a SparseMatrix when r c > SPARSE_JACOBIAN_ENTRIES.
+    """
     index = {s: k for k, s in enumerate(symbols)}
     entries = {}
     for i, e in enumerate(exprs):
@@ -109,6 +143,27 @@ def within_budget(fn, *args, seconds: float | None = None):
     sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
     sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
     The result comes back pickled (sympy expressions pickle).  Where fork is not available the call runs inline.
+
+    Parameters
+    ----------
+    fn : callable
+        The work; its result must pickle.
+    *args
+        Its arguments.
+    seconds : float, optional
+        The budget in seconds (default :data:`SYMBOLIC_BUDGET`).
+
+    Returns
+    -------
+    object
+        fn(*args).
+
+    Raises
+    ------
+    TimeoutError
+        At the budget, or when the child ends without a result.
+    ValueError
+        With the repr of the child's exception, when fn raised in the child (run inline, it raises its own).
     """
     import multiprocessing as mp
     import pickle
@@ -155,6 +210,15 @@ def almost_everywhere(e: sp.Expr) -> sp.Expr:
     [0, 1] (abs, min and max are Lipschitz: a mean-value argument holds with that derivative).  That sign
     jumps is not lost: :func:`jumps` finds the discontinuous functions of an expression, and the stages that
     need f or h Lipschitz on a set refuse one whose jump lies inside it.
+
+    Parameters
+    ----------
+    e : sympy Expr
+        A derivative (anything ``sympify`` takes).
+
+    Returns
+    -------
+    sympy Expr
     """
     e = sp.sympify(e)
     if e.has(sp.DiracDelta):
@@ -165,7 +229,20 @@ def almost_everywhere(e: sp.Expr) -> sp.Expr:
 
 
 def jumps(exprs, symbols: Sequence[sp.Symbol]) -> list[sp.Expr]:
-    """The discontinuous functions (sign, square, step) in the expressions whose argument depends on ``symbols``."""
+    """The discontinuous functions (sign, square, step) in the expressions whose argument depends on ``symbols``.
+
+    Parameters
+    ----------
+    exprs : list, tuple or sympy Matrix
+        The expressions.
+    symbols : sequence of Symbol
+        E.g. ``model.x``.
+
+    Returns
+    -------
+    list of sympy Expr
+        Each application of sign, square, step or Heaviside once, e.g. ``sign(x1 - 1)``.
+    """
     from ashc_cli.problem.expr import square, step
 
     syms = set(symbols)
@@ -190,6 +267,20 @@ def compile_flat(
     Cheaper per call than :func:`lambdify` (no broadcasting), for the right-hand sides of ODEs:
     ``f(*scalars)`` returns a list of numbers, one per expression.  Common subexpressions are eliminated
     first, except in long lists of small expressions (:func:`_worth_cse`).
+
+    Parameters
+    ----------
+    exprs : sequence of sympy Expr
+        What to evaluate (passed through :func:`almost_everywhere`).
+    args : sequence of Symbol
+        The arguments of the compiled function, in order.
+    values : mapping of Symbol to float, optional
+        Values substituted first (the spec's parameters).
+
+    Returns
+    -------
+    callable
+        ``f(*scalars) -> list``, one value per expression.
     """
     subs = {k: sp.Float(v) for k, v in (values or {}).items()}
     flat = [almost_everywhere(sp.sympify(e).xreplace(subs)) for e in exprs]
@@ -227,6 +318,20 @@ def compile_terms(
     ``f(point)`` with point of shape (d,) returns one array per matrix, of that matrix's shape (r, c);
     ``f(points)`` with shape (d, N) returns arrays of shape (N, r, c).  One compiled call evaluates every
     term (the right-hand sides of the closed loops in ``simulate`` and ``falsify``).
+
+    Parameters
+    ----------
+    terms : sequence of sympy Matrix
+        The matrices, each (r, c).
+    args : sequence of Symbol
+        The d coordinates of a point, in order.
+    values : mapping of Symbol to float, optional
+        Values substituted first (the spec's parameters).
+
+    Returns
+    -------
+    callable
+        ``f(points) -> list of ndarray``, shapes as above.
     """
     shapes = [t.shape for t in terms]
     ends = np.cumsum([0] + [r * c for r, c in shapes]).tolist()
@@ -358,7 +463,7 @@ class Model:
 
     @cached_property
     def f(self) -> sp.Matrix:
-        """f(x, u) = f_bar(x) + g(x) u (eq. concreteAffine)."""
+        """f(x, u) = f_bar(x) + g(x) u (eq. (13))."""
         return self.f_bar + self.g * self.u
 
     @cached_property
@@ -417,6 +522,15 @@ def shorter(e: sp.Expr) -> sp.Expr:
     Both are cheap and deterministic; sympy's ``simplify`` searched far longer (1.2 s on the Cuk converter's
     b(x)) and returned longer expressions on the converters (93 against 88 operations on the Cuk b, 45
     against 33 on the boost b).
+
+    Parameters
+    ----------
+    e : sympy Expr
+
+    Returns
+    -------
+    sympy Expr
+        The candidate when its ``count_ops`` is no larger, else e.
     """
     candidate = sp.factor_terms(sp.together(e))
     return candidate if sp.count_ops(candidate) <= sp.count_ops(e) else e
@@ -427,6 +541,16 @@ def tidy(matrix: sp.Matrix, how=shorter) -> sp.Matrix:
 
     Entries with float coefficients (a fitted manifold or inverse) are left alone too: rewriting gains
     nothing on them and can stall for minutes on a polynomial of high degree.
+
+    Parameters
+    ----------
+    matrix : sympy Matrix
+    how : callable
+        Expr -> Expr, applied to the entries of at most SIMPLIFY_MAX_OPS operations and no Float.
+
+    Returns
+    -------
+    sympy Matrix
     """
     return matrix.applyfunc(lambda e: how(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS and not e.atoms(sp.Float) else e)
 

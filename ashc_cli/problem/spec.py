@@ -65,7 +65,7 @@ class _Strict(BaseModel):
 BOUNDS_MAP_ERROR = "bounds_map"
 
 
-def bounds_by_name(value: Any, names: Any, what: str) -> Any:
+def _bounds_by_name(value: Any, names: Any, what: str) -> Any:
     """A map of [lo, hi] pairs keyed by ``names`` as the list of pairs in the order of ``names``.
 
     ``input_bounds: {u: [0.0, 0.8]}`` is ``input_bounds: [[0.0, 0.8]]``: every name exactly once, no other key
@@ -86,7 +86,7 @@ def bounds_by_name(value: Any, names: Any, what: str) -> Any:
 
 
 class Concrete(_Strict):
-    """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. ConcreteSystem, concreteAffine)."""
+    """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. (1), (13))."""
 
     states: list[Name] = Field(min_length=1)
     inputs: list[Name] = Field(min_length=1)
@@ -104,17 +104,17 @@ class Concrete(_Strict):
     @field_validator("input_bounds", mode="before")
     @classmethod
     def _input_bounds_map(cls, value: Any, info: ValidationInfo) -> Any:
-        return bounds_by_name(value, info.data.get("inputs"), "input")
+        return _bounds_by_name(value, info.data.get("inputs"), "input")
 
     @field_validator("output_set", mode="before")
     @classmethod
     def _output_set_map(cls, value: Any, info: ValidationInfo) -> Any:
         h = info.data.get("h")
-        return bounds_by_name(value, [f"y{k + 1}" for k in range(len(h))] if isinstance(h, list) else None, "output")
+        return _bounds_by_name(value, [f"y{k + 1}" for k in range(len(h))] if isinstance(h, list) else None, "output")
 
 
 class Stabilisability(_Strict):
-    """How the incremental Lyapunov function V(x, z) = (x - z)^T M (x - z) is obtained (eq. egLMI)."""
+    """How the incremental Lyapunov function V(x, z) = (x - z)^T M (x - z) is obtained (eq. (28))."""
 
     method: Literal["polytopic_lmi", "given"]
     decay_rate: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["maximise"]
@@ -134,7 +134,7 @@ DeltaSpec = Literal["identity", "flatten"] | list[list[Expr]] | Expr
 
 
 class Abstract(_Strict):
-    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. abstractAffine)."""
+    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. (12))."""
 
     states: list[Name] = Field(min_length=1)
     inputs: list[Name] = Field(min_length=1)
@@ -155,9 +155,9 @@ class Abstract(_Strict):
 
 
 class Interface(_Strict):
-    """The interface u_w = l(xi) + q(xi, x) v (eqs. Interface, egInterface, egInterfaceSat).
+    """The interface u_w = l(xi) + q(xi, x) v (eqs. (15), (42), (44)).
 
-    ``saturate``: ``true`` clips each input channel of l + K (x - p) + q v to its bounds (eq. egInterfaceSat);
+    ``saturate``: ``true`` clips each input channel of l + K (x - p) + q v to its bounds (eq. (44));
     ``scale`` multiplies the whole correction K (x - p) + q v by the one factor s in [0, 1] that brings u
     into U (so the correction keeps its direction, and the uniform bound of an identity-feedback design
     holds for any number of inputs); ``false`` applies it unclipped (u may leave U).
@@ -176,9 +176,9 @@ class SetpointController(_Strict):
 
 
 class GuaranteedController(_Strict):
-    """A controller that meets |psi - y| <= tolerance by construction (eq. TrackConst, docs/guaranteed.md).
+    """A controller that meets |psi - y| <= tolerance by construction (eq. (9), docs/guaranteed.md).
 
-    ``budget``: the set-point law with the largest v_max for which the uniform bound of Theorem ErrorBound,
+    ``budget``: the set-point law with the largest v_max for which the uniform bound of Theorem 2,
     sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max, stays below the tolerance.  ``governor``: v = s v_sp
     with the largest s in [0, 1] that keeps the comparison system's w below tolerance^2 alpha_h.  ``auto``: the
     governor when its conditions hold (it then allows every v the budget allows, and more), else the budget.
@@ -206,7 +206,7 @@ class TimedLevel(_Strict):
 
 
 class Tracking(_Strict):
-    """The tracking scenario of Figs. Example_BoundedIn/Out."""
+    """The tracking scenario of Figs. 7, 8."""
 
     t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     xi0: list[FiniteFloat]
@@ -232,7 +232,7 @@ class Tracking(_Strict):
 
 
 class MRelation(_Strict):
-    """The m-relation scenario of Figs. Example_mRelationIn/Out: v = b(x) + c(x) u, xi0 = m(x0)."""
+    """The m-relation scenario of Figs. 9, 10: v = b(x) + c(x) u, xi0 = m(x0)."""
 
     t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     x0: list[FiniteFloat]
@@ -271,6 +271,16 @@ def spec_sha256(spec: Spec) -> str:
 
     Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` is
     left out when absent, so specs without it hash as they did before the key existed.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    str
+        The digest in hex (64 characters).
     """
     data = spec.model_dump(mode="json")
     if data["abstract"].get("m") is None:
@@ -506,7 +516,7 @@ def _check_len(where: str, items: list, n: int, what: str) -> None:
         raise SpecError(where, f"has {len(items)} entries", f"{n} ({what})")
 
 
-def check_shapes(spec: Spec) -> None:
+def _check_shapes(spec: Spec) -> None:
     """Check the dimensions that tie fields together (n, m, p, n_hat, m_hat) and name clashes.
 
     Raises
@@ -645,7 +655,7 @@ def parse_spec_text(text: str, source: str = "spec") -> Spec:
         spec = Spec.model_validate(data)
     except ValidationError as exc:
         raise _validation_to_spec_error(exc) from None
-    check_shapes(spec)
+    _check_shapes(spec)
     return spec
 
 

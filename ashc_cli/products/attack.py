@@ -62,6 +62,15 @@ def _closed_loop_jacobian(model: Model, arts: dict[str, Artefact]):
 def lmi_counterexample(model: Model, arts: dict[str, Artefact], seed: int = 0) -> dict | None:
     """A point of state_box x U (or of U, for f affine in x) where eq. (28) fails for the design's M and lambda.
 
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (f, g, ``state_box``, U).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``stabilise`` is read (``M``, ``lambda``, and ``K`` when the feedback is linear).
+    seed : int
+        Seed of the random starts.
+
     Returns
     -------
     dict or None
@@ -101,7 +110,7 @@ def lmi_counterexample(model: Model, arts: dict[str, Artefact], seed: int = 0) -
 def _extremes(model: Model, exprs, args: list, box: np.ndarray) -> list[np.ndarray]:
     """Where branch and bound finds each expression that varies largest and smallest (seeds for the searches: a
     steep term's derivative peaks in a narrow band that random starts miss)."""
-    from ashc_cli.numerics import interval
+    from ashc_cli.numerics import boxsearch
 
     seeds = []
     for e in exprs:
@@ -111,7 +120,7 @@ def _extremes(model: Model, exprs, args: list, box: np.ndarray) -> list[np.ndarr
             fun = proofs.compile_claims(model, [e], args)
         except proofs.interval.UnsupportedExpression:
             continue
-        for search in (interval.sup_on_box, interval.inf_on_box):
+        for search in (boxsearch.sup_on_box, boxsearch.inf_on_box):
             res = search(fun, box, rtol=1e-9, time_budget=SEED_BUDGET)
             point = getattr(res, "argmax", getattr(res, "argmin", None))
             if point is not None and np.all(np.isfinite(point)):
@@ -136,10 +145,22 @@ def second_equilibrium(model: Model, arts: dict[str, Artefact], seed: int = 0, s
     Contraction at a rate lambda > 0 on a convex box makes the equilibrium for a frozen input unique (V(x_a, x_b)
     would have to decay and stay constant), so two of them refute the certificate, whatever the samples said.
 
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (f, ``state_box``, U, and l and V for the inputs l(xi)).
+    arts : dict of str to Artefact
+        Artefacts by stage (not read; the signature of every attack).
+    seed : int
+        The random starts are drawn with seed ``seed + 1``.
+    starts : int
+        Newton (``hybr``) starts per input u.
+
     Returns
     -------
     dict or None
-        ``kind`` "second_equilibrium", ``u``, ``x`` and ``x_other`` (both with |f| <= 1e-9 relative), ``distance``.
+        ``kind`` "second_equilibrium", ``u``, ``x`` and ``x_other`` (both with |f| <= 1e-9 relative), ``distance``;
+        None without a ``state_box`` or when no u has two.
     """
     if model.state_box is None:
         return None
@@ -169,7 +190,23 @@ def second_equilibrium(model: Model, arts: dict[str, Artefact], seed: int = 0, s
 
 
 def lipschitz_counterexample(model: Model, arts: dict[str, Artefact], seed: int = 0) -> dict | None:
-    """A state of the box where ||dh/dx||_2 exceeds the L_h of the design (alpha_h = lambda_min(M) / L_h^2 is then too large)."""
+    """A state of the box where ||dh/dx||_2 exceeds the L_h of the design (alpha_h = lambda_min(M) / L_h^2 is then too large).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (h, ``state_box``).
+    arts : dict of str to Artefact
+        Artefacts by stage; ``bound`` is read (``lipschitz_h``).
+    seed : int
+        The random starts are drawn with seed ``seed + 2``.
+
+    Returns
+    -------
+    dict or None
+        ``kind`` "lipschitz", ``x``, ``norm`` (||dh/dx(x)||_2), ``L_h``; None for a linear h (L_h = ||C||_2 is exact),
+        without a ``state_box``, or when no state exceeds L_h (1 + 1e-9).
+    """
     if model.C is not None or model.state_box is None:
         return None
     L_h = float(arts["bound"].values["lipschitz_h"])
@@ -196,7 +233,23 @@ def lipschitz_counterexample(model: Model, arts: dict[str, Artefact], seed: int 
 
 def attack(model: Model, arts: dict[str, Artefact], seed: int = 0) -> list[dict]:
     """Every counter-example found to a row the design only sampled (the LMI, L_h); [] when none is found or
-    every such row is proved (a proved row needs no attack)."""
+    every such row is proved (a proved row needs no attack).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    arts : dict of str to Artefact
+        Artefacts by stage; the checks ``stabilise.lmi_margin`` and ``bound.h_lipschitz`` decide which searches run.
+    seed : int
+        Seed of the searches' random starts.
+
+    Returns
+    -------
+    list of dict
+        The counter-examples of :func:`lmi_counterexample`, :func:`second_equilibrium` and :func:`lipschitz_counterexample`,
+        in that order.
+    """
     found = []
     lmi = arts["stabilise"].checks.get("lmi_margin")
     if lmi is not None and lmi.evidence != proofs.PROVED:

@@ -25,7 +25,20 @@ FALSIFY_T_FINAL = falsify_mod.DEFAULT_T_FINAL
 
 
 def falsify_t_final(spec: Spec, t_final: float | None) -> float:
-    """The length of run :func:`ashc_cli.products.falsify.falsify` uses: ``t_final``, else the spec's tracking t_final, else 10 s."""
+    """The length of run :func:`ashc_cli.products.falsify.falsify` uses: ``t_final``, else the spec's tracking t_final, else 10 s.
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec (``simulate.tracking.t_final`` is read).
+    t_final : float, optional
+        The length asked for (``--t-final``); None for the default.
+
+    Returns
+    -------
+    float
+        In seconds.
+    """
     if t_final is not None:
         return float(t_final)
     tracking = spec.simulate.tracking

@@ -1,10 +1,10 @@
-"""Falsification: search for closed loops that break the error bound of Theorem ErrorBound.
+"""Falsification: search for closed loops that break the error bound of Theorem 2.
 
 Along each run the guarantee is
 
     |psi(t) - y(t)| <= sqrt(W(0) exp(-(lambda - eps) t) / alpha_h) + G sup_{s <= t} ||v(s)||
 
-(Theorem ErrorBound with beta from the comparison lemma and the gain G of eq. egErrorBound), on the region the
+(Theorem 2 with beta from the comparison lemma and the gain G of eq. (38)), on the region the
 bound stage certifies: W(0) <= ``w0_max_certified`` and ||v|| <= ``v_max_certified`` (both +inf when the bound is
 global).  The command reports the largest ratio measured / guaranteed over all runs and times (it must not
 exceed 1), and the largest over the runs started on the manifold (W(0) = 0, where only G ||v||_inf counts).
@@ -176,7 +176,18 @@ def _store_counterexamples(art: Artefact, found: list[dict]) -> None:
 
 
 def counterexample_text(c: dict) -> str:
-    """One line for a counter-example of :mod:`ashc_cli.products.attack`."""
+    """One line for a counter-example of :mod:`ashc_cli.products.attack`.
+
+    Parameters
+    ----------
+    c : dict
+        A counter-example of :func:`ashc_cli.products.attack.attack`; its ``kind`` (``lmi``, ``second_equilibrium``,
+        else Lipschitz) decides which keys are read.
+
+    Returns
+    -------
+    str
+    """
     if c["kind"] == "lmi":
         return (f"eq. (28) fails at x = {np.round(c['x'], 6).tolist()}, u = {np.round(c['u'], 6).tolist()}: "
                 f"lambda_max(J^T M + M J + lambda M) = {c['margin']:.4g} > 0 at lambda = {c['lambda']:.6g}")
@@ -284,7 +295,19 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The falsify artefact (of :func:`falsify`).
+
+    Returns
+    -------
+    dict
+        Plain values: runs, seed, max_ratio, worst_run, worst_time, runs_leaving_V, max_error and the counter-examples;
+        with ``max_ratio_w0_zero`` stored, also the run started on the manifold, the strategies and the worst start.
+    """
     v = art.values
     by = {k.split("/", 1)[1]: float(x) for k, x in v.items() if k.startswith("ratio_by_strategy/")}
     out = {"runs": int(art.meta["runs"]), "seed": int(art.meta["seed"]), "max_ratio": float(v["max_ratio"]),
@@ -304,7 +327,19 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One line."""
+    """One line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The falsify artefact (of :func:`falsify`).
+
+    Returns
+    -------
+    str
+        Runs, the largest ratio (run and time), the ratio on the manifold and the worst strategy when stored, and how
+        many runs left V.
+    """
     v = art.values
     extra = ""
     if "max_ratio_w0_zero" in v:

@@ -63,7 +63,22 @@ def _flat(x) -> list:
 
 
 def compare(key: str, new, golden: dict) -> str | None:
-    """Why ``new`` does not match the golden entry, or None if it does."""
+    """Why ``new`` does not match the golden entry, or None if it does.
+
+    Parameters
+    ----------
+    key : str
+        The dotted key (``bound.gain``), for the message.
+    new : float, bool, str, list or None
+        Its value in the current summary (None: missing).
+    golden : dict
+        The golden entry: ``value``, and ``rtol``, ``atol`` (default 0) or ``at_most``.
+
+    Returns
+    -------
+    str or None
+        One line naming the key, the two values and the tolerance.
+    """
     old = golden["value"]
     if new is None:
         return f"{key} is missing from the summary (golden {old})"
@@ -86,7 +101,20 @@ def compare(key: str, new, golden: dict) -> str | None:
 
 
 def collect(spec: Spec, out: Path) -> dict:
-    """Design one spec (stage by stage, so a failing design still has a verdict) and return its summary."""
+    """Design one spec (stage by stage, so a failing design still has a verdict) and return its summary.
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec.
+    out : Path
+        The artefacts go to ``out / spec.name``.
+
+    Returns
+    -------
+    dict
+        The ``ashc summary`` object of the design stages that ran, with ``verdict``: ``solved`` and ``kind``.
+    """
     arts, stopped = run_for_verdict(spec, out / spec.name)
     found = verdict(arts, stopped)
     result = summary({k: arts[k] for k in DESIGN if k in arts})
@@ -98,6 +126,24 @@ def regress(specs: Path, golden: Path, out: Path, update: bool = False, progress
     """Rerun every ``*.yaml`` in ``specs`` and compare with ``golden``; returns one row per spec.
 
     Each row: spec, status ("ok", "differs", "no golden", "updated"), and the list of differences.
+
+    Parameters
+    ----------
+    specs : Path
+        The folder of specs.
+    golden : Path
+        The folder of golden files ``<spec name>.json``.
+    out : Path
+        Each design's artefacts go to ``out / <spec name>``.
+    update : bool
+        Write the golden files from this run instead of comparing (``--update``).
+    progress : callable, optional
+        Called with each row as it is done.
+
+    Returns
+    -------
+    list of dict
+        One row per spec, in file-name order: ``spec``, ``status``, ``differences`` (list of str).
 
     Raises
     ------

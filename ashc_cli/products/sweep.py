@@ -27,7 +27,26 @@ HEADLINES = ("lambda", "dbar_q0", "gain")
 
 
 def parse_param(text: str, spec: Spec) -> tuple[str, np.ndarray]:
-    """``NAME=LO:HI:COUNT`` -> (name, values); NAME must be one of the spec's parameters."""
+    """``NAME=LO:HI:COUNT`` -> (name, values); NAME must be one of the spec's parameters.
+
+    Parameters
+    ----------
+    text : str
+        One ``--param`` value.
+    spec : Spec
+        The spec (its ``parameters`` are the names allowed).
+
+    Returns
+    -------
+    name : str
+    values : ndarray (COUNT,)
+        ``np.linspace(LO, HI, COUNT)``.
+
+    Raises
+    ------
+    SpecError
+        Naming ``--param TEXT``: not of that form, not a parameter, LO or HI not finite, or COUNT not in 1 .. 10000.
+    """
     where = f"--param {text}"
     name, sep, rest = text.partition("=")
     parts = rest.split(":")
@@ -45,7 +64,18 @@ def parse_param(text: str, spec: Spec) -> tuple[str, np.ndarray]:
 
 
 def combinations(axes: list[tuple[str, np.ndarray]]) -> list[dict[str, float]]:
-    """Every combination of the swept values (the last parameter varies fastest)."""
+    """Every combination of the swept values (the last parameter varies fastest).
+
+    Parameters
+    ----------
+    axes : list of (str, ndarray)
+        The swept parameters and their values (:func:`parse_param`).
+
+    Returns
+    -------
+    list of dict of str to float
+        One mapping name -> value per combination (the product of the axes' lengths).
+    """
     names = [n for n, _ in axes]
     return [dict(zip(names, map(float, values))) for values in itertools.product(*[v for _, v in axes])]
 
@@ -54,6 +84,23 @@ def design_one(spec_json: dict, params: dict[str, float], out: str, falsify_runs
     """One task: design (and optionally falsify) the spec with these parameter values.
 
     Runs in a worker process; returns plain data.  Every ashc error becomes a failed row.
+
+    Parameters
+    ----------
+    spec_json : dict
+        The base spec, ``Spec.model_dump(mode="json")``.
+    params : dict of str to float
+        The parameter values that replace the spec's (one of :func:`combinations`).
+    out : str
+        The artefact folder of this combination.
+    falsify_runs : int
+        Runs of ``ashc falsify`` when the design is solved (0: none).
+
+    Returns
+    -------
+    dict
+        ``params``, ``solved``, ``verdict``, ``lambda``, ``dbar_q0``, ``gain``, ``falsify_ratio`` (NaN where not reached),
+        ``error`` (the reason the design stopped, "" if none) and ``seconds``.
     """
     from ashc_cli.design.pipeline import Folder, run_for_verdict
     from ashc_cli.products.campaign import run_falsify
@@ -166,7 +213,20 @@ def sweep(spec: Spec, axes: list[tuple[str, np.ndarray]], out: Path, scheduler: 
 
 
 def plot(art: Artefact, path: Path) -> Path:
-    """lambda, dbar_q0 and the gain G against the first swept parameter (failed combinations marked)."""
+    """lambda, dbar_q0 and the gain G against the first swept parameter (failed combinations marked).
+
+    Parameters
+    ----------
+    art : Artefact
+        The sweep artefact (of :func:`sweep`).
+    path : Path
+        The file; its suffix gives the format (:func:`ashc_cli.outputs.plots.save`).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     from ashc_cli.outputs.plots import COLUMN_WIDTH, STYLE, plt, save
 
     v = art.values

@@ -3,7 +3,7 @@
 For each tolerance EPS, both modes of the guaranteed controller (docs/guaranteed.md) track the spec's
 reference levels from the spec's start, each level held until it is reached within EPS
 (:func:`ashc_cli.design.stages.simulate.reach_times`): the **budget** (the set-point law with the largest uniform
-v_max that eq. TrackConst allows, v_max = (EPS - sqrt(W0 / alpha_h)) / G, eq. egErrorBound) and the
+v_max that eq. (9) allows, v_max = (EPS - sqrt(W0 / alpha_h)) / G, eq. (38)) and the
 **governor** (v = s v_sp keeping the comparison system's w below EPS^2 alpha_h along the run).  The result is
 the time to reach every level, per tolerance and mode: the speed/accuracy frontier of the design.
 
@@ -15,15 +15,17 @@ design up to date, stores ``tradeoff.h5`` (:mod:`ashc_cli.design.artefacts`) and
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
 from ashc_cli.design.artefacts import Artefact, write_artefact
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.spec import Spec
-from ashc_cli.closedloop import reference
+from ashc_cli.closedloop import plan as guaranteed
+from ashc_cli.closedloop.falsify_loop import threads
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.stages import simulate as sim
 
@@ -39,10 +41,20 @@ MODES = ("budget", "governor")
 def parse_tolerances(text: str) -> list[float]:
     """``"1,2,5"`` -> [1.0, 2.0, 5.0]: positive, finite, each once, in the order given.
 
+    Parameters
+    ----------
+    text : str
+        The ``--tolerances`` value, comma-separated.
+
+    Returns
+    -------
+    list of float
+
     Raises
     ------
     SpecError
-        Naming ``--tolerances``, for an empty list, a word that is not a number, or a value <= 0.
+        Naming ``--tolerances``, for an empty list, a word that is not a number, a value <= 0 or not finite, or a
+        value given twice.
     """
     items = [item.strip() for item in str(text).split(",")]
     if not any(items):
@@ -103,10 +115,10 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
     proved = {mode: np.full(K, np.nan) for mode in MODES}
     refusal = {mode: [""] * K for mode in MODES}
     budget_v = np.full(K, np.nan)
-    loops = {}
+    loops, tasks = {}, []
     for k, tol in enumerate(tolerances):
         try:
-            plan = reference.guaranteed_plan(float(tol), "auto", W0, arts)
+            plan = guaranteed.guaranteed_plan(float(tol), "auto", W0, arts)
         except DesignError as exc:            # neither mode certifies this tolerance from the start
             for mode in MODES:
                 refusal[mode][k] = exc.what
@@ -120,9 +132,17 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
             law = plan.law(mode, ctl.gain, model.m_hat, v_cert, lam, eps)
             if law.kind not in loops:
                 loops[law.kind] = sim.tracking_loop_for(model, arts, law)
-            times[mode][k] = sim.reach_times(model, plant, arts, law, z0, levels, refs, float(tol), tr.dwell,
-                                             horizon_dwells=horizon_dwells, loop=loops[law.kind])
+            tasks.append((k, mode, law, float(tol)))
             proved[mode][k] = plan.budget_tolerance if mode == "budget" else plan.governor_tolerance
+
+    def reach(task):
+        k, mode, law, tol = task
+        return sim.reach_times(model, plant, arts, law, z0, levels, refs, tol, tr.dwell, horizon_dwells=horizon_dwells, loop=loops[law.kind])
+
+    # The runs are independent and the compiled loop runs without the GIL: one thread per core, the same numbers.
+    with ThreadPoolExecutor(max_workers=max(1, min(threads(), len(tasks)))) as pool:
+        for (k, mode, _, _), reached in zip(tasks, pool.map(reach, tasks)):
+            times[mode][k] = reached
     with np.errstate(divide="ignore", invalid="ignore"):
         speedup = np.where(times["governor"] > 0, times["budget"] / times["governor"], np.nan)
     values = {
@@ -136,7 +156,7 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         values[f"proved_tolerance/{mode}"] = proved[mode]
         values[f"refusal/{mode}"] = refusal[mode]
     meta = {"dwell": float(tr.dwell), "horizon_dwells": int(horizon_dwells), "sample_dt": max(sim.SAMPLE_DT, sim.REACH_SAMPLE_DWELLS * tr.dwell),
-            "integrator": sim.TRACKING_TOL, "governor_rate": reference.GOVERNOR_RATE, "governor_margin": reference.GOVERNOR_MARGIN,
+            "integrator": sim.TRACKING_TOL, "governor_rate": guaranteed.GOVERNOR_RATE, "governor_margin": guaranteed.GOVERNOR_MARGIN,
             "implementation": {kind: "ashc_cli.closedloop.compiled (numba)" if getattr(loop, "compiled", True) else "scipy.integrate.solve_ivp"
                                for kind, loop in loops.items()}}
     return Artefact(stage=NAME, values=values, meta=meta)
@@ -150,6 +170,17 @@ def table(art: Artefact) -> list[str]:
     """The rows ``ashc tradeoff`` prints: one per tolerance and mode, the seconds to reach each level.
 
     A ``-`` is a level not reached within the horizon; a refused mode shows its reason instead of times.
+
+    Parameters
+    ----------
+    art : Artefact
+        The tradeoff artefact (of :func:`tradeoff`).
+
+    Returns
+    -------
+    list of str
+        A header, then per tolerance a budget and a governor row: EPS, mode, the seconds per level, their total and
+        (governor rows) the speed-up of the totals, budget / governor.
     """
     v = art.values
     levels = np.asarray(v["levels"], dtype=float)
@@ -174,7 +205,20 @@ def table(art: Artefact) -> list[str]:
 def plot(art: Artefact, path: str | Path) -> Path:
     """The speed/accuracy frontier: time to reach every level (the sum of the reach times) against EPS, for the
     budget and the governor (top, log-log), and the governor's speed-up over the budget (bottom).  One IEEE
-    column wide (3.5 in), mathtext labels, in the style of :mod:`ashc_cli.outputs.plots`."""
+    column wide (3.5 in), mathtext labels, in the style of :mod:`ashc_cli.outputs.plots`.
+
+    Parameters
+    ----------
+    art : Artefact
+        The tradeoff artefact (``tolerances``, ``total_time/budget``, ``total_time/governor`` are read).
+    path : str or Path
+        The file; its suffix gives the format (:func:`ashc_cli.outputs.plots.save`).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     from ashc_cli.outputs.plots import COLUMN_WIDTH, STYLE, legend_above, plain_log_ticks, mticker, plt, save
 
     v = art.values
@@ -223,7 +267,19 @@ def plot(art: Artefact, path: str | Path) -> Path:
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The tradeoff artefact (of :func:`tradeoff`).
+
+    Returns
+    -------
+    dict
+        Lists: ``tolerances``, ``levels``, ``total_time_<mode>``, ``reach_time_<mode>`` (NaN: not reached or
+        refused) and ``speedup``.
+    """
     v = art.values
     out = {"tolerances": np.asarray(v["tolerances"]).tolist(), "levels": np.asarray(v["levels"]).tolist()}
     for mode in MODES:
@@ -234,7 +290,18 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One line: the total time to reach every level at each tolerance, both modes."""
+    """One line: the total time to reach every level at each tolerance, both modes.
+
+    Parameters
+    ----------
+    art : Artefact
+        The tradeoff artefact (of :func:`tradeoff`).
+
+    Returns
+    -------
+    str
+        ``-`` for a total that is NaN (a level not reached, or the mode refused).
+    """
     v = art.values
     parts = [f"EPS {tol:g}: budget {_seconds(b)} s, governor {_seconds(g)} s"
              for tol, b, g in zip(np.asarray(v["tolerances"]), np.asarray(v["total_time/budget"]), np.asarray(v["total_time/governor"]))]

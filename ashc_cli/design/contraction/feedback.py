@@ -104,7 +104,26 @@ def _min_gain(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: st
 def largest_feedback_rate(A_list: list[np.ndarray], B: np.ndarray, structure: str, weights: np.ndarray | None = None) -> tuple[float, tuple | None]:
     """:func:`largest_decay_rate` with a synthesised gain K: bisection on lambda up to FEEDBACK_MAX_RATE (any rate
     may be reachable with feedback), each M, K found raising the lower end to the rate it certifies; the K
-    returned is the smallest gain (:func:`solve_lmi_feedback`) at the rate found."""
+    returned is the smallest gain (:func:`solve_lmi_feedback`) at the rate found.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices (the stage divides them by the rate scale, :func:`lmi_scale`).
+    B : ndarray (n, m)
+        The constant input matrix (divided by the same scale).
+    structure : {"full", "diagonal"}
+        The form of X = M^-1.
+    weights : ndarray (m,), optional
+        Half-widths of the input ranges (default 1).
+
+    Returns
+    -------
+    lam : float
+        The rate found, in the units of A_list (0 when no gain certifies any rate).
+    found : tuple of ndarray or None
+        (M, K), M (n, n) and K (m, n), certifying lam; None when no rate was certified.
+    """
     upper = FEEDBACK_MAX_RATE
     lo, hi, best = 0.0, upper, None
     while hi - lo > BISECTION_RTOL * upper:

@@ -27,7 +27,19 @@ SDP_GROWTH = 3.6
 
 
 def distinct(matrices: list[np.ndarray], rtol: float = 0.0) -> list[np.ndarray]:
-    """The vertex matrices without repeats (a constant A gives 2^m equal vertices)."""
+    """The vertex matrices without repeats (a constant A gives 2^m equal vertices).
+
+    Parameters
+    ----------
+    matrices : list of ndarray
+    rtol : float
+        0: exact equality; otherwise ``np.allclose`` with this relative tolerance (and atol 0).
+
+    Returns
+    -------
+    list of ndarray
+        The first of each group of equal matrices, in their order.
+    """
     out: list[np.ndarray] = []
     for A in matrices:
         if not any(np.array_equal(A, B) if rtol == 0 else np.allclose(A, B, rtol=rtol, atol=0) for B in out):
@@ -37,7 +49,19 @@ def distinct(matrices: list[np.ndarray], rtol: float = 0.0) -> list[np.ndarray]:
 
 def lyapunov_M(A: np.ndarray, lam: float) -> np.ndarray | None:
     """M > 0 with A^T M + M A + lam M = -I, scaled to trace(M) = n (the margin is then -n / trace of the raw M), or None
-    if A + lam/2 I is not Hurwitz (no M certifies lam)."""
+    if A + lam/2 I is not Hurwitz (no M certifies lam).
+
+    Parameters
+    ----------
+    A : ndarray (n, n)
+    lam : float
+        The decay rate, in the units of A.
+
+    Returns
+    -------
+    ndarray (n, n) or None
+        Also None when the solution is not finite or not positive definite.
+    """
     n = A.shape[0]
     shifted = A + 0.5 * lam * np.eye(n)
     if np.linalg.eigvals(shifted).real.max() >= 0:
@@ -50,7 +74,21 @@ def lyapunov_M(A: np.ndarray, lam: float) -> np.ndarray | None:
 
 
 def sdp_memory_estimate(n: int, vertices: int, structure: str) -> float:
-    """Bytes the SDP of eq. (28) is expected to take (full M: grows like n^3.6; diagonal M: like n^2 per vertex)."""
+    """Bytes the SDP of eq. (28) is expected to take (full M: grows like n^3.6; diagonal M: like n^2 per vertex).
+
+    Parameters
+    ----------
+    n : int
+        The number of states.
+    vertices : int
+        The number of (distinct) vertex matrices.
+    structure : {"full", "diagonal"}
+        The form of M (anything but ``diagonal`` is estimated as full).
+
+    Returns
+    -------
+    float
+    """
     if structure == "diagonal":
         return 2e8 + 400.0 * n * n * max(1, vertices)
     return 2e8 + SDP_BYTES_AT_60 * (n / 60.0) ** SDP_GROWTH * max(1, vertices) / 2.0
@@ -67,7 +105,18 @@ def available_memory() -> float:
 
 
 def refuse_if_too_large(n: int, vertices: int, structure: str) -> None:
-    """Refuse, before it starts, an SDP that would not fit in memory (instead of being killed by the kernel)."""
+    """Refuse, before it starts, an SDP that would not fit in memory (instead of being killed by the kernel).
+
+    Parameters
+    ----------
+    n, vertices, structure
+        As for :func:`sdp_memory_estimate`.
+
+    Raises
+    ------
+    DesignError
+        Naming ``stabilisability.structure`` when the estimate exceeds 80% of :func:`available_memory`.
+    """
     need, have = sdp_memory_estimate(n, vertices, structure), 0.8 * available_memory()
     if need > have:
         raise DesignError("stabilisability.structure", f"the {structure}-M SDP of eq. (28) for n = {n} states and {vertices} vertices would "

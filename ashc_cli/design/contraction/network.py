@@ -70,6 +70,18 @@ def dissipative_storage(terms: Terms, n: int) -> Network | None:
 
     A term is a candidate when it is of rank one, b and c have the same support, and -c_i / b_i > 0 there; the
     candidates' log-equations must be consistent (a network's are: one capacitance per node).
+
+    Parameters
+    ----------
+    terms : Terms
+        The Jacobian's decomposition (:func:`~ashc_cli.design.contraction.terms.decompose`).
+    n : int
+        The number of states.
+
+    Returns
+    -------
+    Network or None
+        d (n,), entries rounded to 12 digits; None when no term is a candidate or their equations are inconsistent.
     """
     rows, cols, vals, rhs, members = [], [], [], [], []
     eq = 0
@@ -123,7 +135,20 @@ def _corners(terms: Terms, net: Network) -> list[tuple[np.ndarray, str]]:
 
 
 def largest_rate(A: sps.csr_matrix, d: np.ndarray) -> float:
-    """The largest lambda with A^T M + M A + lambda M <= 0 for M = diag(d): lambda_min of D^-1/2 (-(A^T D + D A)) D^-1/2."""
+    """The largest lambda with A^T M + M A + lambda M <= 0 for M = diag(d): lambda_min of D^-1/2 (-(A^T D + D A)) D^-1/2.
+
+    Parameters
+    ----------
+    A : scipy.sparse.csr_matrix (n, n)
+        One matrix of the network polytope.
+    d : ndarray (n,)
+        The diagonal of M (positive).
+
+    Returns
+    -------
+    float
+        In the units of A; <= 0 when M certifies no positive rate.
+    """
     Dh = sps.diags(1.0 / np.sqrt(d))
     D = sps.diags(d)
     N = (Dh @ (-(A.T @ D + D @ A)) @ Dh).tocsc()
@@ -139,7 +164,22 @@ def largest_rate(A: sps.csr_matrix, d: np.ndarray) -> float:
 
 def network_polytope(model: Model, terms: Terms) -> tuple[Polytope, Network] | None:
     """The network certificate's matrices (as a polytope over the non-dissipative terms' corners) and its M, or None
-    when no diagonal M makes the terms dissipative or too many others remain."""
+    when no diagonal M makes the terms dissipative or too many others remain.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies n.
+    terms : Terms
+        The Jacobian's decomposition over state_box x U.
+
+    Returns
+    -------
+    tuple of (Polytope, Network) or None
+        The polytope (dense matrices up to 400 states, sparse above; no ``balls``, ``meta["_network"]`` is the
+        Network) and the Network; None when :func:`dissipative_storage` finds none or more than MAX_VERTEX_TERMS
+        terms are not dissipative.
+    """
     net = dissipative_storage(terms, model.n)
     if net is None or len(net.others) > MAX_VERTEX_TERMS:
         return None
@@ -157,7 +197,26 @@ def network_polytope(model: Model, terms: Terms) -> tuple[Polytope, Network] | N
 
 def prove(model: Model, terms: Terms, net: Network, lam: float) -> tuple[float, str]:
     """A proved upper bound of the largest eigenvalue of A(theta)^T M + M A(theta) + lambda M over the term box, for
-    M = diag(d) (inf when no proof is found); see the module docstring."""
+    M = diag(d) (inf when no proof is found); see the module docstring.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies n.
+    terms : Terms
+        The decomposition the network was found from (its ranges must be proved).
+    net : Network
+        M = diag(net.d) and which terms are dissipative.
+    lam : float
+        The decay rate, in the plant's units.
+
+    Returns
+    -------
+    bound : float
+        The proved bound (<= 0: eq. (28) holds on the term box), or inf.
+    how : str
+        What was proved, or why not.
+    """
     if not terms.proved:
         return np.inf, "the term ranges over state_box x U were only sampled"
     n = model.n

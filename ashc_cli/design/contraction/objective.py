@@ -84,7 +84,25 @@ def min_gain_M(A_list: list[np.ndarray], lam: float, W: list[np.ndarray], C: np.
 
 
 def gain_estimate(M: np.ndarray, lam: float, W: list[np.ndarray], C: np.ndarray | None, L_h: float | None = None) -> float:
-    """G = (2 sqrt 2 / lambda) sqrt(max_j ||sqrt(M) W_j||^2 / alpha_h) on the grid (the bound stage computes the proved one)."""
+    """G = (2 sqrt 2 / lambda) sqrt(max_j ||sqrt(M) W_j||^2 / alpha_h) on the grid (the bound stage computes the proved one).
+
+    Parameters
+    ----------
+    M : ndarray (n, n)
+        Symmetric positive definite.
+    lam : float
+        The decay rate (G scales as 1 / lam: the plant's units give the plant's G).
+    W : list of ndarray (n, m_hat)
+        dp/dxi delta at the grid points of V.
+    C : ndarray (p, n) or None
+        The linear output map: alpha_h = 1 / lambda_max(C M^-1 C^T); None for a nonlinear h.
+    L_h : float, optional
+        For a nonlinear h, its Lipschitz constant (Assumption 1): alpha_h = lambda_min(M) / L_h^2 (None or 0: 1).
+
+    Returns
+    -------
+    float
+    """
     dbar2 = max(float(np.linalg.eigvalsh(Wj.T @ M @ Wj).max()) for Wj in W)
     if C is not None:
         alpha = 1.0 / float(np.linalg.eigvalsh(C @ np.linalg.solve(M, C.T)).max())
@@ -95,7 +113,26 @@ def gain_estimate(M: np.ndarray, lam: float, W: list[np.ndarray], C: np.ndarray 
 
 def frontier(A_list: list[np.ndarray], lam_max: float, W: list[np.ndarray], C: np.ndarray | None, structure: str = "full",
              L_h: float | None = None) -> list[tuple[float, float, np.ndarray]]:
-    """(lambda, G, M) at the fractions FRONTIER of lam_max where the smallest-gain M is found (rates in the units of A_list)."""
+    """(lambda, G, M) at the fractions FRONTIER of lam_max where the smallest-gain M is found (rates in the units of A_list).
+
+    The fraction of the smallest G is then refined by the midpoints beside it.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices (divided by the rate scale, as lam_max).
+    lam_max : float
+        The largest certified rate.
+    W, C, L_h
+        As for :func:`gain_estimate`.
+    structure : {"full", "diagonal"}
+        The form of M.
+
+    Returns
+    -------
+    list of (float, float, ndarray)
+        (lambda, G, M) in increasing lambda, only where :func:`min_gain_M` found an M.
+    """
     out: dict = {}
 
     def at(frac: float) -> None:

@@ -27,6 +27,19 @@ def prove_lmi(model: Model, polytope: Polytope, K: np.ndarray, M: np.ndarray, la
     matrix is formed in ball arithmetic from the formulas (parameters exact as doubles) and its LMI proved by an
     arb Cholesky.
 
+    Parameters
+    ----------
+    model : Model
+        Supplies g (B = g at x = 0: linear_gain needs g constant) and the parameter values.
+    polytope : Polytope
+        Its ``balls()`` are the vertex matrices; an unproved polytope is not attempted.
+    K : ndarray (m, n)
+        The feedback gain (zeros for identity feedback).
+    M : ndarray (n, n)
+        The certificate.
+    lam : float
+        The decay rate, in the plant's units.
+
     Returns
     -------
     margin : float

@@ -40,6 +40,11 @@ def refuse_jumps(model: Model) -> None:
     """Refuse an f with a jump (sign, square, step of a state) inside state_box x U: the Jacobian LMI's mean-value
     argument needs f Lipschitz there.  (abs, min and max are Lipschitz and handled by their generalised derivatives.)
 
+    Parameters
+    ----------
+    model : Model
+        Its f_bar and g are checked over state_box x U (``concrete.state_box`` must be given).
+
     Raises
     ------
     DesignError
@@ -48,7 +53,7 @@ def refuse_jumps(model: Model) -> None:
     fields = [(f"concrete.f_bar[{i}]", e) for i, e in enumerate(model.f_bar)]
     fields += [(f"concrete.g[{i}][{j}]", e) for (i, j), e in model.g.todok().items() if e != 0]
     proofs.refuse_jumps(model, fields, list(model.x) + list(model.u), np.r_[model.state_box, model.U],
-                        "f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. egLMI) can certify it",
+                        "f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. (28)) can certify it",
                         "a smooth approximation of the jump", check="lmi_margin")
 
 
@@ -64,6 +69,13 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
     Where ball arithmetic cannot enclose an entry (or the enclosure is not finite), its range comes from a
     grid refined by bounded local searches, widened by 1e-9 relative: the LMI is then only *sampled*
     (``meta["ranges_proved"]`` is False) and ``ashc check`` says so.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies f, state_box and U.
+    J : sympy Matrix (n, n), optional
+        df/dx(x, u) if already computed (default: :func:`sparse_jacobian` of ``model.f``).
 
     Returns
     -------
@@ -153,7 +165,26 @@ def _enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) ->
 def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed: int = 2) -> tuple[list[np.ndarray], np.ndarray]:
     """df/dx at random points of state_box x U (the numpy re-check of the Jacobian LMI), and the points (rows of (x, u)).
 
-    2000 points up to 64 states, fewer above (each is a dense n x n matrix and an eigenvalue problem)."""
+    2000 points up to 64 states, fewer above (each is a dense n x n matrix and an eigenvalue problem).
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values, state_box and U.
+    J : sympy Matrix (n, n)
+        df/dx(x, u).
+    count : int, optional
+        The number of points (default 2000 up to 64 states, max(4, 2000 (64 / n)^2) above).
+    seed : int
+        Seed of numpy's ``default_rng``.
+
+    Returns
+    -------
+    samples : list of ndarray (n, n)
+        df/dx at each point.
+    points : ndarray (count, n + m)
+        The points, rows of (x, u).
+    """
     if count is None:
         count = 2000 if model.n <= 64 else max(4, int(2000 * (64 / model.n) ** 2))
     rng = np.random.default_rng(seed)
@@ -236,6 +267,17 @@ def decompose(model: Model, J: sp.Matrix) -> Terms:
     An Arrhenius term exp(-E/T) that enters four entries of a reactor's Jacobian is then one or two terms, not four
     independent entries (a box of entries contains Jacobians no state produces); a diode exp(40 (x_k - x_k+1)) of a
     network is one rank-one term.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values (substituted first), state_box and U (the box the terms are enclosed on).
+    J : sympy Matrix (n, n)
+        df/dx(x, u).
+
+    Returns
+    -------
+    Terms
     """
     import scipy.sparse as sps
 
@@ -323,7 +365,22 @@ class Polytope:
 
 
 def affine_polytope(model: Model, A_sym: sp.Matrix, U_vertices: np.ndarray) -> Polytope:
-    """A(u) at the vertices of U (A affine in u): the LMI, affine in A, holds on U once it holds there."""
+    """A(u) at the vertices of U (A affine in u): the LMI, affine in A, holds on U once it holds there.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies u and the parameter values.
+    A_sym : sympy Matrix (n, n)
+        A(u) = df/dx, free of x.
+    U_vertices : ndarray (2^m, m)
+        The vertices of U (:func:`~ashc_cli.design.contraction.vertex.vertices`).
+
+    Returns
+    -------
+    Polytope
+        ``proved`` when A_sym is affine in u.
+    """
     A_num = model.numeric(A_sym, list(model.u))
 
     def balls():
@@ -335,7 +392,20 @@ def affine_polytope(model: Model, A_sym: sp.Matrix, U_vertices: np.ndarray) -> P
 
 
 def entry_polytope(model: Model, J: sp.Matrix) -> Polytope:
-    """The corners of the box of the varying entries of df/dx (:func:`jacobian_polytope`)."""
+    """The corners of the box of the varying entries of df/dx (:func:`jacobian_polytope`).
+
+    Parameters
+    ----------
+    model : Model
+        Supplies state_box, U and the parameter values.
+    J : sympy Matrix (n, n)
+        df/dx(x, u).
+
+    Returns
+    -------
+    Polytope
+        ``proved`` when every entry range is a ball-arithmetic enclosure; ``meta`` adds ``ranges``.
+    """
     _, A_list, ranges, meta = jacobian_polytope(model, J)
     args = list(model.x) + list(model.u)
     varying = [(i, j) for (i, j), e in np.ndenumerate(np.array(J, dtype=object)) if e.free_symbols & set(args)]
@@ -359,7 +429,20 @@ def entry_polytope(model: Model, J: sp.Matrix) -> Polytope:
 
 
 def term_polytope(model: Model, terms: Terms) -> Polytope:
-    """The corners of the box of the term values: A0 + sum_k theta_k A_k with each theta_k at an end of its range."""
+    """The corners of the box of the term values: A0 + sum_k theta_k A_k with each theta_k at an end of its range.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies n and the parameter values.
+    terms : Terms
+        The decomposition (:func:`decompose`).
+
+    Returns
+    -------
+    Polytope
+        2^K matrices, ``proved`` when ``terms.proved``.
+    """
     corners = list(itertools.product(*[tuple(r) for r in terms.ranges]))
 
     def balls():

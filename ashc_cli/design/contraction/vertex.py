@@ -57,12 +57,35 @@ SCALE_FREE_MARGIN = 1e-7
 
 
 def vertices(U: np.ndarray) -> np.ndarray:
-    """The 2^m vertices of the box U, one per row."""
+    """The 2^m vertices of the box U, one per row.
+
+    Parameters
+    ----------
+    U : ndarray (m, 2)
+        The input box (``concrete.input_bounds``).
+
+    Returns
+    -------
+    ndarray (2^m, m)
+        In the order of ``itertools.product`` (the last input varying fastest).
+    """
     return np.array(list(itertools.product(*[(lo, hi) for lo, hi in U])), dtype=float)
 
 
 def sweep(U: np.ndarray, points: int = SWEEP_POINTS) -> np.ndarray:
-    """Points of U to re-check the LMI on: a grid of about ``points`` points (rows)."""
+    """Points of U to re-check the LMI on: a grid of about ``points`` points (rows).
+
+    Parameters
+    ----------
+    U : ndarray (m, 2)
+        The input box.
+    points : int
+        The number of points aimed at: k = max(2, round(points^(1/m))) per axis.
+
+    Returns
+    -------
+    ndarray (k^m, m)
+    """
     per_axis = max(2, int(round(points ** (1.0 / len(U)))))
     axes = [np.linspace(lo, hi, per_axis) for lo, hi in U]
     return np.array(list(itertools.product(*axes)), dtype=float)
@@ -70,7 +93,18 @@ def sweep(U: np.ndarray, points: int = SWEEP_POINTS) -> np.ndarray:
 
 def lmi_scale(A_list: list[np.ndarray]) -> float:
     """The plant's rate scale: the largest spectral radius of the A_k (its fastest time constant, whatever the
-    units of the states), or the largest ||A_k||_2 where every eigenvalue is 0; 1 for an all-zero A."""
+    units of the states), or the largest ||A_k||_2 where every eigenvalue is 0; 1 for an all-zero A.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices, in the plant's units.
+
+    Returns
+    -------
+    float
+        A positive rate (1/time) the callers divide the A_k and the rates by.
+    """
     s = max(float(np.abs(np.linalg.eigvals(A)).max()) for A in A_list)
     if not (np.isfinite(s) and s > 0):
         s = max(float(np.linalg.norm(A, 2)) for A in A_list)
@@ -78,12 +112,38 @@ def lmi_scale(A_list: list[np.ndarray]) -> float:
 
 
 def lmi_margins(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> np.ndarray:
-    """Largest eigenvalue of A^T M + M A + lambda M for each A (<= 0 where eq. egLMI holds)."""
+    """Largest eigenvalue of A^T M + M A + lambda M for each A (<= 0 where eq. (28) holds).
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices.
+    M : ndarray (n, n)
+        Symmetric.
+    lam : float
+        The decay rate, in the units of A_list.
+
+    Returns
+    -------
+    ndarray (len(A_list),)
+    """
     return np.array([np.linalg.eigvalsh(A.T @ M + M @ A + lam * M).max() for A in A_list])
 
 
 def solve_with_clarabel(problem: cp.Problem, what: str) -> cp.Problem:
-    """Solve with Clarabel; a solver failure becomes a NumericalError naming the problem."""
+    """Solve with Clarabel; a solver failure becomes a NumericalError naming the problem.
+
+    Parameters
+    ----------
+    problem : cvxpy Problem
+    what : str
+        The problem's name in the error message ("the LMI at lambda = 2 (full M)").
+
+    Returns
+    -------
+    cvxpy Problem
+        ``problem`` itself, solved (its status may still be infeasible or inaccurate).
+    """
     try:
         problem.solve(solver=cp.CLARABEL)
     except cp.SolverError as exc:
@@ -92,12 +152,28 @@ def solve_with_clarabel(problem: cp.Problem, what: str) -> cp.Problem:
 
 
 def unknown_M(n: int, structure: str) -> tuple[cp.Variable, cp.Expression, list]:
-    """The matrix unknown of eq. egLMI in the given structure, and the constraint M >= eps I for it.
+    """The matrix unknown of eq. (28) in the given structure, and the constraint M >= eps I for it.
 
     ``full``: a symmetric n x n variable (n (n + 1) / 2 unknowns, a dense LMI).  ``diagonal``: M = diag(d), n
     unknowns; the LMI then has the sparsity of A + A^T, which Clarabel's chordal decomposition splits into
     small cones, and M >= eps I is the linear constraint d >= eps (a network of stages is often diagonally
     stable with the stored energy as certificate).
+
+    Parameters
+    ----------
+    n : int
+        The number of states.
+    structure : {"full", "diagonal"}
+        The form of M (anything but ``diagonal`` is full).
+
+    Returns
+    -------
+    var : cvxpy Variable
+        The unknown: d (n,) for ``diagonal``, the symmetric (n, n) M for ``full``.
+    M : cvxpy Expression (n, n)
+        M in terms of ``var``.
+    positive : list of cvxpy Constraint
+        M >= M_MIN_EIG I.
     """
     if structure == "diagonal":
         d = cp.Variable(n)
@@ -107,14 +183,26 @@ def unknown_M(n: int, structure: str) -> tuple[cp.Variable, cp.Expression, list]
 
 
 def value_of_M(var: cp.Variable, structure: str) -> np.ndarray:
-    """The numeric M (symmetrised) of a solved unknown."""
+    """The numeric M (symmetrised) of a solved unknown.
+
+    Parameters
+    ----------
+    var : cvxpy Variable
+        The ``var`` of :func:`unknown_M`, after a solve.
+    structure : {"full", "diagonal"}
+        The structure it was made with.
+
+    Returns
+    -------
+    ndarray (n, n)
+    """
     if structure == "diagonal":
         return np.diag(np.asarray(var.value, dtype=float))
     return 0.5 * (var.value + var.value.T)
 
 
 def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
-    """Find M maximising the margin of eq. egLMI at the given vertices for a fixed lambda.
+    """Find M maximising the margin of eq. (28) at the given vertices for a fixed lambda.
 
     Parameters
     ----------
@@ -210,7 +298,7 @@ def _max_margin(A_list: list[np.ndarray], lam: float, structure: str, cone: bool
 
 
 def infeasible_from(A_list: list[np.ndarray], Z_list: list[np.ndarray], lam: float, structure: str = "full") -> float:
-    """A rate above which eq. egLMI is infeasible, from dual matrices Z_k (one per vertex): inf if they prove nothing.
+    """A rate above which eq. (28) is infeasible, from dual matrices Z_k (one per vertex): inf if they prove nothing.
 
     For any Z_k >= 0 let W = sum Z_k and S(mu) = sum (A_k Z_k + Z_k A_k^T) + mu W.  An M > 0 feasible at mu
     gives 0 >= sum tr(Z_k (A_k^T M + M A_k + mu M)) = tr(M S(mu)), which is impossible when S(mu) >= 0 and
@@ -268,12 +356,21 @@ def infeasible_from(A_list: list[np.ndarray], Z_list: list[np.ndarray], lam: flo
 
 
 def solve_lmi_scale_free(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
-    """Find M for eq. egLMI at a fixed lambda whatever its scaling: the best-conditioned one.
+    """Find M for eq. (28) at a fixed lambda whatever its scaling: the best-conditioned one.
 
     Minimise kappa subject to I <= M <= kappa I and A^T M + M A + lambda M <= -SCALE_FREE_MARGIN kappa I at
     every vertex.  Without the lower bound every constraint is homogeneous in (M, kappa), so feasibility does
     not depend on how M is scaled (unlike trace(M) = n with M >= 1e-3 I, which caps trace(M) / lambda_min(M)
     at 4000), and the margin relative to ||M|| <= kappa is at least SCALE_FREE_MARGIN.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices (divided by the rate scale, as lam).
+    lam : float
+        The decay rate.
+    structure : {"full", "diagonal"}
+        The form of M.
 
     Returns
     -------
@@ -310,13 +407,23 @@ def solve_lmi_scale_free(A_list: list[np.ndarray], lam: float, structure: str = 
 
 
 def relative_margin(A_list: list[np.ndarray], M: np.ndarray, lam: float) -> float:
-    """Largest eigenvalue of A^T M + M A + lambda M over the vertices, over ||M||_2 (numpy; < 0: certified)."""
+    """Largest eigenvalue of A^T M + M A + lambda M over the vertices, over ||M||_2 (numpy; < 0: certified).
+
+    Parameters
+    ----------
+    A_list, M, lam
+        As for :func:`lmi_margins` (M positive definite).
+
+    Returns
+    -------
+    float
+    """
     return float(lmi_margins(A_list, M, lam).max() / np.linalg.eigvalsh(M).max())
 
 
 def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full", cone: bool = True,
                  scale_free: bool = True) -> tuple[np.ndarray | None, float, str, dict]:
-    """An M certifying eq. egLMI at lambda, or None: the feasibility test of a fixed rate and of the bisection.
+    """An M certifying eq. (28) at lambda, or None: the feasibility test of a fixed rate and of the bisection.
 
     First the maximum-margin problem (:func:`solve_lmi`; accepted when its margin is below -MARGIN_TOL, as
     before, and the numpy margin of its M is negative), then, unless that problem shows lambda infeasible for
@@ -325,6 +432,19 @@ def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full", 
     The maximum-margin problem with the cone is not solved when the one without it already has a margin
     >= -MARGIN_TOL (it could not certify), nor with ``cone=False`` (the bisection knows it fails here); the
     scale-free problem not with ``scale_free=False``.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices (divided by the rate scale, as lam).
+    lam : float
+        The decay rate to certify.
+    structure : {"full", "diagonal"}
+        The form of M.
+    cone : bool
+        False: skip the maximum-margin problem with the cone M >= eps I.
+    scale_free : bool
+        False: skip the scale-free problem.
 
     Returns
     -------
@@ -359,7 +479,7 @@ def certify_rate(A_list: list[np.ndarray], lam: float, structure: str = "full", 
 
 
 def largest_decay_rate(A_list: list[np.ndarray], structure: str = "full", info: dict | None = None) -> tuple[float, np.ndarray | None]:
-    """The largest lambda for which eq. egLMI is feasible, by bisection on lambda, and its M.
+    """The largest lambda for which eq. (28) is feasible, by bisection on lambda, and its M.
 
     lambda cannot exceed -2 max Re eig(A) at any vertex (A^T M + M A <= -lambda M forces Re eig(A) <= -lambda / 2),
     which brackets the search; it stops when the bracket is narrower than BISECTION_RTOL times that bound.
@@ -382,6 +502,27 @@ def largest_decay_rate(A_list: list[np.ndarray], structure: str = "full", info: 
 
     ``info``, if given, receives certify_rate's description of the M returned and ``upper_bound``, the upper end
     of the final bracket (no rate above it was certified).
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices (the stage divides them by the rate scale, :func:`lmi_scale`).
+    structure : {"full", "diagonal"}
+        The form of M.
+    info : dict, optional
+        Filled as said above (cleared first), when an M is found.
+
+    Returns
+    -------
+    lam : float
+        The largest rate certified, in the units of A_list; 0 when none is.
+    M : ndarray (n, n) or None
+        Its certificate (trace(M) = n); None when no rate is certified.
+
+    Raises
+    ------
+    NumericalError
+        The last solver failure, when no rate was certified.
     """
     upper = min(-2.0 * np.linalg.eigvals(A).real.max() for A in A_list)
     if upper <= 0:
@@ -413,12 +554,38 @@ def largest_decay_rate(A_list: list[np.ndarray], structure: str = "full", info: 
 
 def largest_decay_rate_for(A_list: list[np.ndarray], M: np.ndarray) -> float:
     """The largest lambda a given M certifies: min over vertices of the generalised eigenvalues of
-    -(A^T M + M A) relative to M."""
+    -(A^T M + M A) relative to M.
+
+    Parameters
+    ----------
+    A_list : list of ndarray (n, n)
+        The vertex matrices.
+    M : ndarray (n, n)
+        Symmetric positive definite.
+
+    Returns
+    -------
+    float
+        In the units of A_list; <= 0 when M certifies no positive rate.
+    """
     return float(min(sla.eigh(-(A.T @ M + M @ A), M, eigvals_only=True).min() for A in A_list))
 
 
 def structures(choice: str, n: int) -> list[str]:
-    """The forms of M to try, in order, for ``stabilisability.structure`` (see :data:`FULL_MAX_STATES`)."""
+    """The forms of M to try, in order, for ``stabilisability.structure`` (see :data:`FULL_MAX_STATES`).
+
+    Parameters
+    ----------
+    choice : str
+        ``stabilisability.structure``: ``auto``, ``full`` or ``diagonal``.
+    n : int
+        The number of states.
+
+    Returns
+    -------
+    list of str
+        ``[choice]``, or for ``auto`` ``["full"]`` up to FULL_MAX_STATES states and ``["diagonal", "full"]`` above.
+    """
     if choice != "auto":
         return [choice]
     return ["full"] if n <= FULL_MAX_STATES else ["diagonal", "full"]

@@ -1,4 +1,4 @@
-"""The design stages, one module per box of the paper's flow chart (Fig. Flow_Chart), in order.
+"""The design stages, one module per box of the paper's flow chart (Fig. 3), in order.
 
 Each module has the same small interface: ``NAME``, ``UPSTREAM`` (the stages whose artefacts it reads),
 ``run(model, upstream) -> Artefact`` (a pure function), ``summarise(artefact) -> dict`` and

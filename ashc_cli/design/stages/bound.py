@@ -1,23 +1,23 @@
-"""Stage 6: the simulation function's error bound (Section V, eqs. egConditionB, iota, egErrorBound).
+"""Stage 6: the simulation function's error bound (Section V, eqs. (36), (37), (38)).
 
-With W(xi, x) = (p(xi) - x)^T M (p(xi) - x) (eq. egSimuFunc) and the interface u_w = l(xi) + q(xi, x) v:
+With W(xi, x) = (p(xi) - x)^T M (p(xi) - x) (eq. (35)) and the interface u_w = l(xi) + q(xi, x) v:
 
-* alpha_h: the largest c with M >= c C^T C for h(x) = C x, i.e. 1 / lambda_max(C M^-1 C^T) (eq. SimuFuncCondi1
+* alpha_h: the largest c with M >= c C^T C for h(x) = C x, i.e. 1 / lambda_max(C M^-1 C^T) (eq. (6)
   with alpha_h(r) = c r^2; the paper rounds it to 0.52, ERRATA item 4); for a nonlinear h,
   lambda_min(M) / L_h^2 with L_h the Lipschitz constant of Assumption 1, computed over ``concrete.state_box``;
 * epsilon = lambda / 2, which maximises (lambda - epsilon) epsilon;
-* theta(xi, x) = sqrt(M) (dp/dxi delta(xi) - g(x) q(xi, x)) (eq. iota, the paper's vartheta);
-* dbar = sup over V of ||theta|| with q = 0 (a plain norm, as in Section V; Proposition condB's dbar is its
+* theta(xi, x) = sqrt(M) (dp/dxi delta(xi) - g(x) q(xi, x)) (eq. (37), the paper's vartheta);
+* dbar = sup over V of ||theta|| with q = 0 (a plain norm, as in Section V; Proposition 1's dbar is its
   square, stored as ``dbar_q0_squared``, ERRATA item 10), for the spec's delta and for delta = I;
-* dbar_ls: the same with the least-squares q of eq. egqLS, on the manifold x = p(xi).  Off the manifold
+* dbar_ls: the same with the least-squares q of eq. (43), on the manifold x = p(xi).  Off the manifold
   g(x) can vanish (the converter's g is zero at x2 = 0, x3 = x1) and theta is then the q = 0 value, so only
   dbar_q0 bounds theta uniformly on V x R^n;
-* the gain of eq. egErrorBound, G = sqrt(2 / (alpha_h (lambda - epsilon) epsilon)) dbar_q0, so that
-  |psi - y| <= G ||v||_inf when W(xi0, x0) = 0.  This keeps the factor 2 of Theorem ErrorBound's max-form
+* the gain of eq. (38), G = sqrt(2 / (alpha_h (lambda - epsilon) epsilon)) dbar_q0, so that
+  |psi - y| <= G ||v||_inf when W(xi0, x0) = 0.  This keeps the factor 2 of Theorem 2's max-form
   (the paper's form); ``gain_comparison`` = G / sqrt(2) is what the comparison lemma gives for linear eta
   (ERRATA item 7).
 
-What the interface does to that argument (:func:`interface_dbar`, :func:`certified_region`):
+What the interface does to that argument (:func:`_interface_dbar`, :func:`certified_region`):
 
 * the saturated interface applies u - l = S (K e + q v) with e = x - p(xi).  Clipping channel by channel
   (``saturate: true``) gives S = diag(s), s in [0, 1]^m; ``saturate: scale`` gives S = s I.  For identity
@@ -65,12 +65,22 @@ BOUND_CHECKS = (("stabilise", "lmi_margin"), ("stabilise", "M_positive"), ("mani
 
 
 def alpha_h_linear(M: np.ndarray, C: np.ndarray) -> float:
-    """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4)."""
+    """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4).
+
+    Parameters
+    ----------
+    M, C : ndarray (n, n), (p, n)
+        The positive definite matrix of W (stabilise's ``M``) and the output matrix of h(x) = C x.
+
+    Returns
+    -------
+    float
+    """
     return float(1.0 / np.linalg.eigvalsh(C @ np.linalg.solve(M, C.T)).max())
 
 
-def alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
-    """alpha_h for a nonlinear h with Lipschitz constant L_h (Assumption 1, proof of Theorem SimuDesign).
+def _alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
+    """alpha_h for a nonlinear h with Lipschitz constant L_h (Assumption 1, proof of Theorem 4).
 
     W = (p - x)^T M (p - x) >= lambda_min(M) |p - x|^2 >= (lambda_min(M) / L_h^2) |h(p) - h(x)|^2.
     """
@@ -78,16 +88,25 @@ def alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
 
 
 def error_bound_gain(alpha_h: float, lam: float, eps: float, dbar: float) -> float:
-    """The factor G of eq. egErrorBound: alpha_h^-1(eta^-1(2 gamma(|v|))) = G |v|.
+    """The factor G of eq. (38): alpha_h^-1(eta^-1(2 gamma(|v|))) = G |v|.
 
     With eta(r) = (lambda - eps) r, gamma(r) = dbar^2 r^2 / eps and alpha_h(r) = alpha_h r^2,
-    G = sqrt(2 / (alpha_h (lambda - eps) eps)) dbar (the paper's form, with Theorem ErrorBound's factor 2).
+    G = sqrt(2 / (alpha_h (lambda - eps) eps)) dbar (the paper's form, with Theorem 2's factor 2).
+
+    Parameters
+    ----------
+    alpha_h, lam, eps, dbar : float
+        alpha_h r^2's coefficient, lambda (stabilise's rate), epsilon (0 < eps < lam) and the sup of ||theta||.
+
+    Returns
+    -------
+    float
     """
     return float(np.sqrt(2.0 / (alpha_h * (lam - eps) * eps)) * dbar)
 
 
 def theta_norms(L: np.ndarray, dpd: np.ndarray, g: np.ndarray | None) -> np.ndarray:
-    """||theta|| (2-norm) at each point, theta = L^T (dp/dxi delta - g q) with M = L L^T (eq. iota).
+    """||theta|| (2-norm) at each point, theta = L^T (dp/dxi delta - g q) with M = L L^T (eq. (37)).
 
     Parameters
     ----------
@@ -96,7 +115,7 @@ def theta_norms(L: np.ndarray, dpd: np.ndarray, g: np.ndarray | None) -> np.ndar
     dpd : ndarray (n, m_hat, N)
         dp/dxi delta at N points.
     g : ndarray (n, m, N) or None
-        g(x) at the same points for the least-squares q (eq. egqLS); None for q = 0.
+        g(x) at the same points for the least-squares q (eq. (43)); None for q = 0.
     """
     A = sqrt_M_times(L, dpd)                                     # sqrt(M) dp/dxi delta, (N, n, m_hat)
     if g is not None:
@@ -106,7 +125,7 @@ def theta_norms(L: np.ndarray, dpd: np.ndarray, g: np.ndarray | None) -> np.ndar
     return np.linalg.norm(A, ord=2, axis=(1, 2)) if A.shape[2] > 1 else np.linalg.norm(A[:, :, 0], axis=1)
 
 
-def sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, float]:
+def _sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, float]:
     """Refine the largest of ``values`` on a 1-D grid by a bounded search in the neighbouring cells."""
     k = int(np.nanargmax(values))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
@@ -118,15 +137,15 @@ def sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, f
     return best, float(best_x)
 
 
-def constant_g(model: Model) -> np.ndarray | None:
+def _constant_g(model: Model) -> np.ndarray | None:
     """g as a number matrix (n, m) when it does not depend on x, else None."""
     if model.g.free_symbols & set(model.x):
         return None
     return np.asarray(model.numeric(model.g, list(model.x))(*np.zeros(model.n)), dtype=float).reshape(model.n, model.m)
 
 
-def least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
-    """q = (sqrt(M) g)^+ sqrt(M) dp/dxi delta (eq. egqLS) for a constant g at N points: (N, m, m_hat)."""
+def _least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """q = (sqrt(M) g)^+ sqrt(M) dp/dxi delta (eq. (43)) for a constant g at N points: (N, m, m_hat)."""
     A = sqrt_M_times(L, dpd)
     return np.linalg.pinv(L.T @ g)[None] @ A
 
@@ -136,10 +155,19 @@ def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.nda
 
     The sup of ||theta|| over every per-channel clipping factor s in [0, 1]^m (``saturate: true``): theta is
     affine in s, so its norm (convex) is largest at a vertex of the cube.
+
+    Parameters
+    ----------
+    L, g, dpd : ndarray (n, n), (n, m), (n, m_hat, N)
+        Cholesky factor of M, the constant g, and dp/dxi delta at N points (q: the least-squares q of eq. (43)).
+
+    Returns
+    -------
+    ndarray (N,)
     """
     m = g.shape[1]
     A = sqrt_M_times(L, dpd)                                     # (N, n, m_hat)
-    q = least_squares_q(L, g, dpd)                               # (N, m, m_hat)
+    q = _least_squares_q(L, g, dpd)                               # (N, m, m_hat)
     B = L.T @ g                                                  # (n, m)
     best = np.zeros(A.shape[0])
     for k in range(2 ** m):
@@ -149,7 +177,7 @@ def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.nda
     return best
 
 
-def interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: float) -> tuple[float, str]:
+def _interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: float) -> tuple[float, str]:
     """The sup of ||theta|| over V, the states and every factor the saturated interface can apply.
 
     Returns
@@ -165,7 +193,7 @@ def interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: f
     if itf.q == "zero" or itf.saturate is not True or model.m == 1 or feedback == "linear_gain":
         return dbar_q0, ("q = 0 value: bounds the least-squares q pointwise and every saturation factor of one input, "
                          "of the scaled correction (saturate: scale) and of the unsaturated region of a feedback design")
-    g = constant_g(model)
+    g = _constant_g(model)
     if g is None or model.m > MAX_PATTERN_INPUTS:
         why = "g depends on x" if g is None else f"more than {MAX_PATTERN_INPUTS} inputs"
         return np.inf, (f"interface.saturate: true clips the {model.m} channels of the least-squares correction separately and {why}: "
@@ -181,7 +209,7 @@ def _balls(A):
     return arb_mat([[proofs.arb(v) if not isinstance(v, proofs.arb) else v for v in row] for row in (A.tolist() if isinstance(A, np.ndarray) else A)])
 
 
-def constant_dp_delta(model: Model, dp_delta: sp.Matrix | None) -> list[list] | None:
+def _constant_dp_delta(model: Model, dp_delta: sp.Matrix | None) -> list[list] | None:
     """dp/dxi delta as a ball matrix when it does not depend on xi (an affine p with a constant delta), else None."""
     if dp_delta is None or dp_delta.free_symbols & set(model.xi):
         return None
@@ -191,8 +219,8 @@ def constant_dp_delta(model: Model, dp_delta: sp.Matrix | None) -> list[list] | 
         return None
 
 
-def least_squares_q_balls(M: np.ndarray, g: np.ndarray, w: list[list]):
-    """q = (g^T M g)^-1 g^T M w (eq. egqLS, g of full column rank) as an arb_mat (m x m_hat), or None."""
+def _least_squares_q_balls(M: np.ndarray, g: np.ndarray, w: list[list]):
+    """q = (g^T M g)^-1 g^T M w (eq. (43), g of full column rank) as an arb_mat (m x m_hat), or None."""
     Mb, gb, wb = _balls(M), _balls(g), _balls(w)
     G = gb.transpose() * Mb * gb
     try:
@@ -201,17 +229,17 @@ def least_squares_q_balls(M: np.ndarray, g: np.ndarray, w: list[list]):
         return None
 
 
-def prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp.Matrix | None) -> float:
+def _prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp.Matrix | None) -> float:
     """A proved upper bound of max over the 2^m clipping patterns S of ||sqrt(M) (dp/dxi delta - g S q)|| for a
     constant dp/dxi delta and a constant g (then theta does not depend on xi), or inf where not proved.
 
     q is the exact least-squares correction, enclosed in ball arithmetic; the norm of each pattern's theta is
     bounded by :func:`proofs.norm_sqrt_M` (exact for one abstract input, Gershgorin on the Gram matrix else).
     """
-    w = constant_dp_delta(model, dp_delta)
+    w = _constant_dp_delta(model, dp_delta)
     if w is None or model.n > proofs.MAX_PROOF_STATES:
         return np.inf
-    q = least_squares_q_balls(M, g, w)
+    q = _least_squares_q_balls(M, g, w)
     if q is None:
         return np.inf
     gb, wb = _balls(g), _balls(w)
@@ -224,7 +252,7 @@ def prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp.
     return float(worst)
 
 
-def prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dbar: float, eta_eps: float,
+def _prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dbar: float, eta_eps: float,
                  p_expr: sp.Matrix | None, dp_delta: sp.Matrix | None) -> tuple[float, float] | None:
     """Proved lower bounds of the certified region's c and v_c (:func:`certified_region`), or None where not proved.
 
@@ -244,14 +272,14 @@ def prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dba
         return None
     bounds = []
     try:
-        if input_must_stay_in_U(model, upstream):
+        if _input_must_stay_in_U(model, upstream):
             Kb = _balls(K)
             KMK = Kb * Minv * Kb.transpose()
-            g = constant_g(model)
+            g = _constant_g(model)
             qn = [proofs.arb(0)] * model.m
             if model.spec.interface.q == "least_squares" and g is not None:
-                w = constant_dp_delta(model, dp_delta)
-                q = least_squares_q_balls(M, g, w) if w is not None else None
+                w = _constant_dp_delta(model, dp_delta)
+                q = _least_squares_q_balls(M, g, w) if w is not None else None
                 if q is None:
                     return None
                 qn = [sum((q[i, j] ** 2 for j in range(q.ncols())), proofs.arb(0)).sqrt() for i in range(model.m)]
@@ -298,7 +326,7 @@ def _rooms(exprs, box: np.ndarray) -> list[sp.Expr]:
     return out
 
 
-def input_must_stay_in_U(model: Model, upstream: dict[str, Artefact]) -> bool:
+def _input_must_stay_in_U(model: Model, upstream: dict[str, Artefact]) -> bool:
     """Whether the certificate needs the applied u inside U: a clipped K (x - p) loses A + B K (saturating feedback),
     and without clipping (``saturate: false``) an A(u) or a Jacobian that depends on u is certified on U only."""
     itf, st = model.spec.interface, model.spec.stabilisability
@@ -333,20 +361,20 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
     c, reasons = np.inf, []
     stab = upstream["stabilise"]
     K = np.asarray(stab.values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
-    # interface_dbar leaves the clipping patterns out for linear_gain, so the region must exclude clipping
+    # _interface_dbar leaves the clipping patterns out for linear_gain, so the region must exclude clipping
     # whatever K came out as (even a zero K); without clipping, an A(u) certified on U needs u to stay in U.
-    if input_must_stay_in_U(model, upstream) and model.spec.interface.saturate is False and constant_g(model) is None:
-        raise DesignError("interface.saturate", "false with a g that depends on x: eq. egLMI holds for u in U only (A(u) depends on u "
+    if _input_must_stay_in_U(model, upstream) and model.spec.interface.saturate is False and _constant_g(model) is None:
+        raise DesignError("interface.saturate", "false with a g that depends on x: eq. (28) holds for u in U only (A(u) depends on u "
                           "through dg/dx u), and without clipping u = l + K (x - p) + q v leaves U for large v, with a q that grows "
                           "where g(x) is small, so no region of W0 and v keeps u in U", "interface.saturate: true or scale (u stays in U)",
                           check="certified_region")
-    if input_must_stay_in_U(model, upstream):
+    if _input_must_stay_in_U(model, upstream):
         # No channel clips while |K_i e| + |q_i v| <= room_i(xi): |K_i e| <= sqrt(c K_i M^-1 K_i^T) on {W <= c}
         # and |q_i v| <= ||q_i|| v_c with v_c = sqrt(c eta_eps) / dbar, so sqrt(c) <= room / (k_i + ||q_i|| sqrt(eta_eps) / dbar).
         k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
-        g = constant_g(model)
+        g = _constant_g(model)
         if model.spec.interface.q == "least_squares" and g is not None:
-            qn = np.linalg.norm(least_squares_q(L, g, dpd_grid), axis=2).T            # (m, N)
+            qn = np.linalg.norm(_least_squares_q(L, g, dpd_grid), axis=2).T            # (m, N)
         else:
             qn = np.zeros((model.m, grid.shape[1]))
         l = l_grid[:, 0, :]
@@ -371,7 +399,7 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
 
 
 def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, float, str] | None:
-    """alpha_h and L_h proved (eq. SimuFuncCondi1, Assumption 1), and how, or None where no proof is found.
+    """alpha_h and L_h proved (eq. (6), Assumption 1), and how, or None where no proof is found.
 
     Linear h = C x: alpha' = alpha_h (1 - 1e-9) with M - alpha' C^T C >= 0 proved by an arb Cholesky (C
     formed in ball arithmetic); when M is diagonal and every output reads one state (C^T C diagonal), the
@@ -379,6 +407,18 @@ def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, f
     ``proofs.MAX_PROOF_STATES`` states).  Nonlinear h (any number of outputs): L_h = a proved upper bound of
     sup ||dh/dx||_2 over ``concrete.state_box`` (:func:`jacobian_norm_expr`) and alpha' = (proved lower bound of
     lambda_min(M)) / L_h^2.
+
+    Parameters
+    ----------
+    model, M : Model, ndarray (n, n)
+        The spec's systems (h, C, ``concrete.state_box``) and the matrix of W.
+    alpha_h : float
+        The numpy value, proved less 1e-9 relative for a linear h (not used for a nonlinear h).
+
+    Returns
+    -------
+    (alpha_h, L_h, how) : (float, float, str) or None
+        The proved alpha_h and L_h (linear h: ||C||_2 in floating point) and how; None without a proof.
     """
     diagonal = model.C is not None and not np.any(M - np.diag(np.diag(M))) and np.all(np.count_nonzero(model.C, axis=1) <= 1)
     if model.n > proofs.MAX_PROOF_STATES and not diagonal:
@@ -433,6 +473,16 @@ def jacobian_norm_expr(jac: sp.Matrix) -> tuple[sp.Expr, str]:
     One output: the gradient's Euclidean norm (exact).  Two outputs or two states: sqrt of the largest
     eigenvalue of the 2 x 2 Gram matrix in closed form (exact).  Otherwise the Frobenius norm, an upper bound
     within a factor sqrt(min(p, n)).
+
+    Parameters
+    ----------
+    jac : sympy Matrix (p, n)
+        dh/dx.
+
+    Returns
+    -------
+    expr, how : sympy Expr, str
+        The bound (in x) and which bound it is.
     """
     p, n = jac.shape
     if p == 1:
@@ -443,8 +493,8 @@ def jacobian_norm_expr(jac: sp.Matrix) -> tuple[sp.Expr, str]:
     return sp.sqrt(sum(e**2 for e in jac)), "Frobenius norm, >= the 2-norm"
 
 
-def prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
-    """A proved upper bound of sup over V of ||sqrt(M) dp/dxi delta|| (dbar with q = 0, eq. iota), inf if none.
+def _prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
+    """A proved upper bound of sup over V of ||sqrt(M) dp/dxi delta|| (dbar with q = 0, eq. (37)), inf if none.
 
     Branch and bound over V in ball arithmetic, seeded with the grid maximum; ||sqrt(M) w||_2 is the square
     root of the largest eigenvalue of the Gram matrix w^T M w, in closed form for one or two abstract inputs,
@@ -503,7 +553,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 def _alpha_h(model: Model, M: np.ndarray) -> dict:
     """alpha_h and L_h (1 / lambda_max(C M^-1 C^T) for a linear h, Assumption 1 otherwise), proved where ball arithmetic can."""
     lipschitz_h, lipschitz_at = model.h_jacobian_bound()
-    alpha_h = alpha_h_linear(M, model.C) if model.C is not None else alpha_h_lipschitz(M, lipschitz_h)
+    alpha_h = alpha_h_linear(M, model.C) if model.C is not None else _alpha_h_lipschitz(M, lipschitz_h)
     out = {"alpha_h_sampled": alpha_h, "lipschitz_h_sampled": lipschitz_h, "lipschitz_at": lipschitz_at, "how": "numpy", "proved": False}
     proof = prove_alpha_h(model, M, alpha_h)
     if proof is not None:
@@ -552,9 +602,9 @@ def _dbar(model: Model, M: np.ndarray, L: np.ndarray, th: dict) -> dict:
     grid, dpd_num, dp_num, g_num, p_num = th["grid"], th["dpd_num"], th["dp_num"], th["g_num"], th["p_num"]
     if model.n_hat == 1:
         xs = grid[0]
-        dbar_q0, at_q0 = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, th["norm_q0"])
-        dbar_id, at_id = sup_on_interval(lambda s: theta_norms(L, dp_num(s), None), xs, th["norm_q0_identity"])
-        dbar_ls, at_ls = sup_on_interval(lambda s: theta_norms(L, dpd_num(s), g_num(*p_num(s)[:, 0, :])), xs, th["norm_ls"])
+        dbar_q0, at_q0 = _sup_on_interval(lambda s: theta_norms(L, dpd_num(s), None), xs, th["norm_q0"])
+        dbar_id, at_id = _sup_on_interval(lambda s: theta_norms(L, dp_num(s), None), xs, th["norm_q0_identity"])
+        dbar_ls, at_ls = _sup_on_interval(lambda s: theta_norms(L, dpd_num(s), g_num(*p_num(s)[:, 0, :])), xs, th["norm_ls"])
         at = [[at_q0], [at_id], [at_ls]]
     else:
         dbar_q0, dbar_id, dbar_ls = (float(th[k].max()) for k in ("norm_q0", "norm_q0_identity", "norm_ls"))
@@ -562,16 +612,16 @@ def _dbar(model: Model, M: np.ndarray, L: np.ndarray, th: dict) -> dict:
     dp_delta = th["dp_delta"] if th["dp_delta"] is not None else th["dpd_series"].to_sympy(list(model.xi))
     db = {"dbar_q0_sampled": dbar_q0, "dbar_q0_proved": np.inf, "dbar_id": dbar_id, "dbar_ls": dbar_ls, "at": at}
     if model.n <= proofs.MAX_PROOF_STATES:   # the proof works on the formula (the one readers get)
-        db["dbar_q0_proved"] = prove_dbar(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
+        db["dbar_q0_proved"] = _prove_dbar(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
     if np.isfinite(db["dbar_q0_proved"]):
         dbar_q0 = max(dbar_q0, db["dbar_q0_proved"])
     # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
-    dbar, dbar_how = interface_dbar(model, L, th["dpd_grid"], dbar_q0)
+    dbar, dbar_how = _interface_dbar(model, L, th["dpd_grid"], dbar_q0)
     evidence = PROVED if np.isfinite(db["dbar_q0_proved"]) and dbar == dbar_q0 else SAMPLED
     if np.isfinite(dbar) and dbar != dbar_q0 and np.isfinite(db["dbar_q0_proved"]):
         # The clipping patterns of several inputs: proved where theta does not depend on xi (affine p, constant delta and g).
-        g_const = constant_g(model)
-        pattern_proved = prove_pattern_dbar(model, M, g_const, th["dp_delta"]) if g_const is not None else np.inf
+        g_const = _constant_g(model)
+        pattern_proved = _prove_pattern_dbar(model, M, g_const, th["dp_delta"]) if g_const is not None else np.inf
         if np.isfinite(pattern_proved):
             dbar = max(dbar, pattern_proved, dbar_q0)
             dbar_how = dbar_how.replace("(grid)", "(proved in ball arithmetic: theta is constant on V)")
@@ -589,12 +639,12 @@ def _region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.nd
     grid = th["grid"]
     l_num = model.numeric(model.l, list(model.xi))
     w0_max, v_max, limits = certified_region(model, upstream, L, db["dbar"], (lam - eps) * eps, grid, l_num(*grid), th["p_grid"], th["dpd_grid"])
-    # A global region rests on the structural argument of interface_dbar and on dbar itself; a local one on the
+    # A global region rests on the structural argument of _interface_dbar and on dbar itself; a local one on the
     # proved lower bounds of its limits (then the region published is the proved one, a little smaller).
     region = {"w0_max_sampled": w0_max, "v_max_sampled": v_max, "limits": limits,
               "evidence": db["evidence"] if not np.isfinite(w0_max) else SAMPLED}
     if np.isfinite(w0_max):
-        proved_region = prove_region(model, upstream, M, db["dbar"], (lam - eps) * eps, th["p_expr"], th["dp_delta"])
+        proved_region = _prove_region(model, upstream, M, db["dbar"], (lam - eps) * eps, th["p_expr"], th["dp_delta"])
         if proved_region is not None and proved_region[0] > 0:
             w0_max, v_max = min(w0_max, proved_region[0]), min(v_max, proved_region[1])
             region["evidence"] = db["evidence"]
@@ -661,7 +711,17 @@ def _artefact(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.
 
 
 def bound_sampled(arts: dict[str, Artefact]) -> list[str]:
-    """The checks of :data:`BOUND_CHECKS` that are not proved (``stage.check``; a missing one counts as not proved)."""
+    """The checks of :data:`BOUND_CHECKS` that are not proved (``stage.check``; a missing one counts as not proved).
+
+    Parameters
+    ----------
+    arts : dict of str to Artefact
+        The stabilise, manifold and bound artefacts (by stage name).
+
+    Returns
+    -------
+    list of str
+    """
     out = []
     for stage, name in BOUND_CHECKS:
         chk = arts[stage].checks.get(name) if stage in arts else None
@@ -671,13 +731,29 @@ def bound_sampled(arts: dict[str, Artefact]) -> list[str]:
 
 
 def gain_text(v: dict, fmt: str = ".5g") -> str:
-    """G as printed wherever the bound is published: with "(sampled)" when a number it rests on is only sampled."""
+    """G as printed wherever the bound is published: with "(sampled)" when a number it rests on is only sampled.
+
+    Parameters
+    ----------
+    v, fmt : dict, str
+        The bound artefact's values (``gain``; ``bound_evidence``, missing: sampled) and G's format spec.
+
+    Returns
+    -------
+    str
+    """
     text = format(float(v["gain"]), fmt)
     return text + (" (sampled)" if str(v.get("bound_evidence", SAMPLED)) != PROVED else "")
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The bound stage's artefact.
+    """
     v = art.values
     return {
         "alpha_h": float(v["alpha_h"]), "epsilon": float(v["epsilon"]), "dbar_q0": float(v["dbar_q0"]),
@@ -694,13 +770,30 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The bound stage's artefact.
+    """
     v = art.values
     return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf {region_text(v)})"
 
 
 def region_text(v: dict) -> str:
-    """Where the uniform bound holds, in words: 'for every W0 and v' or 'when W0 <= c and ||v||_inf <= v_c'."""
+    """Where the uniform bound holds, in words: 'for every W0 and v' or 'when W0 <= c and ||v||_inf <= v_c'.
+
+    Parameters
+    ----------
+    v : dict
+        The bound artefact's values (``w0_max_certified`` and ``v_max_certified``; missing means infinite).
+
+    Returns
+    -------
+    str
+        ``when W(xi0, x0) = 0; region: global`` when both limits are infinite, else with the limits W0 <= c, ||v||_inf <= v_c.
+    """
     w0, vm = float(v.get("w0_max_certified", np.inf)), float(v.get("v_max_certified", np.inf))
     if not np.isfinite(w0) and not np.isfinite(vm):
         return "when W(xi0, x0) = 0; region: global"

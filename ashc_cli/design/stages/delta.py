@@ -1,16 +1,15 @@
-"""Stage 5: the abstract input matrix delta and the m-relation link v = b(x) + c(x) u (Theorem mRelateDelta).
+"""Stage 5: the abstract input matrix delta and the m-relation link v = b(x) + c(x) u (Theorem 5).
 
-delta comes from the spec (``identity`` or expressions in xi; eq. egDelta for the converter), or is designed
+delta comes from the spec (``identity`` or expressions in xi; eq. (39) for the converter), or is designed
 by ``flatten``: delta(xi) = c R(xi)^-1 with R the Cholesky factor of dp/dxi^T M dp/dxi (for one abstract state
 c / ||sqrt(M) dp/dxi(xi)||), c the smallest singular value of sqrt(M) dp/dxi on V, so ||theta(xi, .)|| with
 q = 0 equals c on all of V.  Any delta with max ||delta||_2 = 1 on V has dbar >= c, so flatten gives the least
-dbar for that scale (ERRATA item 11: delta only rescales v).  Theorem
-mRelateDelta needs delta of full row rank on V; the stage measures its smallest singular value there.  Then
+dbar for that scale (ERRATA item 11: delta only rescales v).  Theorem 5 needs delta of full row rank on V; the stage measures its smallest singular value there.  Then
 
     b(x) = delta^+(m(x)) (dm/dx f_bar(x) - phi_bar(m(x))),    c(x) = delta^+(m(x)) dm/dx g(x)
 
-solve eqs. mRelatSuffiDiff and mRelatSuffiIn, which the stage re-checks numerically on samples of X_y.
-For the converter b is eq. egMrelateLink (with chi read as a square root, ERRATA item 3) and c = 0.
+solve eqs. (21a), (21b), which the stage re-checks numerically on samples of X_y.
+For the converter b is eq. (40) (with chi read as a square root, ERRATA item 3) and c = 0.
 """
 
 from __future__ import annotations
@@ -32,12 +31,12 @@ UPSTREAM = ("stabilise", "manifold", "inverse")
 
 #: delta counts as full row rank where its smallest singular value exceeds this times max(1, largest).
 RANK_RTOL = 1e-10
-#: The residual of eqs. mRelatSuffiDiff / mRelatSuffiIn must be below this, relative to dm/dx f_bar.
+#: The residual of eqs. (21a), (21b) must be below this, relative to dm/dx f_bar.
 LINK_RTOL = 1e-9
 SAMPLES = 2000
 
 
-def right_inverse(delta: sp.Matrix) -> sp.Matrix:
+def _right_inverse(delta: sp.Matrix) -> sp.Matrix:
     """delta^+ for a full-row-rank delta: the inverse if square, else delta^T (delta delta^T)^-1."""
     if delta.shape == (1, 1):
         return sp.Matrix([[1 / delta[0, 0]]])
@@ -46,19 +45,19 @@ def right_inverse(delta: sp.Matrix) -> sp.Matrix:
     return delta.T * (delta * delta.T).inv()
 
 
-def singular_values(delta_grid: np.ndarray) -> np.ndarray:
+def _singular_values(delta_grid: np.ndarray) -> np.ndarray:
     """Singular values of delta at each grid point; delta_grid has shape (n_hat, m_hat, N)."""
     return np.linalg.svd(np.moveaxis(delta_grid, -1, 0), compute_uv=False)
 
 
-def smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, delta_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
+def _smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, delta_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
     """The smallest singular value of delta over V, where it is reached, and the largest.
 
     A grid alone can step over an isolated zero (delta = xi - 0.5 on a grid missing 0.5), so for a square
     delta a sign change of det(delta) between neighbouring grid points counts as a zero, and for a scalar
     abstraction the grid minimum is refined by a bounded search in its neighbouring cells.
     """
-    sv = singular_values(delta_grid)
+    sv = _singular_values(delta_grid)
     smin_each, smax = sv.min(axis=1), float(np.nanmax(sv))
     k = int(np.nanargmin(smin_each))
     smin, at = float(smin_each[k]), grid[:, k]
@@ -74,7 +73,7 @@ def smallest_singular_value(model: Model, delta: sp.Matrix, grid: np.ndarray, de
                 return 0.0, smax, np.array([root])
         lo, hi = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
         if hi > lo:
-            res = sopt.minimize_scalar(lambda s: singular_values(f(np.array([s]))).min(), bounds=(lo, hi), method="bounded", options={"xatol": 1e-14})
+            res = sopt.minimize_scalar(lambda s: _singular_values(f(np.array([s]))).min(), bounds=(lo, hi), method="bounded", options={"xatol": 1e-14})
             if res.success and res.fun < smin:
                 smin, at = float(res.fun), np.array([float(res.x)])
     return smin, smax, np.asarray(at, dtype=float)
@@ -90,6 +89,22 @@ def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp
     at this scale: any delta with max over V of ||delta||_2 = 1 reaches ||delta(xi*) w|| = 1 for a unit w at
     some xi*, where ||theta(xi*)|| >= ||J(xi*) delta(xi*) w|| >= sigma_min(J(xi*)) >= c (ERRATA item 11:
     delta only rescales v).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (needs m_hat = n_hat).
+    stab : Artefact
+        The stabilise artefact (``M`` is read).
+    man : Artefact
+        The manifold artefact (``dp_dxi``, as formula and for numpy).
+    grid : ndarray (n_hat, N)
+        The points of V on which c is taken (the manifold's ``xi_grid``).
+
+    Returns
+    -------
+    sympy Matrix (n_hat, n_hat)
+        delta(xi).
     """
     if model.m_hat != model.n_hat:
         raise DesignError("abstract.delta", f"'flatten' designs a square delta: it needs as many abstract inputs as states (n_hat = {model.n_hat}, m_hat = {model.m_hat})",
@@ -110,7 +125,15 @@ def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Check the rank of delta on V and build b, c of Theorem mRelateDelta.
+    """Check the rank of delta on V and build b, c of Theorem 5.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V fixed).
+    upstream : dict of str to Artefact
+        The stabilise (M), manifold (xi_grid, p_grid, V; dp_dxi) and inverse (m, dm_dx) artefacts; M and dp_dxi
+        are read only for ``flatten``.
 
     Returns
     -------
@@ -120,30 +143,31 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Raises
     ------
     DesignError
-        If delta is ``flatten`` (not in this version) or loses row rank on V.
+        If delta loses row rank on V (or has fewer columns than rows), or ``flatten`` cannot design it
+        (m_hat != n_hat, or dp/dxi not of full column rank on V).
     NumericalError
-        If b, c do not solve eqs. mRelatSuffiDiff / mRelatSuffiIn to tolerance.
+        If b, c do not solve eqs. (21a), (21b) to tolerance.
     """
     man, inv = upstream["manifold"], upstream["inverse"]
     grid = np.asarray(man.value("xi_grid"))
     delta = model.delta if model.delta is not None else flatten(model, upstream["stabilise"], man, grid)
     delta_grid = model.numeric(delta, list(model.xi))(*grid)
     if model.m_hat < model.n_hat:
-        raise DesignError("abstract.inputs", f"delta is {model.n_hat} x {model.m_hat}, which cannot have full row rank", "at least as many abstract inputs as abstract states (Theorem mRelateDelta)")
-    smin, smax, at = smallest_singular_value(model, delta, grid, delta_grid)
+        raise DesignError("abstract.inputs", f"delta is {model.n_hat} x {model.m_hat}, which cannot have full row rank", "at least as many abstract inputs as abstract states (Theorem 5)")
+    smin, smax, at = _smallest_singular_value(model, delta, grid, delta_grid)
     if not np.isfinite(smin) or smin <= RANK_RTOL * max(1.0, smax):
         raise DesignError("abstract.delta", f"delta loses row rank on V: smallest singular value {smin:.3g} at xi = {np.round(at, 6).tolist()}",
-                          "delta(xi) of full row rank for every xi in V (Theorem mRelateDelta)", check="rank_delta")
+                          "delta(xi) of full row rank for every xi in V (Theorem 5)", check="rank_delta")
 
     m = inv.expr("m")
     dm = inv.expr("dm_dx")
     xi_to_m = dict(zip(model.xi, m))
     delta_at_m = delta.xreplace(xi_to_m)
-    pinv = right_inverse(delta_at_m)
+    pinv = _right_inverse(delta_at_m)
     b = tidy(pinv * (dm * model.f_bar - model.phi_bar.xreplace(xi_to_m)))
     c = tidy(pinv * dm * model.g)
 
-    # Re-check eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y.
+    # Re-check eqs. (21a), (21b) on samples of X_y.
     p_grid = np.asarray(man.value("p_grid"))
     samples = sample_states_with_output(model.numeric(model.h, list(model.x)), model.C, model.Y, sample_box(model, p_grid), SAMPLES, seed=1)
     xs = list(model.x)
@@ -158,7 +182,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     scale = float(max(1.0, np.abs(dm_f).max(), np.abs(dm_g).max()))
     link_residual = float(max(res_diff.max(), res_in.max()) / scale)
     if not np.isfinite(link_residual) or link_residual > LINK_RTOL:
-        raise NumericalError(NAME, f"b, c solve eqs. mRelatSuffiDiff/mRelatSuffiIn only to {link_residual:.3g} (relative)", f"below {LINK_RTOL:g}")
+        raise NumericalError(NAME, f"b, c solve eqs. (21a), (21b) only to {link_residual:.3g} (relative)", f"below {LINK_RTOL:g}")
 
     art = Artefact(stage=NAME, meta={"delta_source": model.spec.abstract.delta if isinstance(model.spec.abstract.delta, str) else "matrix",
                                       "samples": SAMPLES, "sample_seed": 1, "rank_rtol": RANK_RTOL, "link_rtol": LINK_RTOL})
@@ -166,7 +190,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": at,
                        "link_residual": link_residual, "c_is_zero": bool(all(e == 0 for e in c))})
     threshold = RANK_RTOL * max(1.0, smax)
-    proved_smin = prove_rank(model, delta, np.asarray(man.value("V"), dtype=float))
+    proved_smin = _prove_rank(model, delta, np.asarray(man.value("V"), dtype=float))
     if proved_smin > threshold:
         art.values["min_singular_value_proved"] = proved_smin
         art.checks["rank_delta"] = Check(proved_smin, True, f"proved lower bound of the smallest singular value of delta on V (> {RANK_RTOL:g} max(1, largest): full row rank)",
@@ -176,13 +200,13 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     link = list(dm * model.f_bar - model.phi_bar.xreplace(xi_to_m) - delta_at_m * b) + list(dm * model.g - delta_at_m * c)
     if proofs.symbolic_zero(link):
         art.checks["m_relation_link"] = Check(0.0, True, "dm/dx f_bar - phi_bar(m) - delta(m) b and dm/dx g - delta(m) c simplify to 0 (sympy): "
-                                                         "b, c solve eqs. mRelatSuffiDiff and mRelatSuffiIn wherever delta(m(x)) has full row rank", proofs.PROVED)
+                                                         "b, c solve eqs. (21a), (21b) wherever delta(m(x)) has full row rank", proofs.PROVED)
     else:
-        art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. mRelatSuffiDiff and mRelatSuffiIn on samples of X_y, relative")
+        art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. (21a), (21b) on samples of X_y, relative")
     return art
 
 
-def prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
+def _prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
     """A proved lower bound of the smallest singular value of delta on V (0 when no proof is found).
 
     A constant delta: the arb Cholesky bound of lambda_min(delta delta^T), square-rooted.  A scalar delta:
@@ -190,12 +214,12 @@ def prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
     Other shapes are left to the grid.
     """
     try:
-        return _prove_rank(model, delta, V)
+        return _rank_bound(model, delta, V)
     except proofs.interval.UnsupportedExpression:
         return 0.0
 
 
-def _prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
+def _rank_bound(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
     if not delta.free_symbols & set(model.xi):
         f = proofs.BoxFunction(model, {"d": delta}, list(model.xi))
         if delta.shape[0] > proofs.MAX_PROOF_STATES:
@@ -214,7 +238,18 @@ def _prove_rank(model: Model, delta: sp.Matrix, V: np.ndarray) -> float:
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The delta stage's artefact.
+
+    Returns
+    -------
+    dict
+        ``delta``, ``b``, ``c`` (entries as text), ``min_singular_value`` and ``link_residual``.
+    """
     return {
         "delta": [str(e) for e in art.exprs["delta"]], "b": [str(e) for e in art.exprs["b"]], "c": [str(e) for e in art.exprs["c"]],
         "min_singular_value": float(art.values["min_singular_value"]), "link_residual": float(art.values["link_residual"]),
@@ -222,5 +257,16 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The delta stage's artefact.
+
+    Returns
+    -------
+    str
+        The smallest singular value of delta on V and the link residual.
+    """
     return f"min singular value of delta on V = {art.values['min_singular_value']:.4g}, link residual = {art.values['link_residual']:.2g}"

@@ -1,14 +1,14 @@
 """Stage 4: the left inverse m of p, and the conditions that tie it to the output (Section IV-C).
 
-m solves kappa(m(x)) = h(x) (eq. mRelatSuffiOut); of the branches sympy finds, the one with m(p(xi)) = xi
-on V is kept (eq. egm for the Cuk converter).  The stage checks, each with a stored number:
+m solves kappa(m(x)) = h(x) (eq. (21c)); of the branches sympy finds, the one with m(p(xi)) = xi
+on V is kept (eq. (34) for the Cuk converter).  The stage checks, each with a stored number:
 
 * p is injective on V: a left inverse exists (m(p(xi)) = xi on a grid of V), and kappa is strictly monotone;
-* V covers Y (eq. SimuLocalRequire): kappa(V) contains the output box Y;
-* condition (i) of Theorem mCondi: p(m(x)) = x on Im(p), i.e. p(m(p(xi))) = p(xi);
-* condition (ii) of Theorem mCondi, through Corollary mRelateGeo for linear h: x - p(m(x)) in Ker(h),
+* V covers Y (eq. (10)): kappa(V) contains the output box Y;
+* condition (i) of Theorem 6: p(m(x)) = x on Im(p), i.e. p(m(p(xi))) = p(xi);
+* condition (ii) of Theorem 6, through Corollary 1 for linear h: x - p(m(x)) in Ker(h),
   i.e. h(x) = kappa(m(x)) on random samples of X_y = {x : h(x) in Y} (and symbolically where sympy can);
-* where m is real: the output interval on which every radicand of m is non-negative (eq. mEquation:
+* where m is real: the output interval on which every radicand of m is non-negative (eq. (33):
   |x4| <= E / (2 sqrt(R_i G_L)) = 126.91 V for the converter), which must contain Y.
 
 Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m_domain_set`` names the set and
@@ -42,15 +42,14 @@ from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError
 from ashc_cli.numerics import chebyshev
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
-from ashc_cli.problem.model import Model, sparse_jacobian, tidy, within_budget
+from ashc_cli.problem.model import Model, sparse_jacobian, tidy
+from ashc_cli.design.inverse_construct import LEFT_INVERSE_TOL, MAX_INVERSE_DEGREE, branch_residuals, closed_form_branches, numeric_inverse
 from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
 UPSTREAM = ("manifold", "kappa")
 
-#: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
-LEFT_INVERSE_TOL = 1e-9
 #: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
 CONDITION_II_RTOL = 1e-9
 SAMPLES = 2000
@@ -68,7 +67,7 @@ def output_symbol() -> sp.Symbol:
     return sp.Symbol("_y", real=True)
 
 
-def format_interval(lo: float, hi: float) -> str:
+def _format_interval(lo: float, hi: float) -> str:
     """``[lo, hi]``, ``y >= lo``, ``y <= hi`` or ``every y`` (infinite ends only as words)."""
     lo, hi = float(lo) + 0.0, float(hi) + 0.0   # + 0.0: no "-0"
     if np.isfinite(lo) and np.isfinite(hi):
@@ -91,12 +90,25 @@ def _certify(art: Artefact, model: Model, box: np.ndarray, name: str, meaning: s
 
 
 def x_y_samples(model: Model, p_grid: np.ndarray) -> np.ndarray:
-    """The ``SAMPLES`` random states of X_y = {x : h(x) in Y} (seed 0) on which condition (ii) is measured."""
+    """The ``SAMPLES`` random states of X_y = {x : h(x) in Y} (seed 0) on which condition (ii) is measured.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (h, C, Y, ``state_box``).
+    p_grid : ndarray (n, N)
+        p on the grid of V (the manifold's ``p_grid``), for the sampling box when the spec gives no ``concrete.state_box``.
+
+    Returns
+    -------
+    ndarray (n, k)
+        k <= ``SAMPLES`` states (k = ``SAMPLES`` for a linear h; fewer if rejection sampling rarely meets X_y).
+    """
     h_num = model.numeric(model.h, list(model.x))
     return sample_states_with_output(h_num, model.C, model.Y, sample_box(model, p_grid), SAMPLES)
 
 
-def condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray) -> float:
+def _condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray) -> float:
     """max |h(x) - h(p(m(x)))| / |Y| over the samples of X_y (inf without samples, NaN where m is not real).
 
     ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).
@@ -106,13 +118,13 @@ def condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray)
     h_num = model.numeric(model.h, list(model.x))
     m_val = np.broadcast_to(model.numeric(m, list(model.x))(*samples)[:, 0, :], (model.n_hat, samples.shape[1]))
     x_proj = np.broadcast_to(p_num(*m_val)[:, 0, :], samples.shape)
-    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. mRelatSuffiOut; Corollary mRelateGeo for linear h).
+    # h(x) = h(p(m(x))) = kappa(m(x)) on X_y (eq. (21c); Corollary 1 for linear h).
     return float(np.abs(h_num(*samples)[:, 0, :] - h_num(*x_proj)[:, 0, :]).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
 
 
 def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.ndarray,
                    failure: tuple[str, str] | None = None) -> None:
-    """Conditions (i) and (ii) of Theorem mCondi, measured the same way on every path.
+    """Conditions (i) and (ii) of Theorem 6, measured the same way on every path.
 
     ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).  ``failure`` (what, expected)
     replaces the generic explanation when condition (ii) fails (the affine path knows why: no left inverse of
@@ -122,18 +134,30 @@ def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.
     m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
     p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
     cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
-    cond_ii = condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
+    cond_ii = _condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
     if not cond_ii <= CONDITION_II_RTOL:   # NaN (m not real at a sample) fails too
-        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary mRelateGeo)")
-        raise DesignError("abstract", f"condition (ii) of Theorem mCondi fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
+        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary 1)")
+        raise DesignError("abstract", f"condition (ii) of Theorem 6 fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
-    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem mCondi (i): max |p(m(x)) - x| / max|x| on Im(p)")
-    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem mCondi (ii) via Corollary mRelateGeo: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem 6 (i): max |p(m(x)) - x| / max|x| on Im(p)")
+    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem 6 (ii) via Corollary 1: max |h(x - p(m(x)))| / |Y| on samples of X_y")
 
 
 def p_is_affine(man: Artefact, model: Model) -> bool:
     """Whether p is affine in xi: dp/dxi free of xi (for a series, of degree 0 in its chopped power basis, as
-    its formula reads)."""
+    its formula reads).
+
+    Parameters
+    ----------
+    man : Artefact
+        The manifold stage's artefact (series or expression ``dp_dxi``).
+    model : Model
+        The spec's systems (xi).
+
+    Returns
+    -------
+    bool
+    """
     if "dp_dxi" in man.series:
         coeffs = man.series["dp_dxi"].coeffs
         power = np.abs(chebyshev.power_coefficients(coeffs)).reshape(len(coeffs), -1)   # column 0: the constant term
@@ -141,7 +165,7 @@ def p_is_affine(man: Artefact, model: Model) -> bool:
     return not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi"))
 
 
-def affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[np.ndarray, np.ndarray]:
+def _affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[np.ndarray, np.ndarray]:
     """(J, c) with expr(xi) = J xi + c numerically, for an expression affine in xi and its stored Jacobian."""
     J = np.array(model.substitute(jacobian), dtype=float).reshape(expr.shape[0], model.n_hat)
     c = np.array(model.substitute(expr.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
@@ -156,6 +180,13 @@ def choose_left_inverse(P: np.ndarray, C: np.ndarray | None) -> dict:
     that (it is then the least-norm solution anyway); otherwise the least-norm K of the linear system
     K P = I, C P K = C (in vec(K), Frobenius norm) is taken from ``numpy.linalg.lstsq``, and used when its
     residual shows the system is solvable.  When it is not (or h is not linear), K = P^+.
+
+    Parameters
+    ----------
+    P : ndarray (n, n_hat)
+        The matrix of p(xi) = P xi + p0, of full column rank.
+    C : ndarray (r, n) or None
+        C of a linear h = C x (the stage passes the unit rows of the states a nonlinear h names); None: K = P^+.
 
     Returns
     -------
@@ -191,9 +222,9 @@ def choose_left_inverse(P: np.ndarray, C: np.ndarray | None) -> dict:
 
 
 def _cover_affine(model: Model, kap: Artefact) -> tuple[list, np.ndarray]:
-    """eq. SimuLocalRequire for an affine kappa: the vertices of Y no xi in V reaches (a linear program per vertex,
+    """eq. (10) for an affine kappa: the vertices of Y no xi in V reaches (a linear program per vertex,
     kappa(V) being a convex polytope), and the box of kappa over the corners of V."""
-    K, k0 = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+    K, k0 = _affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
     missing = []
     for vertex in itertools.product(*[(lo, hi) for lo, hi in model.Y]):
         lp = sopt.linprog(np.zeros(model.n_hat), A_eq=K, b_eq=np.array(vertex) - k0, bounds=[tuple(b) for b in model.V], method="highs")
@@ -204,7 +235,7 @@ def _cover_affine(model: Model, kap: Artefact) -> tuple[list, np.ndarray]:
     return missing, np.c_[k_corners.min(axis=1), k_corners.max(axis=1)]
 
 
-def output_states_map(model: Model) -> np.ndarray:
+def _output_states_map(model: Model) -> np.ndarray:
     """T with rows e_j for the states x_j that h names: h(x) = H(T x) (every state if h names none)."""
     named = [j for j, xj in enumerate(model.x) if any(xj in e.free_symbols for e in model.h)]
     rows = named or list(range(model.n))
@@ -212,7 +243,7 @@ def output_states_map(model: Model) -> np.ndarray:
 
 
 def _cover_nonlinear(model: Model, kap: Artefact) -> tuple[float, str, str, bool]:
-    """eq. SimuLocalRequire for a nonlinear kappa: kappa(V) is the interval of kappa's extremes on V for one
+    """eq. (10) for a nonlinear kappa: kappa(V) is the interval of kappa's extremes on V for one
     abstract state and one output (continuity), else a bounded search per point of a grid of Y.
 
     Returns (value, description, failure text, covers)."""
@@ -220,25 +251,25 @@ def _cover_nonlinear(model: Model, kap: Artefact) -> tuple[float, str, str, bool
     k_range = np.asarray(kap.value("kappa_range"), dtype=float)
     if model.n_hat == 1 and model.p == 1:
         value = float(max(k_range[0, 0] - Y[0, 0], Y[0, 1] - k_range[0, 1]))
-        return (value, "eq. SimuLocalRequire: kappa(V) contains Y (<= 0)",
+        return (value, "eq. (10): kappa(V) contains Y (<= 0)",
                 f"kappa(V) = [{k_range[0, 0]:.6g}, {k_range[0, 1]:.6g}] does not contain Y = {Y[0].tolist()}", value <= 0)
     value = _cover_by_search(model, kap)
-    return (value, f"eq. SimuLocalRequire: largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)",
+    return (value, f"eq. (10): largest |kappa(xi) - y| / |Y| left by a search for xi in V, on a {COVER_POINTS}-point grid of Y (<= 1e-9)",
             f"some outputs of Y are not kappa(xi) for any xi in V (residual {value:.3g})", value <= 1e-9)
 
 
-def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+def _run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """The left inverse m(x) = K (x - p0) of an affine p(xi) = P xi + p0 (K from :func:`choose_left_inverse`), and its checks."""
     p = man.expr("p")
-    P, p0 = affine_parts(model, p, man.expr("dp_dxi"))
+    P, p0 = _affine_parts(model, p, man.expr("dp_dxi"))
     sv = np.linalg.svd(P, compute_uv=False)
     if sv.min() <= 1e-12 * max(1.0, sv.max()):
         raise DesignError("abstract", f"p(xi) = P xi + p0 is not injective: P has rank {int(np.sum(sv > 1e-12 * sv.max()))} < n_hat = {model.n_hat}",
-                          "P of full column rank (Thm. mCondi)", check="left_inverse")
+                          "P of full column rank (Theorem 6)", check="left_inverse")
     C = model.C
     # A nonlinear h reads the states it names: h(x) = H(T x) with T the rows e_j of those states.  Condition (ii)
     # h(x) = h(p(m(x))) then holds for every x when T (I - P K) = 0, the linear case with C replaced by T.
-    T = C if C is not None else output_states_map(model)
+    T = C if C is not None else _output_states_map(model)
     choice = choose_left_inverse(P, T)
     kappa_affine = C is not None or proofs.affine_in(kap.expr("kappa"), list(model.xi))
     proof = prove_affine_inverse(model, man, kap, T, choice["K"], kappa_affine)
@@ -248,13 +279,13 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     p_grid = np.asarray(man.value("p_grid"))
     left_residual = float(np.abs(K_m @ (p_grid - p0[:, None]) - grid).max())
 
-    # eq. SimuLocalRequire: every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope when
+    # eq. (10): every vertex of Y is kappa(xi) for some xi in V (kappa(V) is a convex polytope when
     # kappa is affine; for a nonlinear h, kappa = h o p is not, and the cover is checked as for an explicit m).
     if kappa_affine:
         missing, k_range = _cover_affine(model, kap)
-        K_kappa, _ = affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
+        K_kappa, _ = _affine_parts(model, kap.expr("kappa"), kap.expr("dkappa_dxi"))
         covers = not missing
-        cover_value, cover_text = float(len(missing)), "eq. SimuLocalRequire: vertices of Y not reached from V (0)"
+        cover_value, cover_text = float(len(missing)), "eq. (10): vertices of Y not reached from V (0)"
         failure = f"no xi in V reaches the output(s) {missing}"
         min_dkappa = float(np.linalg.svd(K_kappa, compute_uv=False).min())
     else:
@@ -274,7 +305,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         else:
             failure = "an exact rational linear program finds a vertex of Y that no xi in V reaches (the gap is below the floating-point program's tolerance)"
     if not covers:
-        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): {failure}",
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. (10)): {failure}",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
 
     least_norm = choice["construction"] == LEAST_NORM
@@ -296,7 +327,7 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     if least_norm:
         samples = x_y_samples(model, p_grid)
         pinv_m = sp.Matrix(np.linalg.pinv(P).tolist()) * (model.x - sp.Matrix(p0.tolist()))
-        art.values["condition_ii_pseudo_inverse"] = condition_ii_measure(model, p_function(man, model), pinv_m, samples)
+        art.values["condition_ii_pseudo_inverse"] = _condition_ii_measure(model, p_function(man, model), pinv_m, samples)
     art.checks["left_inverse"] = Check(left_residual, left_residual <= LEFT_INVERSE_TOL, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
     art.checks["V_covers_Y"] = Check(cover_value, covers, cover_text)
     art.checks["m_real_on_Y"] = Check(0.0, True, "m is linear, hence real everywhere")
@@ -325,92 +356,11 @@ def run_linear(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     return art
 
 
-#: kappa is handed to sympy.solve only when it is this small (a fitted polynomial of high degree is not).
-SOLVE_MAX_OPS = 300
-#: Highest degree of the Chebyshev interpolant of kappa^-1 (one abstract state, no closed form).
-MAX_INVERSE_DEGREE = 80
-
-
-def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) -> list[list[sp.Expr]]:
-    """The solutions mu(y) of kappa(mu) = y that sympy finds (each a list, one entry per abstract state)."""
-    def solvable(e: sp.Expr) -> bool:
-        if sp.count_ops(e) > SOLVE_MAX_OPS:
-            return False
-        if not e.atoms(sp.Float):
-            return True
-        # A fitted (float) kappa: only a polynomial of low degree; sympy.solve stalls on the rest.
-        return e.is_polynomial(*model.xi) and sp.Poly(e, *model.xi).total_degree() <= 4
-
-    if not all(solvable(e) for e in kappa):
-        return []
-    mus = [sp.Dummy(f"mu{k}", real=True) for k in range(model.n_hat)]
-    equations = [sp.Eq(e.xreplace(dict(zip(model.xi, mus))), yk) for e, yk in zip(kappa, ys)]
-    rational = all(sp.sympify(e).is_rational_function(*model.xi) for e in kappa)
-    try:
-        # check=False: every branch is verified numerically below (m(p(xi)) = xi on V), and sympy's own
-        # check (checksol) took 0.7 of the 0.8 s of this stage on the Cuk converter.  A transcendental kappa
-        # (tanh, exp of xi) gets a time budget: sympy may search for minutes without an answer.
-        if rational:
-            solutions = sp.solve(equations, mus, dict=True, check=False)
-        else:
-            solutions = within_budget(_solve_all, equations, mus)
-    except (NotImplementedError, ValueError, TypeError, TimeoutError):
-        return []
-    return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
-
-
-def _solve_all(equations: list, unknowns: list) -> list[dict]:
-    """sympy.solve of the equations for the unknowns, every solution as a dict (:func:`within_budget` runs it)."""
-    return sp.solve(equations, unknowns, dict=True, check=False)
-
-
-def branch_residuals(model: Model, branches: list[list[sp.Expr]], ys: list[sp.Symbol], y_grid: np.ndarray, grid: np.ndarray) -> list[float]:
-    """max |m(kappa(xi)) - xi| over the grid of V for each candidate m(y) (inf where it is not finite there).
-
-    ``y_grid`` (p, N) holds kappa at the grid points ``grid`` (n_hat, N).
-    """
-    residuals = []
-    for branch in branches:
-        values = np.broadcast_to(model.numeric(branch, ys)(*y_grid)[:, 0, :], grid.shape)
-        residuals.append(float(np.abs(values - grid).max()) if np.all(np.isfinite(values)) else np.inf)
-    return residuals
-
-
-def numeric_inverse(model: Model, kappa: sp.Matrix, xs: np.ndarray, y_grid: np.ndarray, y: sp.Symbol) -> tuple[sp.Expr, float, int] | None:
-    """kappa^-1 as a Chebyshev interpolant on kappa(V), for one abstract state with kappa strictly monotone.
-
-    kappa(xi) = y is solved by Brent's method at Chebyshev nodes of kappa(V); the degree is raised until
-    max |m(kappa(xi)) - xi| on the grid of V is below ``LEFT_INVERSE_TOL``.
-
-    Returns
-    -------
-    (m_of_y, residual, degree), or None if kappa is not strictly monotone on V.
-    """
-    dk = np.diff(y_grid)
-    if not (np.all(dk > 0) or np.all(dk < 0)):
-        return None
-    k_num = model.numeric(kappa, list(model.xi))
-    lo, hi = float(xs[0]), float(xs[-1])
-    box = np.array([[y_grid.min(), y_grid.max()]])
-    nodes = chebyshev.nodes(box, MAX_INVERSE_DEGREE + 1)[0]
-    roots = np.array([sopt.brentq(lambda s, target=t: float(k_num(s)[0, 0]) - target, lo, hi, xtol=1e-15, rtol=1e-15) for t in nodes])
-    best = (None, np.inf, 0)
-    for degree in range(1, MAX_INVERSE_DEGREE + 1):
-        coeffs = chebyshev.fit(roots[None, :], box, nodes[None, :], degree)
-        residual = float(np.abs(chebyshev.evaluate(coeffs, box, y_grid[None, :])[0] - xs).max())
-        if residual < best[1]:
-            best = (coeffs, residual, degree)
-        if residual <= LEFT_INVERSE_TOL / 100:   # well inside the tolerance: condition (ii) inherits the error
-            break
-    coeffs, residual, degree = best
-    return chebyshev.to_sympy(coeffs, box, [y])[0], residual, degree
-
-
-def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+def _run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """The left inverse m(x) = kappa^-1(h(x)) for several abstract states and as many outputs (closed form).
 
     Checks as the scalar path: m(p(xi)) = xi on V; m finite on a grid of Y with kappa(m(y)) = y and m(y) in V
-    there (so kappa(V) covers Y, eq. SimuLocalRequire); conditions (i) and (ii) of Theorem mCondi.
+    there (so kappa(V) covers Y, eq. (10)); conditions (i) and (ii) of Theorem 6.
     """
     kappa = kap.expr("kappa")
     ys = [sp.Symbol(f"_y{k}", real=True) for k in range(model.p)]
@@ -434,7 +384,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     if not finite:
         raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y", "Y inside the outputs where kappa^-1 is defined", check="m_real_on_Y")
     if not covers:
-        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. SimuLocalRequire): kappa^-1(Y) leaves V by {excursion:.4g}",
+        raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. (10)): kappa^-1(Y) leaves V by {excursion:.4g}",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
     art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
@@ -450,7 +400,7 @@ def run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         "radicands": radicands if radicands else ["none"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
     })
     art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
-    art.checks["V_covers_Y"] = Check(excursion, covers, "eq. SimuLocalRequire: largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
+    art.checks["V_covers_Y"] = Check(excursion, covers, "eq. (10): largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
     _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
     _checks_common(art, model, p_function(man, model), m, p_grid)
@@ -466,7 +416,7 @@ COVER_POINTS = 400
 
 
 def _cover_by_search(model: Model, kap: Artefact) -> float:
-    """eq. SimuLocalRequire on a grid of Y: the largest |kappa(xi) - y| left by a bounded least-squares search
+    """eq. (10) on a grid of Y: the largest |kappa(xi) - y| left by a bounded least-squares search
     for xi in V (from the nearest point of kappa's grid), relative to the size of Y (0 when covered)."""
     kappa_num = model.numeric(kap.expr("kappa"), list(model.xi))
     jac_num = model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
@@ -512,7 +462,7 @@ def _explicit_covers(model: Model, kap: Artefact):
     return kappa_affine, k_range, cover_value, cover_text
 
 
-def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """Check the left inverse the spec gives (``abstract.m``) and store it like the constructed ones.
 
     Checked, not trusted: m(p(xi)) = xi on the grid of V (symbolically when sympy reduces m(p(xi)) - xi to
@@ -531,14 +481,14 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     m_num = model.numeric(m, list(model.x))
 
-    # m(p(xi)) = xi on V (Thm. mCondi, step 1: p is injective on V with m as its left inverse).
+    # m(p(xi)) = xi on V (Theorem 6, step 1: p is injective on V with m as its left inverse).
     back = np.broadcast_to(m_num(*p_grid)[:, 0, :], grid.shape)
     errors = np.abs(back - grid).max(axis=0)
     left_residual = float(errors.max()) if np.all(np.isfinite(back)) else np.inf
     if not left_residual <= LEFT_INVERSE_TOL:
         worst = int(np.argmax(np.where(np.isfinite(errors), errors, np.inf)))
         raise DesignError("abstract.m", f"the given m is not a left inverse of p on V: max |m(p(xi)) - xi| = {left_residual:.3g} (at xi = {np.round(grid[:, worst], 6).tolist()})",
-                          f"m(p(xi)) = xi for every xi in V (Thm. mCondi), to {LEFT_INVERSE_TOL:g}; or leave abstract.m out to have m constructed", check="left_inverse")
+                          f"m(p(xi)) = xi for every xi in V (Theorem 6), to {LEFT_INVERSE_TOL:g}; or leave abstract.m out to have m constructed", check="left_inverse")
     polynomial = all(e.is_polynomial(*model.x) for e in m)
     symbolic_left = proofs.symbolic_zero(list(m.xreplace(dict(zip(model.x, p))) - model.xi))
 
@@ -553,10 +503,10 @@ def run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     # Condition (ii): h(p(m(x))) = h(x), symbolically when sympy can; sampled in _checks_common.
     composed = model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h
     symbolic_ii = proofs.symbolic_zero(list(composed))
-    cond_ii = condition_ii_measure(model, p_function(man, model), m, samples)
+    cond_ii = _condition_ii_measure(model, p_function(man, model), m, samples)
     if not cond_ii <= CONDITION_II_RTOL:
-        raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem mCondi: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
-                          "x - p(m(x)) in Ker(h) for x in X_y (Corollary mRelateGeo): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
+        raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem 6: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
+                          "x - p(m(x)) in Ker(h) for x in X_y (Corollary 1): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
 
     Y, V = model.Y, model.V
     kappa_affine, k_range, cover_value, cover_text = _explicit_covers(model, kap)
@@ -621,18 +571,18 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     man, kap = upstream["manifold"], upstream["kappa"]
     if model.m_given is not None:
-        return run_explicit(model, man, kap)
+        return _run_explicit(model, man, kap)
     if p_is_affine(man, model):
-        return run_linear(model, man, kap)
+        return _run_linear(model, man, kap)
     if model.n_hat != model.p:
         raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
                           "a square kappa, or an affine p (m = P^+ (x - p0))")
     if model.n_hat > 1:
-        return run_multi(model, man, kap)
-    return run_scalar(model, man, kap)
+        return _run_multi(model, man, kap)
+    return _run_scalar(model, man, kap)
 
 
-def run_scalar(model: Model, man: Artefact, kap: Artefact) -> Artefact:
+def _run_scalar(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """One abstract state and one output: m = kappa^-1(h(x)) (:func:`run`), its branch and where it is real."""
     kappa = kap.expr("kappa")
     m_of_y, y, method, n_branches, left_residual, y_grid = _scalar_branch(model, man, kappa)
@@ -730,7 +680,7 @@ def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, m: sp.Matrix, m
     else:
         dom = [max(k_lo, real_lo), min(k_hi, real_hi)]
         whole = dom == [k_lo, k_hi]
-        real_text = "m has no radicands, so it is real for every y" if not radicands else f"m is real for {format_interval(real_lo, real_hi)}"
+        real_text = "m has no radicands, so it is real for every y" if not radicands else f"m is real for {_format_interval(real_lo, real_hi)}"
         name = "kappa(V)" if whole else "kappa(V) where m is real"
         certified = ([dom], name, f"{name}: {real_text}; outside kappa(V) the value m(x) lies outside V, where nothing is certified")
     art.values.update({
@@ -752,7 +702,19 @@ def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, m: sp.Matrix, m
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact.
+
+    Returns
+    -------
+    dict
+        JSON-able: V, m (as text), the residuals, m_real_interval (None for an infinite end), kappa_range, method,
+        and, where recorded, construction, condition_ii_pseudo_inverse and m_domain with its set and meaning.
+    """
     v = art.values
     out = {
         "V": np.asarray(v["V"]).tolist(), "m": [str(e) for e in art.exprs["m"]],
@@ -783,11 +745,22 @@ def _real_text(art: Artefact) -> str:
         m_of_y = art.exprs.get("m_of_y")
         poles = m_of_y is not None and not all(e.is_polynomial(*e.free_symbols) for e in m_of_y)
         return f"m real for every y{' where it is finite' if poles else ''} ({why})"
-    return f"m real for {format_interval(lo, hi)}"
+    return f"m real for {_format_interval(lo, hi)}"
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact.
+
+    Returns
+    -------
+    str
+        The residual m(p(xi)) - xi and the set where m is certified (and where m is real, unless m is a Chebyshev interpolant).
+    """
     residual = f"m(p(xi)) - xi = {art.values['left_inverse_residual']:.2g}"
     if "m_domain" not in art.values:   # an artefact of an older ashc
         return f"{residual}; where m is certified is not recorded (an artefact of an older ashc: rerun with --force)"

@@ -1,7 +1,7 @@
-"""Stage 3: the abstract output map kappa = h o p (eq. SimuDesignCond2).
+"""Stage 3: the abstract output map kappa = h o p (eq. (14b)).
 
 kappa(xi) = h(p(xi)) makes the abstract system's output equal the concrete one on the manifold x = p(xi).
-For the Cuk converter this is eq. egKappa.  The stage stores kappa, its values on V (Fig. kappa_xi) and
+For the Cuk converter this is eq. (32).  The stage stores kappa, its values on V (Fig. 5) and
 checks that it is finite there.  When the manifold stage kept p numeric (a Chebyshev series) and h(x) = C x,
 kappa = C p is kept as a series too, without building p's formula.
 """
@@ -22,6 +22,13 @@ UPSTREAM = ("manifold",)
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Compose kappa = h o p and tabulate it on V.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V fixed).
+    upstream : dict of str to Artefact
+        The manifold artefact (p, xi_grid and V are read).
 
     Returns
     -------
@@ -64,7 +71,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                        "kappa_range": np.c_[kappa_grid.min(axis=1), kappa_grid.max(axis=1)]})
     if series is not None:   # how far kappa's formula (read by simulate, eval) is from the series (round-off)
         art.values["kappa_formula_deviation"] = float(np.abs(series.formula_at(grid)[:, 0, :] - kappa_grid).max())
-    bound = prove_finite(model, kappa, np.asarray(man.value("V"), dtype=float), small=series is not None)
+    bound = _prove_finite(model, kappa, np.asarray(man.value("V"), dtype=float), small=series is not None)
     if np.isfinite(bound):
         art.checks["kappa_finite"] = Check(bound, True, "proved bound of |kappa| on V (ball arithmetic: finite)", proofs.PROVED)
     else:
@@ -72,7 +79,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     return art
 
 
-def prove_finite(model: Model, kappa: sp.Matrix, V: np.ndarray, small: bool = False) -> float:
+def _prove_finite(model: Model, kappa: sp.Matrix, V: np.ndarray, small: bool = False) -> float:
     """A proved upper bound of max_i |kappa_i| over V (inf where ball arithmetic cannot bound it).
 
     Skipped above ``proofs.MAX_PROOF_STATES`` states, where h(p) can be a large formula, unless ``small``
@@ -94,10 +101,32 @@ def prove_finite(model: Model, kappa: sp.Matrix, V: np.ndarray, small: bool = Fa
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The kappa stage's artefact.
+
+    Returns
+    -------
+    dict
+        ``kappa`` (one formula per output, as text) and ``range_on_V`` (kappa_range, one [lo, hi] per output).
+    """
     return {"kappa": [str(e) for e in art.exprs["kappa"]], "range_on_V": np.asarray(art.values["kappa_range"]).tolist()}
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The kappa stage's artefact.
+
+    Returns
+    -------
+    str
+        kappa(V): kappa_range rounded to 4 decimals.
+    """
     return f"kappa(V) = {np.round(np.asarray(art.values['kappa_range']), 4).tolist()}"

@@ -1,10 +1,10 @@
-"""Stage 2: the invariant manifold x = p(xi), solving the invariance PDE (eq. SimuDesignCond1)
+"""Stage 2: the invariant manifold x = p(xi), solving the invariance PDE (eq. (14a))
 
     dp/dxi (xi) phi_bar(xi) = f_bar(p(xi)) + g(p(xi)) l(xi)        for all xi in V.
 
-With phi_bar = 0 (Remark solvePDE) the PDE is the algebraic equation f(p(xi), l(xi)) = 0: p(xi) is the
+With phi_bar = 0 (Remark 5) the PDE is the algebraic equation f(p(xi), l(xi)) = 0: p(xi) is the
 equilibrium of the concrete system under the constant input l(xi).  It is solved symbolically with the
-parameters kept as symbols, so p reads like the paper's eq. egSimuDesign.  Without a closed form (or above
+parameters kept as symbols, so p reads like the paper's eq. (31).  Without a closed form (or above
 ``model.NUMERIC_THRESHOLD`` states) the equilibria are found by Newton continuation on Chebyshev nodes (sparse
 Jacobians, sparse LU) and fitted by a Chebyshev series, which the artefact keeps numeric
 (:class:`~ashc_cli.numerics.chebyshev.Series`: the later stages evaluate it with numpy; its formula, Horner's scheme,
@@ -12,12 +12,12 @@ is built only for the readers that need one, and the residual check covers both)
 
 With phi_bar != 0 on a linear plant (f_bar(x) = A x + a, g = B constant) and affine phi_bar(xi) = S xi + s,
 l(xi) = Q xi + q0, p(xi) = P xi + p0 where P solves the Sylvester equation A P + B Q = P S (Girard & Pappas
-2009, Remark LinearCompare) and A p0 = P s - a - B q0; it has one solution when A and S share no eigenvalue.
+2009, Remark 3) and A p0 = P s - a - B q0; it has one solution when A and S share no eigenvalue.
 
 Otherwise (phi_bar != 0, nonlinear plant, one abstract state) p is approximated by Chebyshev polynomials on V,
 fitted by collocation (nonlinear least squares on the PDE residual at Chebyshev nodes), raising the degree
-until the relative residual on an independent grid is below ``abstract.pde_tolerance`` (Remark solvePDE).  The residual of the PDE is
-evaluated on a grid of V and stored, together with the check that l maps V into U (Theorem SimuDesign).
+until the relative residual on an independent grid is below ``abstract.pde_tolerance`` (Remark 5).  The residual of the PDE is
+evaluated on a grid of V and stored, together with the check that l maps V into U (Theorem 4).
 """
 
 from __future__ import annotations
@@ -26,9 +26,6 @@ import itertools
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.optimize as sopt
-import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 import sympy as sp
 
 from ashc_cli.numerics import chebyshev
@@ -36,7 +33,8 @@ from ashc_cli.numerics import proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
+from ashc_cli.problem.model import Model
+from ashc_cli.design.manifold_numeric import ManifoldPlant, manifold_field, solve_collocation, solve_numeric_equilibria
 
 NAME = "manifold"
 UPSTREAM: tuple[str, ...] = ()
@@ -46,8 +44,8 @@ GRID_POINTS = 2001
 RESIDUAL_RTOL = 1e-9
 
 
-def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
-    """Solve f_bar(p) + g(p) l(xi) = 0 for p (eq. SimuDesignCond1 with phi_bar = 0).
+def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
+    """Solve f_bar(p) + g(p) l(xi) = 0 for p (eq. (14a) with phi_bar = 0).
 
     Returns
     -------
@@ -62,7 +60,7 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         If no closed-form solution exists, or none is real and finite on V.
     """
     P = sp.Matrix(sp.symbols(f"_p0:{model.n}", real=True))
-    equations = _manifold_field(model).xreplace(dict(zip(model.x, P)))
+    equations = manifold_field(model).xreplace(dict(zip(model.x, P)))
     # sympy.solve is given rational systems only: on transcendental ones (tanh, exp, sqrt of the unknowns) it
     # can run for minutes, depending on the hash seed, before giving up; those go to Newton continuation.
     rational = all(sp.sympify(e).is_rational_function(*P) for e in equations)
@@ -71,7 +69,7 @@ def solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
     except NotImplementedError:
         solutions = []
     # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
-    grid = domain_grid(model.V if model.V is not None else auto_search_box(model), 201)
+    grid = domain_grid(model.V if model.V is not None else _auto_search_box(model), 201)
     best, best_score = None, 0.0
     for sol in solutions:
         if set(sol) != set(P):
@@ -103,8 +101,8 @@ def _affine_parts(exprs: sp.Matrix, args: sp.Matrix, model: Model) -> tuple[np.n
 SYLVESTER_SEPARATION = 1e-8
 
 
-def solve_sylvester(model: Model) -> sp.Matrix | None:
-    """p(xi) = P xi + p0 for a linear plant and affine phi_bar, l (Remark LinearCompare), or None.
+def _solve_sylvester(model: Model) -> sp.Matrix | None:
+    """p(xi) = P xi + p0 for a linear plant and affine phi_bar, l (Remark 3), or None.
 
     Raises
     ------
@@ -125,7 +123,7 @@ def solve_sylvester(model: Model) -> sp.Matrix | None:
         p0 = np.linalg.solve(A, P @ s0 - a - B @ q0)     # constant part: A p0 + a + B q0 = P s0
     except np.linalg.LinAlgError:
         raise DesignError("concrete.f_bar", "A is singular, so the offset p0 of p(xi) = P xi + p0 is not determined", "an invertible A, or offsets that vanish") from None
-    exact = solve_sylvester_exact(model)
+    exact = _solve_sylvester_exact(model)
     if exact is not None:
         return exact
     return sp.Matrix(P.tolist()) * model.xi + sp.Matrix(p0.tolist())
@@ -141,6 +139,19 @@ def recognise_exact(model: Model, p: sp.Matrix) -> sp.Matrix | None:
 
     A collocation that has found an exact polynomial solution (p = [xi, xi^2] of a bilinear cascade) then
     carries it exactly, and the PDE row is proved instead of sampled; a p that is only close is never changed.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (for eq. (14a) and its exact rationals).
+    p : sympy Matrix (n, 1)
+        The fitted p, with float coefficients, in xi.
+
+    Returns
+    -------
+    sympy Matrix (n, 1) or None
+        p with rational coefficients; None when p has no floats, a coefficient is not near a rational with
+        denominator <= 10^6, or the rational p does not solve eq. (14a) exactly.
     """
     floats = set().union(*(e.atoms(sp.Float) for e in p))
     if not floats:
@@ -153,14 +164,14 @@ def recognise_exact(model: Model, p: sp.Matrix) -> sp.Matrix | None:
             return None
         swap[f] = r
     candidate = sp.Matrix([sp.expand(e.xreplace(swap)) for e in p])
-    return candidate if proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, candidate)))) else None
+    return candidate if proofs.symbolic_zero(list(proofs.exact(model, _pde_residual_expr(model, candidate)))) else None
 
 
 #: The Sylvester equation is solved in exact rationals up to this many unknowns n x n_hat.
 EXACT_SYLVESTER_UNKNOWNS = 64
 
 
-def solve_sylvester_exact(model: Model) -> sp.Matrix | None:
+def _solve_sylvester_exact(model: Model) -> sp.Matrix | None:
     """p(xi) = P xi + p0 solving A P + B Q = P S and A p0 + a + B q0 = P s0 in exact rationals (every parameter
     and number the exact rational of its double), or None above EXACT_SYLVESTER_UNKNOWNS unknowns.
 
@@ -172,7 +183,7 @@ def solve_sylvester_exact(model: Model) -> sp.Matrix | None:
     Pm = sp.Matrix(model.n, model.n_hat, unknowns[:model.n * model.n_hat])
     p0 = sp.Matrix(unknowns[model.n * model.n_hat:])
     p = Pm * model.xi + p0
-    residual = proofs.exact(model, pde_residual_expr(model, p))
+    residual = proofs.exact(model, _pde_residual_expr(model, p))
     equations = []
     for r in residual:
         poly = sp.Poly(sp.expand(r), *model.xi)
@@ -186,339 +197,13 @@ def solve_sylvester_exact(model: Model) -> sp.Matrix | None:
     return p.xreplace(solution[0])
 
 
-def _manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
-    """F(x, xi) = f_bar(x) + g(x) l(xi): the right side of eq. SimuDesignCond1 before x = p(xi) (with the
-    parameter values put in if ``valued``, for numbers)."""
-    if valued:
-        return model.valued["f_bar"] + model.valued["g"] * model.valued["l"]
-    return model.f_bar + model.g * model.l
-
-
-def _residual_function(model: Model, jacobian: bool = False):
-    """F(x, xi) (and dF/dx if asked), compiled for numpy (broadcasting)."""
-    F = _manifold_field(model)
-    args = list(model.x) + list(model.xi)
-    return (model.numeric(F, args), model.numeric(sparse_jacobian(F, model.x), args)) if jacobian else model.numeric(F, args)
-
-
-class _Plant:
-    """f_bar(x), g(x) and l(xi) compiled once for numpy (broadcasting), for the residuals of fits and of p."""
-
-    def __init__(self, model: Model):
-        x, xi = list(model.x), list(model.xi)
-        self.fbar = model.numeric(model.valued["f_bar"], x)
-        self.g = model.numeric(model.valued["g"], x)
-        self.l = model.numeric(model.valued["l"], xi)
-
-    def sides(self, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """f_bar(P) and g(P) l(z) at the points P (n, N) and z (n_hat, N), each (n, N)."""
-        return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), self.l(*z)[:, 0, :])
-
-
-def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, plant: _Plant, phi: np.ndarray) -> float:
-    """max |dp/dxi phi_bar - f_bar(p) - g(p) l| on z (phi = phi_bar on z), relative to the size of its terms,
-    max(1, |dp/dxi phi_bar|, |f_bar(p)|, |g(p) l|, |f_bar(p) + g(p) l|).
-
-    The terms, not their sum: with phi_bar = 0 the sum is the residual itself, and a plant whose terms are
-    large (the ladder's v / L, 1e5 at n = 512) could never meet an absolute tolerance.  ``run`` judges the
-    stored p against the same scale.
-    """
-    P = chebyshev.evaluate(coeffs, box, z)
-    lhs = sum(chebyshev.evaluate(chebyshev.derivative(coeffs, box, k), box, z) * phi[k] for k in range(model.n_hat))
-    fbar, gl = plant.sides(P, z)
-    rhs = fbar + gl
-    scale = max(1.0, np.abs(lhs).max(), np.abs(rhs).max(), np.abs(fbar).max(), np.abs(gl).max())
-    return float(np.abs(lhs - rhs).max() / scale)
-
-
-def _check_grid(box: np.ndarray) -> np.ndarray:
-    """An independent grid (not the collocation nodes) on which a fit's residual is judged."""
-    return domain_grid(box, 1001 if len(box) == 1 else 41 ** len(box) if len(box) == 2 else 4096)
-
-
-#: The numeric equilibria are first found at this many + 1 Chebyshev nodes (enough for degree 30).
-FIRST_NODES_DEGREE = 30
-#: A fit has stopped improving when its best residual fell by less than STALL_FACTOR over STALL_DEGREES degrees.
-STALL_DEGREES = 6
-STALL_FACTOR = 0.5
-
-
-def stalled(history: list[float]) -> bool:
-    """True when the best residual has not halved over the last ``STALL_DEGREES`` raises of the degree.
-
-    A smooth (analytic) manifold gains a constant factor per degree, so a fit that stalls is fitting a
-    manifold with a kink or a near-singularity on V, where a higher degree only costs time.
-    """
-    if len(history) <= STALL_DEGREES:
-        return False
-    return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
-
-
-def solve_collocation(model: Model, plant: _Plant | None = None) -> tuple[sp.Matrix, int, float]:
-    """Tensor Chebyshev collocation for eq. SimuDesignCond1 (phi_bar != 0), any number of abstract states.
-
-    The coefficients minimise the PDE residual at 2 (degree + 1) Chebyshev nodes per axis (Gauss-Newton with
-    the exact Jacobian: the residual is linear in p's coefficients through dp/dxi and nonlinear through
-    F(p, xi)); the degree is raised from 1 until the relative residual on an independent grid is below
-    ``abstract.pde_tolerance``.
-
-    Returns
-    -------
-    p : sympy Matrix
-        Polynomials in xi.
-    degree : int
-        The degree per axis that reached the tolerance.
-    residual : float
-        Relative residual on the independent grid.
-
-    Raises
-    ------
-    DesignError
-        If no degree up to ``abstract.pde_max_degree`` reaches ``abstract.pde_tolerance`` (the message
-        gives the best residual reached).
-    """
-    tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
-    box, n, nh = model.V, model.n, model.n_hat
-    F, F_x = _residual_function(model, jacobian=True)
-    plant = plant or _Plant(model)
-    phi_num = model.numeric(model.phi_bar, list(model.xi))
-    check = _check_grid(box)
-    phi_check = phi_num(*check)[:, 0, :]
-    coeffs = np.zeros((n,) + (1,) * nh)
-    best, history = np.inf, []
-    for degree in range(1, max_degree + 1):
-        if stalled(history):
-            raise DesignError("abstract.phi_bar", f"the polynomial fit of eq. SimuDesignCond1 stopped improving at degree {degree - 1} (relative residual "
-                              f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial", "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
-        grown = np.zeros((n,) + (degree + 1,) * nh)
-        grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
-        z = chebyshev.nodes(box, 2 * (degree + 1))
-        K = (degree + 1) ** nh
-        basis = np.eye(K).reshape((K,) + (degree + 1,) * nh)
-        V = chebyshev.evaluate(basis, box, z).T                                   # (N, K)
-        phi = phi_num(*z)[:, 0, :]                                                # (n_hat, N)
-        E = sum(chebyshev.evaluate(chebyshev.derivative(basis, box, k), box, z).T * phi[k][:, None] for k in range(nh))
-
-        def residual(c: np.ndarray) -> np.ndarray:
-            C = c.reshape(n, K)
-            return (C @ E.T - F(*(C @ V.T), *z)[:, 0, :]).ravel()
-
-        def jacobian(c: np.ndarray) -> np.ndarray:
-            Fx = F_x(*(c.reshape(n, K) @ V.T), *z)                               # (n, n, N)
-            J = np.einsum("ij,NK->iNjK", np.eye(n), E) - np.einsum("ijN,NK->iNjK", Fx, V)
-            return J.reshape(n * len(V), n * K)
-
-        fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-        coeffs = fit.x.reshape(grown.shape)
-        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
-        history.append(best)
-        if best <= tol:
-            return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
-    raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. SimuDesignCond1 on V to {tol:g}: the best relative residual is {best:.3g}",
-                      "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")
-
-
-#: Newton's method at a node has converged when |F(x, xi)| is below this, relative to max(1, |f_bar|, |g l|).
-NEWTON_RTOL = 1e-13
-#: The Jacobian dF/dx must have a reciprocal condition number above this (an isolated equilibrium), estimated in
-#: the 1-norm from the sparse LU factors Newton's step uses anyway (an SVD per step cost 0.2 s at n = 512).
-SINGULAR_RCOND = 1e-12
-
-
-def field_terms(model: Model):
-    """F(x, xi) = f_bar(x) + g(x) l(xi), dF/dx and dF/dxi at one point, from one compiled function.
-
-    Only the non-zero entries of the Jacobians are compiled (with their positions): a plant's states are
-    coupled sparsely, and compiling all n^2 entries of the ladder's dF/dx took most of this stage at n = 256.
-
-    Returns
-    -------
-    callable
-        ``terms(x, xi)`` -> (F (n,), dF/dx (n x n, scipy.sparse CSC), dF/dxi (n, n_hat) dense).
-    """
-    n, nh = model.n, model.n_hat
-    F = _manifold_field(model, valued=True)
-    column = {s: j for j, s in enumerate(model.x)}
-    column.update({s: n + k for k, s in enumerate(model.xi)})
-    where, entries = [], []
-    for i, e in enumerate(F):
-        for sym in sorted(e.free_symbols & set(column), key=column.get):
-            d = e.diff(sym)
-            if d != 0:
-                where.append((i, column[sym]))
-                entries.append(d)
-    positions = np.array(where, dtype=int).reshape(-1, 2)
-    in_x = positions[:, 1] < n
-    # Point-wise evaluation (one call per Newton step): compiled flat, without the broadcasting wrapper.
-    flat = compile_flat(list(F) + entries, list(model.x) + list(model.xi), model.values)
-
-    def terms(x: np.ndarray, at: np.ndarray):
-        values = np.array(flat(*x, *at), dtype=float)
-        jac = values[n:]
-        Fx = sps.csc_matrix((jac[in_x], (positions[in_x, 0], positions[in_x, 1])), shape=(n, n))
-        Fxi = np.zeros((n, nh))
-        Fxi[positions[~in_x, 0], positions[~in_x, 1] - n] = jac[~in_x]
-        return values[:n], Fx, Fxi
-
-    return terms
-
-
-def _factor(Fx):
-    """The sparse LU factors of dF/dx (scipy.sparse.linalg.splu), or None where it is singular to working
-    precision: its reciprocal condition number in the 1-norm, estimated as LAPACK's gecon does (Hager's
-    method, :func:`_inverse_norm1`), below ``SINGULAR_RCOND``."""
-    try:
-        lu = spla.splu(sps.csc_matrix(Fx))
-    except RuntimeError:   # exactly singular
-        return None
-    norm = float(abs(Fx).sum(axis=0).max())
-    inverse_norm = _inverse_norm1(lu, Fx.shape[0])
-    return lu if np.isfinite(inverse_norm) and norm * inverse_norm * SINGULAR_RCOND < 1 else None
-
-
-def _inverse_norm1(lu, n: int, steps: int = 5) -> float:
-    """A lower estimate of ||A^-1||_1 from the LU factors of A (Hager 1984, Higham's LAPACK xLACON, deterministic):
-    a few solves with A and A^T instead of the inverse."""
-    x = np.full(n, 1.0 / n)
-    estimate = 0.0
-    for _ in range(steps):
-        y = lu.solve(x)
-        value = float(np.abs(y).sum())
-        if not np.isfinite(value):
-            return np.inf
-        if value <= estimate:
-            break
-        estimate = value
-        z = lu.solve(np.where(y >= 0, 1.0, -1.0), trans="T")
-        j = int(np.argmax(np.abs(z)))
-        if abs(z[j]) <= z @ x:
-            break
-        x = np.zeros(n)
-        x[j] = 1.0
-    return estimate
-
-
-def continuation(model: Model, z: np.ndarray) -> np.ndarray:
-    """Equilibria x with F(x, xi) = f_bar(x) + g(x) l(xi) = 0 at the points z, by Newton continuation.
-
-    Starts at the point nearest the centre of V (from ``abstract.manifold_guess``, else the origin, else
-    the centre of ``concrete.state_box``), then visits each next-nearest point, predicting from the nearest
-    solved one along the tangent dp/dxi = -(dF/dx)^-1 dF/dxi and correcting by Newton's method.
-
-    Returns
-    -------
-    ndarray, shape (n, N)
-        The equilibria.
-
-    Raises
-    ------
-    DesignError
-        If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
-    """
-    n, N = model.n, z.shape[1]
-    terms = field_terms(model)
-    centre = model.V.mean(axis=1)
-    first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
-
-    def newton(guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
-        x = guess.astype(float).copy()
-        for _ in range(50):
-            value, Fx, _ = terms(x, at)
-            if not (np.all(np.isfinite(Fx.data)) and np.all(np.isfinite(value))):
-                return None
-            lu = _factor(Fx)
-            if lu is None:
-                return None
-            # |F| is judged against the size of its terms, |dF/dx| |x|: round-off, not 1, is the floor.
-            scale = max(1.0, float(abs(Fx).max() * np.abs(x).max()))
-            if np.abs(value).max() <= NEWTON_RTOL * scale:
-                return x
-            x = x + lu.solve(-value)
-        value, Fx, _ = terms(x, at)
-        return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(abs(Fx).max() * np.abs(x).max())) else None
-
-    starts = []
-    if model.spec.abstract.manifold_guess is not None:
-        starts.append(np.array(model.spec.abstract.manifold_guess, dtype=float))
-    starts.append(np.zeros(n))
-    if model.state_box is not None:
-        starts.append(model.state_box.mean(axis=1))
-    x0 = next((x for x in (newton(s, z[:, first]) for s in starts) if x is not None), None)
-    if x0 is None:
-        raise DesignError("abstract.manifold_guess", f"Newton's method finds no equilibrium f_bar(x) + g(x) l(xi) = 0 at xi = {np.round(z[:, first], 6).tolist()} from {len(starts)} start(s)",
-                          "a manifold_guess: n numbers near the equilibrium at the centre of V")
-    X = np.full((n, N), np.nan)
-    X[:, first] = x0
-    solved = np.zeros(N, dtype=bool)
-    solved[first] = True
-    distance = np.linalg.norm(z - z[:, [first]], axis=0)
-    nearest = np.full(N, first)
-    for _ in range(N - 1):
-        k = int(np.argmin(np.where(solved, np.inf, distance)))
-        j = nearest[k]
-        _, Fx, Fxi = terms(X[:, j], z[:, j])
-        lu = _factor(Fx)
-        x = None if lu is None else newton(X[:, j] - lu.solve(Fxi) @ (z[:, k] - z[:, j]), z[:, k])
-        if x is None:
-            raise DesignError("abstract.domain", f"the equilibrium branch is lost at xi = {np.round(z[:, k], 6).tolist()} (dF/dx singular or Newton diverges): p is not defined on all of V",
-                              "a smaller domain V, on which f_bar(x) + g(x) l(xi) = 0 has an isolated solution", check="pde_residual")
-        X[:, k], solved[k] = x, True
-        to_k = np.linalg.norm(z - z[:, [k]], axis=0)
-        closer = to_k < distance
-        distance, nearest = np.where(closer, to_k, distance), np.where(closer, k, nearest)
-    return X
-
-
-def solve_numeric_equilibria(model: Model, plant: _Plant | None = None) -> tuple[chebyshev.Series, int, float]:
-    """p for phi_bar = 0 without a closed form: Newton continuation on Chebyshev nodes, then a Chebyshev fit.
-
-    The equilibria are found at Chebyshev nodes (31 first, twice as many whenever the degree outgrows
-    them); the fitted degree is raised until the relative residual of f(p(xi), l(xi)) = 0 on an independent
-    grid (:func:`_relative_residual`) is below ``pde_tolerance``, or the fit stops improving
-    (:func:`stalled`), or the safety cap ``pde_max_degree`` is reached.
-
-    Returns
-    -------
-    p : Series
-        The fitted series (n x 1), kept numeric.
-    degree, residual : as :func:`solve_collocation`
-    """
-    tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
-    box = model.V
-    plant = plant or _Plant(model)
-    check = _check_grid(box)
-    phi_check = np.zeros((model.n_hat, check.shape[1]))   # phi_bar = 0 here
-    best, history = np.inf, []
-    nodes_degree = min(max_degree, FIRST_NODES_DEGREE)
-    z = chebyshev.nodes(box, nodes_degree + 1)
-    X = continuation(model, z)
-    degree = 0
-    while degree < max_degree:
-        degree += 1
-        if degree > nodes_degree:
-            # More nodes for a higher degree: the equilibria are found again at twice as many.
-            nodes_degree = min(max_degree, 2 * nodes_degree)
-            z = chebyshev.nodes(box, nodes_degree + 1)
-            X = continuation(model, z)
-        coeffs = chebyshev.fit(X, box, z, degree)
-        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
-        history.append(best)
-        if best <= tol:
-            return chebyshev.Series.column(coeffs, box), degree, best
-        if stalled(history):
-            raise DesignError("abstract.domain", f"the Chebyshev fit of the numeric equilibrium manifold stopped improving at degree {degree} "
-                              f"(relative residual {best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial",
-                              "a smaller domain V, or a larger abstract.pde_tolerance")
-    raise DesignError("abstract.domain", f"the numeric equilibrium manifold is not fitted to {tol:g} by Chebyshev polynomials of degree <= {max_degree}: the best relative residual is {best:.3g}",
-                      "a smaller domain V, or a larger abstract.pde_max_degree or pde_tolerance")
-
 
 #: ``domain: auto`` grows V while ||dp/dxi|| stays below this many times its largest value on kappa^-1(Y).
 AUTO_SLOPE_RATIO = 10.0
 AUTO_GRID = 20001
 
 
-def auto_search_box(model: Model) -> np.ndarray:
+def _auto_search_box(model: Model) -> np.ndarray:
     """Where ``domain: auto`` searches: the interval of xi with l(xi) in U (one abstract state, l affine).
 
     Raises
@@ -542,7 +227,7 @@ def auto_search_box(model: Model) -> np.ndarray:
     return np.array([[lo, hi]])
 
 
-def auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
+def _auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
     """``abstract.domain: auto`` for one abstract state: the largest interval V around kappa^-1(Y) on which
     l(xi) is in U, p is finite and C^1, kappa = h o p is strictly monotone (so p is injective and kappa(V)
     covers Y), and the manifold is no steeper than ``AUTO_SLOPE_RATIO`` times its steepest point over
@@ -556,7 +241,7 @@ def auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
         For several abstract states or outputs, an l that does not bound xi, or a Y that kappa does not
         reach monotonically from a point of that interval.
     """
-    lo, hi = auto_search_box(model)[0]
+    lo, hi = _auto_search_box(model)[0]
     xi = model.xi[0]
     xs = np.linspace(lo, hi, AUTO_GRID)
     kappa = model.h.xreplace(dict(zip(model.x, p)))
@@ -620,9 +305,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If the residual of the PDE on V is above tolerance.
     """
-    plant = _Plant(model)
+    plant = ManifoldPlant(model)
     p, series, branches, method, tolerance = _solve(model, plant)
-    V = model.V if model.V is not None else auto_domain(model, p)
+    V = model.V if model.V is not None else _auto_domain(model, p)
     on = _on_grid(model, plant, p, series, V, tolerance)
     l_range, excursion, l_proved, grid_excursion, l_inside = _l_in_U(model, V, on["l_grid"])
     art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
@@ -637,7 +322,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art.values.update({"V": V, "xi_grid": on["grid"], "p_grid": on["p_grid"], "residual": on["residual"], "residual_scale": on["scale"],
                        "l_range": l_range})
     points = on["grid"].shape[1]
-    if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, pde_residual_expr(model, p)))):
+    if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, _pde_residual_expr(model, p)))):
         art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. (14a) exactly", proofs.PROVED)
     else:
         which = f" (the Chebyshev series and its formula; they differ by {on['deviation']:.2g})" if series is not None else ""
@@ -651,7 +336,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     return art
 
 
-def _solve(model: Model, plant: _Plant):
+def _solve(model: Model, plant: ManifoldPlant):
     """(p, series, branches, method, tolerance): p by the first method that applies (a closed form, Newton
     continuation with a Chebyshev fit, the Sylvester equation, Chebyshev collocation), its coefficients
     recognised as exact where they are; ``series`` is p kept numeric (then p is that series too); tolerance is
@@ -662,7 +347,7 @@ def _solve(model: Model, plant: _Plant):
         p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
         if not (model.use_numeric and model.V is not None):
             try:
-                p, branches = solve_algebraic(model)
+                p, branches = _solve_algebraic(model)
                 method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
             except DesignError as exc:
                 if model.V is None:
@@ -677,7 +362,7 @@ def _solve(model: Model, plant: _Plant):
             branches, tolerance = 1, fitted_tolerance
             method = f"Newton continuation on Chebyshev nodes + Chebyshev fit, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
     else:
-        p, branches = solve_sylvester(model), 1
+        p, branches = _solve_sylvester(model), 1
         method = "Sylvester equation A P + B Q = P S (scipy.linalg.solve_sylvester)"
         if p is None:
             if model.V is None:
@@ -700,7 +385,7 @@ def _solve(model: Model, plant: _Plant):
     return p, series, branches, method, tolerance
 
 
-def _on_grid(model: Model, plant: _Plant, p, series, V: np.ndarray, tolerance: float) -> dict:
+def _on_grid(model: Model, plant: ManifoldPlant, p, series, V: np.ndarray, tolerance: float) -> dict:
     """p, dp/dxi, phi_bar and l on a grid of V, and the PDE residual there (the series and its formula both);
     a NumericalError if the residual is above ``tolerance`` relative to the size of its terms."""
     grid = domain_grid(V, GRID_POINTS)
@@ -735,7 +420,7 @@ def _l_in_U(model: Model, V: np.ndarray, l_grid: np.ndarray):
     ball arithmetic otherwise) or on the grid; a DesignError if l(V) leaves U."""
     U = model.U
     l_lo, l_hi = l_grid.min(axis=1), l_grid.max(axis=1)
-    excursion, l_proved = prove_l_in_U(model, V)
+    excursion, l_proved = _prove_l_in_U(model, V)
     # Proved inside, proved outside, or (no proof) inside on the grid with no slack.
     grid_excursion = float(np.max(np.r_[U[:, 0] - l_lo, l_hi - U[:, 1]]))
     decided = l_proved or (np.isfinite(excursion) and proofs.affine_in(model.l, list(model.xi)))
@@ -749,7 +434,7 @@ def _l_in_U(model: Model, V: np.ndarray, l_grid: np.ndarray):
     return np.c_[l_lo, l_hi], excursion, l_proved, grid_excursion, l_inside
 
 
-def _grid_residual(plant: _Plant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
+def _grid_residual(plant: ManifoldPlant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
     """max |dp/dxi phi_bar - f_bar(p) - g(p) l| over a grid, and the size of its terms max(1, |f_bar(p)|, |g(p) l|)."""
     fbar = plant.fbar(*p_grid)[:, 0, :]
     gl = np.einsum("ijk,jk->ik", plant.g(*p_grid), l_grid)
@@ -757,13 +442,13 @@ def _grid_residual(plant: _Plant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_g
     return residual, float(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
 
 
-def pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
-    """dp/dxi phi_bar - f_bar(p) - g(p) l(xi), symbolically (eq. SimuDesignCond1 as a residual)."""
+def _pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
+    """dp/dxi phi_bar - f_bar(p) - g(p) l(xi), symbolically (eq. (14a) as a residual)."""
     on_p = dict(zip(model.x, p))
     return p.jacobian(model.xi) * model.phi_bar - model.f_bar.xreplace(on_p) - model.g.xreplace(on_p) * model.l
 
 
-def prove_l_in_U(model: Model, V: np.ndarray) -> tuple[float, bool]:
+def _prove_l_in_U(model: Model, V: np.ndarray) -> tuple[float, bool]:
     """The largest excursion of l(V) outside U, from proved bounds of each l_i over V; and whether l(V) is inside U.
 
     An affine l is decided exactly: its extremes are at the corners of V, evaluated in rationals (the spec's
@@ -790,10 +475,32 @@ def prove_l_in_U(model: Model, V: np.ndarray) -> tuple[float, bool]:
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The manifold stage's artefact.
+
+    Returns
+    -------
+    dict
+        ``p`` (entries as text), ``residual`` (the PDE residual on the grid of V) and ``method``.
+    """
     return {"p": [str(e) for e in art.exprs["p"]], "residual": float(art.values["residual"]), "method": art.meta.get("method")}
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The manifold stage's artefact.
+
+    Returns
+    -------
+    str
+        The number of branches and the PDE residual.
+    """
     return f"p found ({art.meta.get('branches')} branch(es)), PDE residual = {art.values['residual']:.2g}"

@@ -1,28 +1,27 @@
 """Stage 7: closed-loop simulation of the two scenarios of Section V-D.
 
-**Tracking** (Figs. Example_BoundedIn/Out).  The abstract system xi' = phi_bar(xi) + delta(xi) v is driven by
+**Tracking** (Figs. 7, 8).  The abstract system xi' = phi_bar(xi) + delta(xi) v is driven by
 the spec's set-point controller v = clip(delta^+(xi) (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max),
 where xi_ref is the least-norm point of V with kappa(xi_ref) = the current reference level.  The concrete
-system receives the interface u_w = sat(l(xi) + q(xi, x) v) (eqs. egInterface, egInterfaceSat) with
-q = 0 or the least-squares q of eq. egqLS.  The run records psi = kappa(xi), y = h(x), their error and the
-uniform bound G ||v||_inf of eq. egErrorBound (valid since W(xi0, x0) = 0 when x0 = p(xi0)).
+system receives the interface u_w = sat(l(xi) + q(xi, x) v) (eqs. (42), (44)) with
+q = 0 or the least-squares q of eq. (43).  The run records psi = kappa(xi), y = h(x), their error and the
+uniform bound G ||v||_inf of eq. (38) (valid since W(xi0, x0) = 0 when x0 = p(xi0)).
 
 **Guaranteed controller** (``abstract_controller.kind: guaranteed``, docs/guaranteed.md): the tracking run meets
-|psi - y| <= EPS by construction (eq. TrackConst).  Budget mode: the set-point law with the largest uniform
-v_max = (EPS - sqrt(W0 / alpha_h)) / G (Theorem ErrorBound, eq. egErrorBound).  Governor mode: v = s v_sp with
+|psi - y| <= EPS by construction (eq. (9)).  Budget mode: the set-point law with the largest uniform
+v_max = (EPS - sqrt(W0 / alpha_h)) / G (Theorem 2, eq. (38)).  Governor mode: v = s v_sp with
 the largest s in [0, 1] keeping the comparison system w' = -(lambda - eps) w + |L^T r|^2 / eps below
-EPS^2 alpha_h (:mod:`ashc_cli.closedloop.governor`; the numpy form is reference.governor_law).  The
+EPS^2 alpha_h (:mod:`ashc_cli.closedloop.governor`; its numpy form is the oracle's governor_law).  The
 run also reports the time each level is reached within EPS, deadlines of timed levels and, for the governor,
 its speed-up over the budget (:func:`reach_times`).
 
-**m-relation** (Figs. Example_mRelationIn/Out).  The concrete system runs open loop under the spec's u(t);
-the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. mRelateLink).  By Theorem
-mRelatOutMatch the outputs must coincide: the run records max |psi - y|.
+**m-relation** (Figs. 9, 10).  The concrete system runs open loop under the spec's u(t);
+the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. (22)).  By Theorem 3 the outputs must coincide: the run records max |psi - y|.
 
 Both run on the compiled closed loops (ashc_cli/closedloop/compiled.py) and the one Runge-Kutta engine
 (ashc_cli/closedloop/rk.py: DOP853 and solve_ivp's terminal event, step for step), at the tolerances recorded in the
 artefact (meta ``tracking_integrator`` and ``m_relation_integrator``).  solve_ivp on the numpy laws of
-ashc_cli/closedloop/reference.py is the tests' oracle (tests/oracle.py).
+The numpy form of the laws is the tests' oracle (tests/oracle.py).
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ import scipy.optimize as sopt
 import sympy as sp
 
 from ashc_cli.closedloop import compiled
-from ashc_cli.closedloop.reference import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
+from ashc_cli.closedloop.plan import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.numerics.proofs import SIMULATED
@@ -56,7 +55,7 @@ SAMPLE_DT = 1e-3
 POSTERIOR_FLOOR_RTOL = 1e-7
 #: psi must end each dwell within this fraction of the output span of its level.
 SETTLE_RTOL = 1e-4
-#: m-relation: outputs must match to this (V), Theorem mRelatOutMatch.
+#: m-relation: outputs must match to this (V), Theorem 3.
 M_RELATION_TOL_ABS = 1e-6
 #: Reach-time runs (``reach_times``): a level is held in chunks of the spec's dwell until it is reached, at most
 #: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
@@ -72,6 +71,28 @@ def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: 
 
     Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
     Scalar abstraction: the roots of kappa - level on a fine grid of V, refined, the smallest kept.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V fixed).
+    plant : DesignTerms
+        The design's compiled terms (``plant.kappa`` is read for a nonlinear kappa).
+    level : ndarray (p,)
+        The reference level.
+    index : int
+        The level's position in ``simulate.tracking.reference_levels`` (for the error message).
+    kappa : sympy Matrix (p, 1)
+        kappa(xi), the kappa artefact's formula.
+
+    Returns
+    -------
+    ndarray (n_hat,)
+
+    Raises
+    ------
+    DesignError
+        If kappa does not reach the level on V.
     """
     where = f"simulate.tracking.reference_levels[{index}]"
     if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
@@ -120,6 +141,15 @@ def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
     """Sample times t0, t0 + dt, ... strictly below t1, then t1: increasing, never outside [t0, t1].
 
     (np.arange can overshoot t1 by rounding, which solve_ivp refuses as "not within t_span".)
+
+    Parameters
+    ----------
+    t0, t1, dt : float
+        The interval and the sample spacing (s).
+
+    Returns
+    -------
+    ndarray (N,)
     """
     n = int(np.floor((t1 - t0) / dt)) + 1
     inner = t0 + dt * np.arange(max(n, 1))
@@ -129,6 +159,24 @@ def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
 
 def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
     """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``simulate.tracking``: xi0, x0, the reference levels).
+    plant : DesignTerms
+        The design's compiled terms (p and kappa).
+    up : dict of str to Artefact
+        The design's artefacts (``kappa`` and ``stabilise``'s M are read).
+
+    Returns
+    -------
+    xi0, x0 : ndarray (n_hat,), (n,)
+        The start; x0 = p(xi0) for ``x0: on_manifold``.
+    W0 : float
+        (p(xi0) - x0)^T M (p(xi0) - x0).
+    levels, refs : list of ndarray (p,), list of ndarray (n_hat,)
+        The reference levels and the reference state of each (:func:`reference_state`).
 
     Raises
     ------
@@ -148,7 +196,21 @@ def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
 
 
 def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = SAMPLE_DT) -> list[tuple[float, float, np.ndarray, int]]:
-    """(t0, t1, sample times, level index), one per dwell: level k from k dwell, the last one to t_final."""
+    """(t0, t1, sample times, level index), one per dwell: level k from k dwell, the last one to t_final.
+
+    Parameters
+    ----------
+    t_final, dwell : float
+        The run's end and how long each level is held (s); the last level is held to t_final.
+    n_levels : int
+        The number of reference levels.
+    dt : float
+        The sample spacing (s).
+
+    Returns
+    -------
+    list of (float, float, ndarray, int)
+    """
     segments = []
     t0, k = 0.0, 0
     while t0 < t_final - 1e-12:
@@ -163,6 +225,20 @@ def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = S
 def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
     """The compiled tracking loop for ``law`` (:func:`ashc_cli.closedloop.compiled.tracking_loop`): the set-point law
     (the budget mode is that law) or the governor (:mod:`ashc_cli.closedloop.governor`).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    up : dict of str to Artefact
+        The artefacts of stabilise .. bound, by stage.
+    law : Law
+        The law the loop will run (not read here: the compiled loop takes the law's numbers at each run; the tests'
+        oracle, which replaces this function, uses it).
+
+    Returns
+    -------
+    TrackingLoop
 
     Raises
     ------
@@ -179,6 +255,21 @@ def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], l
                     segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop) -> dict:
     """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0], with
     ``loop`` (:func:`tracking_loop_for`; the tests hand it scipy's oracle).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``interface.q`` and ``interface.saturate`` are read).
+    plant, up : DesignTerms, dict of str to Artefact
+        The design's compiled terms and artefacts (not read here: ``loop`` holds the design).
+    law : Law
+        The abstract controller (gain, v_max and, for the governor, its level and rate).
+    z0 : ndarray (n_hat + n + 1,)
+        [xi0, x0, w0].
+    segments, refs : list of (float, float, ndarray, int), list of ndarray (n_hat,)
+        (t0, t1, sample times, level index) per segment (:func:`tracking_segments`); the reference state of each level.
+    loop : TrackingLoop
+        What integrates the loop (:func:`tracking_loop_for`).
 
     Returns
     -------
@@ -231,6 +322,27 @@ def reach_times(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: 
     time is :func:`reach_time` over all its chunks (NaN if never reached).  With a
     guaranteed controller, once psi sits on the level |y - level| <= |y - psi| stays within the tolerance, so the
     time does not depend on how long the level is held after that.  Samples every REACH_SAMPLE_DWELLS dwell.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (Y sets the output span).
+    plant, up : DesignTerms, dict of str to Artefact
+        Passed on to :func:`closed_loop_run`.
+    law : Law
+        The abstract controller.
+    z0 : ndarray (n_hat + n + 1,)
+        [xi0, x0, w0] at the switch to the first level.
+    levels : list of ndarray (p,)
+        The levels, asked for in turn.
+    refs : list of ndarray (n_hat,)
+        The reference state of each level.
+    tolerance, dwell : float
+        |y - level| that counts as reached; the length of a chunk (s).
+    horizon_dwells : int
+        The most chunks a level is held.
+    loop : TrackingLoop
+        What integrates the loop (:func:`tracking_loop_for`); the default None is not usable.
 
     Returns
     -------
@@ -304,6 +416,21 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     With ``abstract_controller.kind: guaranteed`` (docs/guaranteed.md) the run is the budget or the governor mode
     of :func:`guaranteed_plan`, and the values also hold the tolerance proved, the time each level is reached
     within it, the deadlines of timed levels and, for the governor, its speed-up over the budget mode.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``simulate.tracking``, ``interface``).
+    plant : DesignTerms
+        The design's compiled terms.
+    up : dict of str to Artefact
+        The artefacts of stabilise .. bound, by stage.
+
+    Returns
+    -------
+    values : dict
+        Time series and metrics, by artefact key.
+    checks : dict of str to Check
     """
     tr = model.spec.simulate.tracking
     ctl = tr.abstract_controller
@@ -368,10 +495,10 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
                                                        f"max over the run of |psi - y| - sqrt(w(t) / alpha_h) (<= {POSTERIOR_FLOOR_RTOL:g} x output span, the integrator's accuracy)"),
         "tracking_error_within_bound": Check(float((err - theorem_bound).max()), bool(np.all(err <= theorem_bound)),
                                              "max over the run of |psi - y| - (sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf) "
-                                             "(<= 0: Theorem ErrorBound holds, eq. egErrorBound when W0 = 0); " + region_note),
+                                             "(<= 0: Theorem 2 holds, eq. (38) when W0 = 0); " + region_note),
         "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
         "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
-        "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem ErrorBound applies)"),
+        "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem 2 applies)"),
     }
     if model.state_box is not None:
         box = model.state_box
@@ -410,7 +537,7 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
     err_ok = bool(err.max() <= eps_proved)
     checks = {
         "tracking_error_within_tolerance": Check(float(err.max() - eps_proved), err_ok,
-                                                 f"max |psi - y| - {eps_proved:.6g} (<= 0: the tolerance the {plan.mode} mode proves, eq. TrackConst)"),
+                                                 f"max |psi - y| - {eps_proved:.6g} (<= 0: the tolerance the {plan.mode} mode proves, eq. (9))"),
     }
     if plan.mode == "governor":
         values["tracking/governor_scale"] = res["scale"]
@@ -452,6 +579,27 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
 
     The closed loop is integrated by the compiled loop (:func:`ashc_cli.closedloop.compiled.m_relation_loop`, the same
     right-hand side and event in numba, on the engine of :mod:`ashc_cli.closedloop.rk`).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``simulate.m_relation``: u(t), x0, t_final).
+    plant : DesignTerms
+        The design's compiled terms (h and m at x0 and where the run stops).
+    up : dict of str to Artefact
+        The artefacts of stabilise .. bound, by stage (``inverse`` gives where m is certified).
+
+    Returns
+    -------
+    values : dict
+        Time series and metrics, by artefact key.
+    checks : dict of str to Check
+
+    Raises
+    ------
+    DesignError
+        If h(x0) is outside (or, one output, at the edge of) the set where m is certified, m(x0) is not real, the run
+        leaves that set, or the loop cannot be compiled.
     """
     mr = model.spec.simulate.m_relation
     names = {**model.params, "t": TIME}
@@ -518,12 +666,19 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
         "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
         "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": getattr(loop, "compiled", True),
     }
-    checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem mRelatOutMatch)")}
+    checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem 3)")}
     return values, checks
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Run the spec's tracking and m-relation scenarios.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V fixed).
+    upstream : dict of str to Artefact
+        The stabilise, manifold, kappa, inverse, delta and bound artefacts.
 
     Returns
     -------
@@ -532,10 +687,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
     Raises
     ------
-    SpecError
-        If the spec has no ``simulate`` scenario.
     DesignError
-        If a reference level is out of reach or the m-relation run leaves the region where m is real.
+        If the spec has no ``simulate`` scenario, a reference level is out of reach or the m-relation run leaves
+        the set where m is certified.
     NumericalError
         If an integration fails or blows up.
     """
@@ -565,7 +719,19 @@ _METRICS = {
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The simulate stage's artefact.
+
+    Returns
+    -------
+    dict
+        Per scenario run (``tracking``, ``m_relation``) its metrics; for tracking also the settle errors and, for a
+        guaranteed controller, its mode, tolerances and reach times.
+    """
     out = {}
     for scenario, keys in _METRICS.items():
         if f"{scenario}/t" in art.values:
@@ -585,7 +751,18 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The simulate stage's artefact.
+
+    Returns
+    -------
+    str
+        max |psi - y| of each scenario against its bound, and the failed checks.
+    """
     parts = []
     if "tracking/t" in art.values:
         v = art.values
@@ -609,12 +786,12 @@ def headline(art: Artefact) -> str:
             parts.append(f"tracking max|psi - y| = {err:.4g} {relation}{post}{outside}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
-    failed = failed_checks(art)
+    failed = _failed_checks(art)
     if failed:
         parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" for name, chk in failed.items()))
     return ", ".join(parts)
 
 
-def failed_checks(art: Artefact) -> dict:
+def _failed_checks(art: Artefact) -> dict:
     """The scenario checks that did not pass (shown by ``simulate``, ``ashc check`` and the report)."""
     return {name: chk for name, chk in art.checks.items() if not chk.passed}

@@ -55,14 +55,31 @@ GAIN_GRID = {1: 65, 2: 17 ** 2, 3: 7 ** 3}
 
 
 def upstream(spec) -> tuple[str, ...]:
-    """The manifold for ``objective: min_gain`` (dbar needs dp/dxi), else nothing: the first box of the flow chart."""
+    """The manifold for ``objective: min_gain`` (dbar needs dp/dxi), else nothing: the first box of the flow chart.
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec (``stabilisability.objective`` is read).
+
+    Returns
+    -------
+    tuple of str
+    """
     return ("manifold",) if spec.stabilisability.objective == "min_gain" else ()
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
-    """Write f(x, u) = A(u) x + b(u) symbolically (eq. ConvertSystemLinear).
+    """Write f(x, u) = A(u) x + b(u) symbolically (eq. (27)).
 
     ``J``, if given, is df/dx already computed (A is that Jacobian when f is affine in x).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (f, x, u).
+    J : sympy Matrix (n, n), optional
+        df/dx; computed from f when None.
 
     Returns
     -------
@@ -105,6 +122,21 @@ def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp
 
     f affine in x: A(u) at the vertices of U.  Otherwise the term polytope (at most MAX_VERTEX_TERMS terms) and the
     entry polytope (at most MAX_VARYING_ENTRIES entries), both over state_box x U.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (f, U, ``state_box``).
+    J : sympy Matrix (n, n)
+        df/dx, in x and u.
+
+    Returns
+    -------
+    polytopes : list of Polytope
+        At least one.
+    A, b : sympy Matrix
+        A(u) and b(u) of eq. (27) on the affine path (no ``state_box``, or f affine in x without jumps); else J and
+        an n x 1 zero.
 
     Raises
     ------
@@ -255,7 +287,7 @@ def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, 
         lam_max = largest_decay_rate_for(poly.matrices, M)
         lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
         if lam > lam_max * (1 + 1e-12) or lam_max <= 0:
-            raise DesignError("stabilisability.M", f"does not satisfy eq. egLMI at lambda = {lam:g} on the {poly.kind} polytope",
+            raise DesignError("stabilisability.M", f"does not satisfy eq. (28) at lambda = {lam:g} on the {poly.kind} polytope",
                               f"a decay_rate <= {lam_max:.6g}, the largest this M certifies", check="lmi_margin")
         meta.update(solver="none (M given; verified in numpy)")
     elif model.n > FULL_MAX_STATES and (found := _lyapunov(model, st, scaled, scale)) is not None:
@@ -383,7 +415,7 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
             # them certifies the plant. A counter-example, not a solver failure.
             k = int(np.argmax(sweep_margins))
             x_at, u_at = where[k, :model.n], where[k, model.n:]
-            raise DesignError("stabilisability", f"eq. egLMI fails at x = {np.round(x_at, 6).tolist()}, u = {np.round(u_at, 6).tolist()} "
+            raise DesignError("stabilisability", f"eq. (28) fails at x = {np.round(x_at, 6).tolist()}, u = {np.round(u_at, 6).tolist()} "
                               f"(margin {sweep_margins[k]:.3g} > 0 at lambda = {lam:.6g}): its Jacobian lies outside the sampled ranges "
                               f"({meta.get('range_method', '')})", "ranges that ball arithmetic can enclose, or a smaller state_box",
                               check="lmi_margin")
@@ -416,10 +448,10 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
     art.exprs.update({"A": A_sym, "b": b_sym})
     if margin_evidence == proofs.PROVED:
         art.checks["lmi_margin"] = Check(proved_margin, True, "proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M, A_cl = A + B K "
-                                         f"(K = 0 for identity feedback; <= 0: eq. egLMI holds): {proof}", proofs.PROVED)
+                                         f"(K = 0 for identity feedback; <= 0: eq. (28) holds): {proof}", proofs.PROVED)
     else:
         art.checks["lmi_margin"] = Check(margin, margin <= 0, "largest eigenvalue of A_cl^T M + M A_cl + lambda M over the vertices and a sweep (or samples), "
-                                         f"A_cl = A + B K (K = 0 for identity feedback; <= 0: eq. egLMI holds); proof: {meta['lmi_proof']}")
+                                         f"A_cl = A + B K (K = 0 for identity feedback; <= 0: eq. (28) holds); proof: {meta['lmi_proof']}")
     if M_lower > 0:
         art.checks["M_positive"] = Check(M_lower, True, "proved lower bound of the smallest eigenvalue of M (> 0; arb Cholesky)", proofs.PROVED)
     else:
@@ -428,7 +460,7 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
 
 
 def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, poly: Polytope, scale: float = 1.0) -> tuple[np.ndarray, float, dict]:
-    """M and lambda of eq. egLMI (identity feedback), trying each structure of M in turn.
+    """M and lambda of eq. (28) (identity feedback), trying each structure of M in turn.
 
     ``A_vertices`` are divided by ``scale`` (so are the rates inside; the lambda returned is in the plant's units).
     A later structure is tried only when the earlier one finds no M (at the requested rate, or with any
@@ -462,13 +494,13 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
                 f"(very ill-conditioned): a given M (method: given) is verified exactly") if eig_bound > 0 else ""
     if st.decay_rate == "maximise":
         what = "no M certifies any decay rate lambda > 0" if eig_bound <= 0 else "the solver found no M certifying a decay rate lambda > 0"
-        raise DesignError("stabilisability", f"{what} (eq. egLMI){worst}{unproved}",
+        raise DesignError("stabilisability", f"{what} (eq. (28)){worst}{unproved}",
                           f"a plant that is incrementally stable on the set, or {other}", check="lmi_margin")
     best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
     hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies), or 'maximise'" if best > 0
             else f"a plant that is incrementally stable on the set, or {other}")
     margin = f"best margin {t * scale:.3g}" if np.isfinite(t) else "no solution"
-    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. egLMI is infeasible at lambda = {lam:g} ({margin}"
+    raise DesignError("stabilisability.decay_rate", f"the LMI of eq. (28) is infeasible at lambda = {lam:g} ({margin}"
                       f"{'' if tried == ['full'] else ', M ' + ' or '.join(tried)}){worst if best <= 0 else ''}"
                       f"{unproved if best <= 0 and lam * 1.0 < eig_bound else ''}",
                       hint, check="lmi_margin")
@@ -516,7 +548,7 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
             best, _ = largest_feedback_rate(A_vertices, B, structure, weights)
             hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies with feedback), or 'maximise'" if best > 0 else
                     f"a stabilisable pair (A, B) at every vertex{_worst_vertex_text(poly, A_vertices, scale)}")
-            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. egLMI feasible at lambda = {lam:g}", hint, check="lmi_margin")
+            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. (28) feasible at lambda = {lam:g}", hint, check="lmi_margin")
     return M, np.asarray(K, dtype=float), lam, meta
 
 
@@ -535,7 +567,19 @@ def _worst_vertex_text(poly: Polytope, A_vertices: list[np.ndarray], scale: floa
 
 
 def summarise(art: Artefact) -> dict:
-    """Headline numbers for ``ashc summary``."""
+    """Headline numbers for ``ashc summary``.
+
+    Parameters
+    ----------
+    art : Artefact
+        The stabilise stage's artefact.
+
+    Returns
+    -------
+    dict
+        lambda, M, K (None without a gain), lmi_margin, vertex_margins, M_min_eigenvalue, method, polytope, proof
+        and A (entries as text).
+    """
     v = art.values
     return {
         "lambda": float(v["lambda"]),
@@ -552,5 +596,16 @@ def summarise(art: Artefact) -> dict:
 
 
 def headline(art: Artefact) -> str:
-    """One progress line."""
+    """One progress line.
+
+    Parameters
+    ----------
+    art : Artefact
+        The stabilise stage's artefact.
+
+    Returns
+    -------
+    str
+        lambda and lmi_margin.
+    """
     return f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"

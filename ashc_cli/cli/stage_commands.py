@@ -1,0 +1,175 @@
+"""The commands of the design flow chart: one per stage (stabilise .. simulate), ``design``, ``check`` and ``plot``."""
+
+from __future__ import annotations
+
+
+from enum import Enum
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from ashc_cli.products.falsify import NAME as FALSIFY
+from ashc_cli.design.pipeline import DESIGN, STAGES, Folder, artefact_path, needed, run_for_verdict
+from ashc_cli.products.campaign import falsify_differs
+from ashc_cli.paper import cite
+from ashc_cli.outputs.query import number_text, summary
+from ashc_cli.design.verdict import verdict
+from ashc_cli.design.stages.bound import gain_text, region_text
+from ashc_cli.cli.common import (
+    ForceOpt, JsonOpt, NumericOpt, OutOpt, Progress, SHORT_HELP, STAGE_HELP, SpecArg, StageFrozenOpt, app, current_artefact, emit_json,
+    exclusive, frozen_opt, guard, load, plain_text, run_targets,
+)
+
+
+
+def _make_stage_command(stage: str):
+    def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, frozen: StageFrozenOpt = False,
+                numeric: NumericOpt = None) -> None:
+        with Progress() as progress:
+            _, folder, arts = run_targets(spec, out, [stage], force, progress, frozen=frozen, numeric=numeric)
+        if as_json:
+            emit_json(summary({stage: arts[stage]})[stage])
+        else:
+            typer.echo(str(artefact_path(folder.path, stage)))
+
+    command.__name__ = f"{stage}_command"
+    command.__doc__ = (cite(STAGE_HELP[stage]) + " Runs any stale upstream stage first (unless --frozen).\n\n"
+                       f"Prints the artefact's path ({stage}.h5), or with --json the stage's entry of `ashc summary`.")
+    app.command(name=stage, help=command.__doc__, short_help=SHORT_HELP[stage])(guard(command))
+
+
+for _stage in STAGES:
+    _make_stage_command(_stage)
+
+
+@app.command(short_help=SHORT_HELP["design"])
+@guard
+def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False,
+           frozen: frozen_opt("Recompute nothing: fail (exit 5, naming the stage) if a stage is stale; "
+                               "a check that the stored design is current.") = False,
+           numeric: NumericOpt = None) -> None:
+    """Run the design stages stabilise..bound in order, skipping those already up to date.
+
+    A stage is up to date when its artefact was made from the same spec (SHA-256) and the same upstream
+    artefacts; --force redoes all. Prints one line per stage with its time and headline number (stderr),
+    then the design's summary line (stdout).
+    """
+    exclusive(force, frozen, "design")
+    with Progress() as progress:
+        spec_obj, folder, arts = run_targets(spec, out, DESIGN, force, progress, frozen=DESIGN if frozen else False, numeric=numeric)
+    checks = [c for name in DESIGN for c in arts[name].checks.values()]
+    failed = [c.description for c in checks if not c.passed]
+    if as_json:
+        emit_json(summary({name: arts[name] for name in DESIGN}))
+    else:
+        b = arts["bound"].values
+        result = verdict(arts)
+        typer.echo(plain_text(f"design '{spec_obj.name}' in {folder.path}: {result.counts()}; "
+                              f"|psi - y| <= {gain_text(b)} ||v||_inf {region_text(b)}"))
+    if failed:
+        typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
+        raise typer.Exit(3)
+
+
+
+class Require(str, Enum):
+    solved = "solved"
+    proved = "proved"
+
+
+RequireOpt = Annotated[Require, typer.Option("--require", case_sensitive=False, help=(
+    "What exit 0 needs: 'solved' (every condition passes, proved or on samples only) or 'proved' (every condition "
+    "that enters Problem 1, G and the certified region is proved; for CI pipelines: a verdict on samples exits 3)."))]
+
+
+@app.command(short_help=SHORT_HELP["check"])
+@guard
+def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False,
+          frozen: frozen_opt("Recompute nothing: the verdict on the stored design; fail (exit 5, naming the stage) "
+                              "if a stage is stale.") = False, require: RequireOpt = Require.solved) -> None:
+    """The verdict on Problem 1: one row per condition of the paper with its measured number and evidence.
+
+    Runs the design stages that are stale, stopping at the first design condition that fails; prints each
+    condition (Assumption 1, the LMI certificate, the PDE residual, eq. (10), conditions (i) and (ii), the rank
+    of delta, condition (B), the certified region, ...) with pass/fail and how it was established (proved: on
+    the whole set, by interval arithmetic or a sympy identity; sampled: on a grid or random points only), then
+    one of three verdicts: "Problem 1 solved: proved", "Problem 1 solved: holds on samples only (sampled: ...)"
+    naming the rows that were only sampled, or "Problem 1 solved: no".
+    Exit status 0 for proved and for samples only (3 for samples only with --require proved), 3 for no.
+    """
+    exclusive(force, frozen, "check")
+    spec_obj, path = load(spec, out)
+    folder = Folder(path)
+    with Progress() as progress:
+        arts, stopped = run_for_verdict(spec_obj, folder, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
+    result = verdict(arts, stopped)
+    sim = None if force else current_artefact(spec_obj, folder, "simulate")
+    simulated = [] if sim is None else [{"check": name, "status": "pass" if c.passed else "fail", "value": c.value if np.isfinite(c.value) else None,
+                                         "detail": c.description, "evidence": c.evidence} for name, c in sim.checks.items()]
+    if as_json:
+        emit_json({"spec": spec_obj.name, "solved": result.solved, "verdict": result.kind, "sampled": result.sampled_rows,
+                    "rows": [r.as_dict() for r in result.rows], "simulated": simulated})
+    else:
+        typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
+        for r in result.rows:
+            value = "" if r.value is None else number_text(r.value, ".4g")
+            typer.echo(f"  {r.status:<11} {r.evidence:<9} {r.condition:<42} {value:>11}   {r.reference}")
+            if r.status == "fail":
+                typer.echo(plain_text(f"              {r.detail}"))
+        if simulated:
+            typer.echo("Simulated scenarios (`ashc simulate`; evidence: simulated; not part of the verdict):")
+            for r in simulated:
+                value = "" if r["value"] is None else number_text(r["value"], ".4g")
+                typer.echo(f"  {r['status']:<11} {r['evidence']:<9} {r['check']:<42} {value:>11}")
+                if r["status"] == "fail":
+                    typer.echo(plain_text(f"              {r['detail']}"))
+        typer.echo(result.line())
+    if not result.solved:
+        raise typer.Exit(3)
+    if require == Require.proved and not result.proved:
+        typer.echo("error: check: --require proved: the verdict holds on samples only (" + ", ".join(result.sampled_rows) + ")", err=True)
+        raise typer.Exit(3)
+
+class FigureFormat(str, Enum):
+    png = "png"
+    pdf = "pdf"
+    svg = "svg"
+
+
+FormatOpt = Annotated[FigureFormat, typer.Option("--format", case_sensitive=False,
+                                                 help="File format of the figures: png (what `ashc report` embeds), pdf or svg (vector, fonts embedded, for a paper).")]
+
+
+@app.command(short_help=SHORT_HELP["plot"])
+@guard
+def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False,
+         frozen: frozen_opt("Recompute nothing: draw from the stored artefacts; fail (exit 5, naming the stage) if a stage "
+                             "(simulate included) is stale.") = False, fmt: FormatOpt = FigureFormat.png) -> None:
+    """Draw the paper's figures for this design in <out>/plots/ (PNG by default; --format pdf or svg), one or two
+    IEEE columns wide.
+
+    kappa_xi.png (kappa over V with Y), delta_compare.png (||theta|| for delta = I and the design's delta),
+    tracking_inputs/outputs.png (v, u; psi, y and |psi - y| with the uniform and a-posteriori bounds),
+    m_relation_inputs/outputs.png, and falsify.png when `ashc falsify` has run on this design. Runs the
+    stale stages (simulate included) first. Prints the paths of the figures.
+    """
+    from ashc_cli.outputs import plots  # matplotlib only for the commands that draw (cold start of the others)
+
+    exclusive(force, frozen, "plot")
+    with Progress() as progress:
+        spec_obj, folder, arts = run_targets(spec, out, ["simulate"], force, progress, frozen=needed(["simulate"]) if frozen else False)
+        stored = current_artefact(spec_obj, folder, FALSIFY)
+        why = None if stored is None else falsify_differs(spec_obj, arts, stored)
+        if stored is not None and why is None:
+            arts[FALSIFY] = stored
+        elif stored is not None:
+            progress.line(f"note: falsify.{fmt.value} not drawn: falsify.h5 was {why}; rerun `ashc falsify SPEC`")
+        progress.start("plot: drawing the figures")
+        paths = plots.write_all(spec_obj, arts, folder.path / "plots", fmt=fmt.value)
+    if as_json:
+        emit_json({"figures": [str(p) for p in paths]})
+    else:
+        for p in paths:
+            typer.echo(str(p))
+

@@ -1,0 +1,542 @@
+"""The printers of ``ashc export``: a :class:`~ashc_cli.outputs.export_design.Design` as one C99 file with its header
+(:func:`c_sources`) or one numpy module (:func:`python_source`).  The formulas are printed by sympy
+(``C99CodePrinter``, ``NumPyPrinter``) after common subexpressions are eliminated; the pseudo-inverses are written
+out as :mod:`ashc_cli.outputs.export` describes."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+
+import numpy as np
+import sympy as sp
+from sympy.printing.c import C99CodePrinter
+from sympy.printing.numpy import NumPyPrinter
+
+from ashc_cli import __version__
+from ashc_cli.errors import DesignError
+from ashc_cli.problem.model import parameter_symbol, state_symbol
+from ashc_cli.design.upstream import DOMAIN_RTOL
+
+from ashc_cli.outputs.export_design import NEEDED, Design
+
+__all__ = ["c_sources", "python_source", "PINV_RCOND", "JACOBI_SWEEPS"]
+
+#: numpy.linalg.pinv's default cut-off: singular values <= PINV_RCOND * the largest are taken as zero.
+PINV_RCOND = 1e-15
+#: Sweeps of the C pseudo-inverse's Jacobi SVD at most (it converges in a handful for the small sizes here).
+JACOBI_SWEEPS = 60
+
+
+# --- printing --------------------------------------------------------------------------------------------
+
+
+class _CPrinter(C99CodePrinter):
+    """sympy's C99 printer for strict C99: no M_PI-style macros (POSIX, not C99), numbers as literals, and
+    integers beyond ``int`` written as doubles."""
+
+    def __init__(self):
+        super().__init__({"math_macros": {}, "strict": True})
+
+    def _print_Pi(self, expr):
+        return repr(math.pi)
+
+    def _print_Exp1(self, expr):
+        return repr(math.e)
+
+    def _print_NumberSymbol(self, expr):
+        return repr(float(expr))
+
+    def _print_Integer(self, expr):
+        value = int(expr)
+        return f"{value}.0" if abs(value) > 2**31 - 1 else str(value)
+
+    def _print_Float(self, expr):
+        return _float_text(expr)
+
+
+class _PythonPrinter(NumPyPrinter):
+    """sympy's numpy printer, with every float written to the last bit (its default keeps 15 digits)."""
+
+    def __init__(self):
+        super().__init__({"fully_qualified_modules": True, "strict": True})
+
+    def _print_Float(self, expr):
+        return _float_text(expr)
+
+
+def _float_text(expr) -> str:
+    """A sympy Float as the shortest literal that reads back as the same double."""
+    value = float(expr)
+    if not math.isfinite(value):
+        raise DesignError("export", f"an expression holds the number {value}", "finite numbers")
+    return repr(value)
+
+
+def _renamer(design: Design):
+    """A function mapping an expression in the spec's symbols to one in the generated code's names:
+    ``xi[i]``, ``x[i]`` and ``PRM_<name>`` (by name, so symbols read back with other assumptions match)."""
+    # With the assumptions of the model's symbols (real states, parameters signed as their values), so that
+    # rebuilding an expression in the new names cannot rewrite it.
+    names = {name: state_symbol(f"xi[{i}]") for i, name in enumerate(design.abstract_states)}
+    names.update({name: state_symbol(f"x[{i}]") for i, name in enumerate(design.states)})
+    names.update({name: parameter_symbol(f"PRM_{name}", value) for name, value in design.parameters.items()})
+
+    def rename(expr, what: str):
+        expr = sp.sympify(expr)
+        subs = {}
+        for s in expr.free_symbols:
+            if s.name not in names:
+                raise DesignError(f"export.{what}", f"uses '{s.name}', which is neither a state nor a parameter of the spec",
+                                  "expressions in the spec's states and parameters")
+            subs[s] = names[s.name]
+        return expr.xreplace(subs)
+
+    return rename
+
+
+def _assignments(outputs: Sequence[tuple[str, sp.MatrixBase]], rename, lang: str, indent: str = "    ") -> list[str]:
+    """Statements setting each ``array[k]`` to entry k (row-major) of its matrix, after sympy's CSE."""
+    targets, exprs = [], []
+    for array, matrix in outputs:
+        for k, e in enumerate(sp.Matrix(matrix)):
+            targets.append(f"{array}[{k}]")
+            exprs.append(rename(e, array))
+    replacements, reduced = sp.cse(exprs, symbols=sp.numbered_symbols("cse"))
+    printer = _CPrinter() if lang == "c" else _PythonPrinter()
+    try:
+        if lang == "c":
+            lines = [f"const double {s} = {printer.doprint(e)};" for s, e in replacements]
+            lines += [f"{t} = {printer.doprint(e)};" for t, e in zip(targets, reduced)]
+        else:
+            lines = [f"{s} = {printer.doprint(e)}" for s, e in replacements]
+            lines += [f"{t} = {printer.doprint(e)}" for t, e in zip(targets, reduced)]
+    except Exception as exc:  # a function the printer cannot write (sympy's PrintMethodNotImplementedError and kin)
+        raise DesignError("export", f"an expression cannot be written in {'C99' if lang == 'c' else 'Python'}: {' '.join(str(exc).split())[:200]}",
+                          "expressions of the spec's whitelisted functions") from None
+    out = []
+    for line in lines:
+        out.extend(indent + part for part in line.splitlines())
+    return out
+
+
+def _num(value: float) -> str:
+    """A double as a literal that reads back exactly (parenthesised when negative, for macros)."""
+    value = float(value)
+    if not math.isfinite(value):
+        raise DesignError("export", f"a constant of the design is {value}", "finite numbers (U, V, m_domain, K, L)")
+    text = repr(value + 0.0)
+    return f"({text})" if text.startswith("-") else text
+
+
+def _c_rows(array: np.ndarray) -> str:
+    """A 2-D array as a C initialiser."""
+    return "{" + ", ".join("{" + ", ".join(_num(v) for v in row) + "}" for row in np.atleast_2d(array)) + "}"
+
+
+def _py_rows(array: np.ndarray) -> str:
+    return "numpy.array([" + ", ".join("[" + ", ".join(repr(float(v) + 0.0) for v in row) + "]" for row in np.atleast_2d(array)) + "])"
+
+
+def _guard_name(name: str) -> str:
+    return "ASHC_" + re.sub(r"[^A-Za-z0-9]", "_", name).upper() + "_H"
+
+
+def _head_comment(design: Design, what: str) -> list[str]:
+    return [f"Generated by ashc {__version__} (`ashc export`) from design '{design.name}': {what}; do not edit.",
+            f"spec SHA-256 {design.provenance['spec']};",
+            "artefacts: " + ", ".join(f"{stage}.h5 {design.provenance[stage][:16]}" for stage in NEEDED) + "."]
+
+
+def _saturate_text(saturate) -> str:
+    if saturate == "scale":
+        return "scale: l + s (correction) with the largest s in [0, 1] that keeps u in U"
+    return "clip each channel to U" if saturate else "none (u may leave U)"
+
+
+# --- C ---------------------------------------------------------------------------------------------------
+
+
+def c_sources(design: Design, header_name: str = "ashc_design.h") -> tuple[str, str]:
+    """The C99 source and header of a design.
+
+    Parameters
+    ----------
+    design : Design
+        From :func:`gather`.
+    header_name : str
+        The header's file name, which the source includes.
+
+    Returns
+    -------
+    source, header : str
+    """
+    d = design
+    controller_args = "const double *xi, const double *xi_ref, double *v" if d.gain is not None else \
+        "const double *xi, const double *xi_ref, double gain, double v_max, double *v"
+    source = _c_preamble(d, header_name) + _c_terms(d) + _c_controller(d, controller_args)
+    return "\n".join(source), "\n".join(_c_header(d, controller_args))
+
+
+#: The C macros of the design's dimensions.
+NS, NI, NAS, NAI, NO = "ASHC_N_STATES", "ASHC_N_INPUTS", "ASHC_N_ABSTRACT_STATES", "ASHC_N_ABSTRACT_INPUTS", "ASHC_N_OUTPUTS"
+
+
+def _c_header(d: Design, controller_args: str) -> list[str]:
+    """The header's lines: dimensions, status codes, constants and the prototypes."""
+    ls, has_gain = d.q == "least_squares", d.gain is not None
+
+    h = ["/*", *(" * " + line for line in _head_comment(d, "its interface, abstract controller, p, kappa and m")), " */",
+         f"#ifndef {_guard_name(d.name)}", f"#define {_guard_name(d.name)}", "",
+         "#ifdef __cplusplus", 'extern "C" {', "#endif", "",
+         f"#define {NS} {d.n}            /* x: {', '.join(d.states)} */",
+         f"#define {NI} {d.n_inputs}            /* u: {', '.join(d.inputs)} */",
+         f"#define {NAS} {d.n_hat}   /* xi: {', '.join(d.abstract_states)} */",
+         f"#define {NAI} {d.m_hat}   /* v: {', '.join(d.abstract_inputs)} */",
+         f"#define {NO} {d.n_outputs}           /* y = h(x), psi = kappa(xi) */", "",
+         "/* Status of ashc_m. */", "#define ASHC_OK 0",
+         "#define ASHC_OUTSIDE_CERTIFIED_SET 1   /* h(x) is not in ashc_m_domain: m is not certified there (xi set to NaN) */",
+         "#define ASHC_NOT_REAL 2                /* m(x) is not a finite real number */", "",
+         "/* Relative widening of ashc_m_domain (times max(1, width)) within which m is still evaluated. */",
+         f"#define ASHC_M_DOMAIN_RTOL {_num(DOMAIN_RTOL)}", ""]
+    if has_gain:
+        h += ["/* The set-point controller's gain and bound on |v| (spec simulate.tracking.abstract_controller). */",
+              f"#define ASHC_GAIN {_num(d.gain)}", f"#define ASHC_V_MAX {_num(d.v_max)}", ""]
+    h += [f"extern const double ashc_input_bounds[{NI}][2];          /* U: [lo, hi] per input */",
+          f"extern const double ashc_abstract_domain[{NAS}][2];  /* V: [lo, hi] per abstract state */",
+          f"extern const double ashc_m_domain[{NO}][2];             /* where m is certified ({d.m_domain_set}): h(x) in this box */", "",
+          "/* p(xi): the manifold map (n values). */", "void ashc_p(const double *xi, double *p);",
+          "/* psi = kappa(xi): the abstract output (one value per output). */", "void ashc_kappa(const double *xi, double *psi);",
+          "/* xi = m(x), the left inverse, only where certified: returns ASHC_OK, ASHC_OUTSIDE_CERTIFIED_SET or ASHC_NOT_REAL. */",
+          "int ashc_m(const double *x, double *xi);",
+          f"/* u = SAT(l(xi){' + K (x - p(xi))' if d.K is not None else ''}{' + q(xi, x) v' if ls else ''}): the interface (saturation: {_saturate_text(d.saturate)}). */",
+          "void ashc_interface(const double *xi, const double *x, const double *v, double *u);",
+          "/* v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max): the set-point abstract controller. */",
+          f"void ashc_controller({controller_args});",
+          "/* dxi = phi_bar(xi) + delta(xi) v: the abstract system, to integrate xi. */",
+          "void ashc_abstract_rhs(const double *xi, const double *v, double *dxi);", "",
+          "#ifdef __cplusplus", "}", "#endif", "", f"#endif /* {_guard_name(d.name)} */", ""]
+
+    return h
+
+
+def _c_preamble(d: Design, header_name: str) -> list[str]:
+    """The source's comment, includes, parameters, constant arrays and the pseudo-inverse helpers."""
+    ls = d.q == "least_squares"
+    pinv_uses = [(d.n_hat, d.m_hat)] + ([(d.n, d.n_inputs)] if ls else [])
+    general = [shape for shape in pinv_uses if min(shape) > 1]
+    vector = [shape for shape in pinv_uses if min(shape) == 1]
+    c = ["/*", *(" * " + line for line in _head_comment(d, "C99, math.h only, no allocation")),
+         " *", f" * Arrays are row-major; xi[i] is abstract state i ({', '.join(d.abstract_states)}), x[i] state i ({', '.join(d.states)}),",
+         f" * u[j] input j ({', '.join(d.inputs)}), v[a] abstract input a ({', '.join(d.abstract_inputs)}).", " */",
+         "#include <math.h>", f'#include "{header_name}"', ""]
+    if d.parameters:
+        c += ["/* The spec's parameters. */"] + [f"#define PRM_{k} {_num(v)}" for k, v in d.parameters.items()] + [""]
+    c += [f"const double ashc_input_bounds[{NI}][2] = {_c_rows(d.U)};",
+          f"const double ashc_abstract_domain[{NAS}][2] = {_c_rows(d.V)};",
+          f"const double ashc_m_domain[{NO}][2] = {_c_rows(d.m_domain)};"]
+    if d.K is not None:
+        c += ["/* The feedback gain K of k(z, x, u) = u + K (z - x) (stabilise stage, feedback: linear_gain). */",
+              f"static const double K[{NI}][{NS}] = {_c_rows(d.K)};"]
+    if ls:
+        c += ["/* M = L L^T (bound stage), for the least-squares q. */", f"static const double L[{NS}][{NS}] = {_c_rows(d.L)};"]
+    c += ["", "static double clip(double z, double lo, double hi)", "{", "    return z < lo ? lo : (z > hi ? hi : z);", "}", ""]
+    if vector:
+        c += ["/* Pseudo-inverse of a single column or row a (len entries): a^T / |a|^2, zero for a zero vector. */",
+              "static void pinv_vector(int len, const double *a, double *out)", "{", "    double s = 0.0;", "    int i;",
+              "    for (i = 0; i < len; i++) s += a[i] * a[i];", "    for (i = 0; i < len; i++) out[i] = s > 0.0 ? a[i] / s : 0.0;", "}", ""]
+    if general:
+        c += _c_pinv_small(max(r * k for r, k in general), max(min(r, k) for r, k in general))
+    return c
+
+
+def _c_terms(d: Design) -> list[str]:
+    """The generated expression blocks (interface terms, abstract terms, h, m, p, kappa), ashc_m and ashc_interface."""
+    rename, ls = _renamer(d), d.q == "least_squares"
+    c: list[str] = []
+    interface_outputs = [("l", d.l)] + ([("pm", d.p)] if d.K is not None else []) + ([("dpd", d.dp_delta), ("g", d.g)] if ls else [])
+    uses_x = d.K is not None or ls
+    sig = ", ".join(["const double *xi"] + (["const double *x"] if uses_x else []) + [f"double *{a}" for a, _ in interface_outputs])
+    c += [f"/* {', '.join(a for a, _ in interface_outputs)}: "
+          + ", ".join({"l": "l(xi)", "pm": "p(xi)", "dpd": "dp/dxi delta(xi)", "g": "g(x)"}[a] for a, _ in interface_outputs) + " */",
+          f"static void interface_terms({sig})", *_c_body(["xi"] + (["x"] if uses_x else []), interface_outputs, rename), "",
+          "/* phi_bar(xi) and delta(xi) */", "static void abstract_terms(const double *xi, double *phi, double *delta)",
+          *_c_body(["xi"], [("phi", d.phi_bar), ("delta", d.delta)], rename), "",
+          "/* y = h(x) (as the inverse stage stored it) */", "static void output_terms(const double *x, double *y)",
+          *_c_body(["x"], [("y", d.h)], rename), "",
+          "/* m(x), the left inverse (inverse stage) */", "static void m_terms(const double *x, double *m)",
+          *_c_body(["x"], [("m", d.m)], rename), "",
+          "void ashc_p(const double *xi, double *p)", *_c_body(["xi"], [("p", d.p)], rename), "",
+          "void ashc_kappa(const double *xi, double *psi)", *_c_body(["xi"], [("psi", d.kappa)], rename), "",
+          "int ashc_m(const double *x, double *xi)", "{", f"    double y[{NO}];", "    int i;", "    output_terms(x, y);",
+          f"    for (i = 0; i < {NO}; i++) {{",
+          "        const double tol = ASHC_M_DOMAIN_RTOL * fmax(1.0, ashc_m_domain[i][1] - ashc_m_domain[i][0]);",
+          "        if (!(y[i] >= ashc_m_domain[i][0] - tol && y[i] <= ashc_m_domain[i][1] + tol)) {",
+          "            int k;", f"            for (k = 0; k < {NAS}; k++) xi[k] = NAN;", "            return ASHC_OUTSIDE_CERTIFIED_SET;",
+          "        }", "    }", "    m_terms(x, xi);", f"    for (i = 0; i < {NAS}; i++)",
+          "        if (!isfinite(xi[i])) return ASHC_NOT_REAL;", "    return ASHC_OK;", "}", ""]
+    c += _c_interface(d, interface_outputs, uses_x)
+    return c
+
+
+def _c_controller(d: Design, controller_args: str) -> list[str]:
+    """The set-point abstract controller and the abstract right-hand side."""
+    has_gain = d.gain is not None
+    c: list[str] = []
+    pinv_delta = f"pinv_vector({NAS} * {NAI}, delta, dplus);" if min(d.n_hat, d.m_hat) == 1 else f"pinv_small({NAS}, {NAI}, delta, dplus);"
+    c += ["static void controller_law(const double *xi, const double *xi_ref, double gain, double v_max, double *v)", "{",
+          f"    double phi[{NAS}], delta[{NAS} * {NAI}], dplus[{NAI} * {NAS}], e[{NAS}];", "    int i, a;",
+          "    abstract_terms(xi, phi, delta);", f"    {pinv_delta}",
+          f"    for (i = 0; i < {NAS}; i++) e[i] = gain * (xi_ref[i] - xi[i]) - phi[i];",
+          f"    for (a = 0; a < {NAI}; a++) {{", "        double s = 0.0;",
+          f"        for (i = 0; i < {NAS}; i++) s += dplus[a * {NAS} + i] * e[i];", "        v[a] = clip(s, -v_max, v_max);", "    }", "}", ""]
+    if has_gain:
+        c += [f"void ashc_controller({controller_args})", "{", "    controller_law(xi, xi_ref, ASHC_GAIN, ASHC_V_MAX, v);", "}", ""]
+    else:
+        c += [f"void ashc_controller({controller_args})", "{", "    controller_law(xi, xi_ref, gain, v_max, v);", "}", ""]
+    c += ["void ashc_abstract_rhs(const double *xi, const double *v, double *dxi)", "{",
+          f"    double phi[{NAS}], delta[{NAS} * {NAI}];", "    int i, a;", "    abstract_terms(xi, phi, delta);",
+          f"    for (i = 0; i < {NAS}; i++) {{", "        double s = 0.0;",
+          f"        for (a = 0; a < {NAI}; a++) s += delta[i * {NAI} + a] * v[a];", "        dxi[i] = phi[i] + s;", "    }", "}", ""]
+    return c
+
+
+def _c_body(inputs: Sequence[str], outputs, rename) -> list[str]:
+    """The braced body of a C function computing ``outputs`` from the arrays ``inputs`` (``(void)`` for those
+    the formulas do not read, so -Wextra stays quiet)."""
+    body = _assignments(outputs, rename, "c")
+    text = "\n".join(body)
+    unused = [f"    (void){name};" for name in inputs if not re.search(rf"\b{name}\[", text)]
+    return ["{", *unused, *body, "}"]
+
+
+def _c_pinv_small(entries: int, small: int) -> list[str]:
+    """A fixed-size Moore-Penrose pseudo-inverse (one-sided Jacobi SVD) for matrices of at most ``entries``
+    entries whose smaller side is at most ``small``: its work arrays are sized by these, on the stack."""
+    return [
+        f"#define PINV_ENTRIES {entries}",
+        f"#define PINV_SMALL {small}",
+        "/* Moore-Penrose pseudo-inverse of the rows x cols matrix a (row-major; rows * cols <= PINV_ENTRIES,",
+        " * min(rows, cols) <= PINV_SMALL) into out (cols x rows), by a one-sided Jacobi SVD (Hestenes) of a or a^T,",
+        " * whichever has at least as many rows as columns; singular values <= "
+        f"{PINV_RCOND:g} times the largest are taken as zero",
+        " * (numpy.linalg.pinv's cut-off), so a rank-deficient matrix is handled as numpy does. */",
+        "static void pinv_small(int rows, int cols, const double *a, double *out)",
+        "{",
+        "    double w[PINV_ENTRIES], vv[PINV_SMALL * PINV_SMALL], s2[PINV_SMALL];",
+        "    const int tr = rows < cols;",
+        "    const int r = tr ? cols : rows, c = tr ? rows : cols;",
+        "    double smax = 0.0;",
+        "    int i, j, k, sweep;",
+        "    for (i = 0; i < r; i++)",
+        "        for (j = 0; j < c; j++) w[i * c + j] = tr ? a[j * cols + i] : a[i * cols + j];",
+        "    for (i = 0; i < c; i++)",
+        "        for (j = 0; j < c; j++) vv[i * c + j] = i == j ? 1.0 : 0.0;",
+        f"    for (sweep = 0; sweep < {JACOBI_SWEEPS}; sweep++) {{",
+        "        int rotated = 0;",
+        "        for (j = 0; j < c - 1; j++) {",
+        "            for (k = j + 1; k < c; k++) {",
+        "                double alpha = 0.0, beta = 0.0, gamma = 0.0, zeta, t, cs, sn;",
+        "                for (i = 0; i < r; i++) {",
+        "                    alpha += w[i * c + j] * w[i * c + j];",
+        "                    beta += w[i * c + k] * w[i * c + k];",
+        "                    gamma += w[i * c + j] * w[i * c + k];",
+        "                }",
+        "                if (gamma == 0.0 || fabs(gamma) <= 1e-15 * sqrt(alpha * beta)) continue;",
+        "                rotated = 1;",
+        "                zeta = (beta - alpha) / (2.0 * gamma);",
+        "                t = fabs(zeta) > 1e150 ? 0.5 / zeta : (zeta >= 0.0 ? 1.0 : -1.0) / (fabs(zeta) + sqrt(1.0 + zeta * zeta));",
+        "                cs = 1.0 / sqrt(1.0 + t * t);",
+        "                sn = cs * t;",
+        "                for (i = 0; i < r; i++) {",
+        "                    const double p = w[i * c + j], q = w[i * c + k];",
+        "                    w[i * c + j] = cs * p - sn * q;",
+        "                    w[i * c + k] = sn * p + cs * q;",
+        "                }",
+        "                for (i = 0; i < c; i++) {",
+        "                    const double p = vv[i * c + j], q = vv[i * c + k];",
+        "                    vv[i * c + j] = cs * p - sn * q;",
+        "                    vv[i * c + k] = sn * p + cs * q;",
+        "                }",
+        "            }",
+        "        }",
+        "        if (!rotated) break;",
+        "    }",
+        "    for (j = 0; j < c; j++) {",
+        "        s2[j] = 0.0;",
+        "        for (i = 0; i < r; i++) s2[j] += w[i * c + j] * w[i * c + j];",
+        "        if (sqrt(s2[j]) > smax) smax = sqrt(s2[j]);",
+        "    }",
+        "    /* pinv of the r x c matrix w0 = W V^T: sum over kept j of V[:, j] W[:, j]^T / s_j^2 (c x r) */",
+        "    for (i = 0; i < c; i++) {",
+        "        for (k = 0; k < r; k++) {",
+        "            double s = 0.0;",
+        "            for (j = 0; j < c; j++)",
+        f"                if (sqrt(s2[j]) > {PINV_RCOND!r} * smax) s += vv[i * c + j] * w[k * c + j] / s2[j];",
+        "            if (tr) out[k * c + i] = s; else out[i * r + k] = s;",
+        "        }",
+        "    }",
+        "}",
+        "",
+    ]
+
+
+def _c_interface(d: Design, interface_outputs, uses_x: bool) -> list[str]:
+    NS, NI, NAI = "ASHC_N_STATES", "ASHC_N_INPUTS", "ASHC_N_ABSTRACT_INPUTS"
+    ls = d.q == "least_squares"
+    decl = [f"    double {a}[{ {'l': NI, 'pm': NS, 'dpd': f'{NS} * {NAI}', 'g': f'{NS} * {NI}'}[a] }];" for a, _ in interface_outputs]
+    lines = ["void ashc_interface(const double *xi, const double *x, const double *v, double *u)", "{", *decl,
+             f"    double feedback[{NI}], correction[{NI}];"]
+    if ls:
+        lines += [f"    double Ltg[{NS} * {NI}], Ltd[{NS} * {NAI}], pg[{NI} * {NS}], q[{NI} * {NAI}];", "    int i, j, k, a;"]
+    elif d.K is not None:
+        lines += ["    int i, j;"]
+    else:
+        lines += ["    int j;"]
+    if not uses_x:
+        lines += ["    (void)x;"]
+    if not ls:
+        lines += ["    (void)v;"]
+    args = ", ".join(["xi"] + (["x"] if uses_x else []) + [a for a, _ in interface_outputs])
+    lines += [f"    interface_terms({args});"]
+    if d.K is not None:
+        lines += ["    /* K (x - p(xi)): k(x, p(xi), l(xi)) - l(xi) of eq. (15) */", f"    for (j = 0; j < {NI}; j++) {{",
+                  "        double s = 0.0;", f"        for (i = 0; i < {NS}; i++) s += K[j][i] * (x[i] - pm[i]);",
+                  "        feedback[j] = s;", "    }"]
+    else:
+        lines += [f"    for (j = 0; j < {NI}; j++) feedback[j] = 0.0;   /* identity feedback: K = 0 */"]
+    lines += [f"    for (j = 0; j < {NI}; j++) correction[j] = feedback[j];"]
+    if ls:
+        pinv = f"pinv_vector({NS} * {NI}, Ltg, pg);" if min(d.n, d.n_inputs) == 1 else f"pinv_small({NS}, {NI}, Ltg, pg);"
+        lines += ["    /* q = pinv(L^T g) (L^T dp/dxi delta), eq. (43) */", f"    for (i = 0; i < {NS}; i++) {{",
+                  f"        for (j = 0; j < {NI}; j++) {{", "            double s = 0.0;",
+                  f"            for (k = 0; k < {NS}; k++) s += L[k][i] * g[k * {NI} + j];", f"            Ltg[i * {NI} + j] = s;", "        }",
+                  f"        for (a = 0; a < {NAI}; a++) {{", "            double s = 0.0;",
+                  f"            for (k = 0; k < {NS}; k++) s += L[k][i] * dpd[k * {NAI} + a];", f"            Ltd[i * {NAI} + a] = s;", "        }",
+                  "    }", f"    {pinv}", f"    for (j = 0; j < {NI}; j++) {{", f"        for (a = 0; a < {NAI}; a++) {{",
+                  "            double s = 0.0;", f"            for (i = 0; i < {NS}; i++) s += pg[j * {NS} + i] * Ltd[i * {NAI} + a];",
+                  f"            q[j * {NAI} + a] = s;", "        }", "    }", f"    for (j = 0; j < {NI}; j++) {{", "        double s = 0.0;",
+                  f"        for (a = 0; a < {NAI}; a++) s += q[j * {NAI} + a] * v[a];", "        correction[j] = feedback[j] + s;", "    }"]
+    if d.saturate == "scale":
+        lines += ["    /* SAT (scale): l + s correction with the largest s in [0, 1] keeping u in U (one factor for every channel) */",
+                  "    {", "        double smin = HUGE_VAL, s;", f"        for (j = 0; j < {NI}; j++) {{", "            const double cj = correction[j];",
+                  "            double room = HUGE_VAL;",
+                  "            if (cj > 0.0) room = (ashc_input_bounds[j][1] - l[j]) / cj;",
+                  "            else if (cj < 0.0) room = (ashc_input_bounds[j][0] - l[j]) / cj;",
+                  "            if (room < smin || room != room) smin = room;", "        }",
+                  "        s = smin < 0.0 ? 0.0 : (smin > 1.0 ? 1.0 : smin);",
+                  f"        for (j = 0; j < {NI}; j++) u[j] = l[j] + s * correction[j];", "    }"]
+    elif d.saturate:
+        lines += ["    /* SAT (clip): each channel to U */",
+                  f"    for (j = 0; j < {NI}; j++) u[j] = clip(l[j] + correction[j], ashc_input_bounds[j][0], ashc_input_bounds[j][1]);"]
+    else:
+        lines += ["    /* no saturation: u may leave U */", f"    for (j = 0; j < {NI}; j++) u[j] = l[j] + correction[j];"]
+    return lines + ["}", ""]
+
+
+# --- Python ----------------------------------------------------------------------------------------------
+
+
+def python_source(design: Design) -> str:
+    """The numpy module of a design: the same functions as the C file, returning arrays.
+
+    Parameters
+    ----------
+    design : Design
+        From :func:`gather`.
+
+    Returns
+    -------
+    str
+        The module's source.  ``ashc_m(x)`` returns ``(status, xi)``; ``ashc_controller(xi, xi_ref)`` takes
+        ``gain`` and ``v_max`` as further arguments when the spec gives no abstract controller.  The
+        interface and the controller are those of the set-point law (tests/oracle.py ``tracking_law``), operation
+        for operation (numpy's pinv where a pseudo-inverse is not of one column).
+    """
+    d = design
+    rename = _renamer(d)
+    ls = d.q == "least_squares"
+    has_gain = d.gain is not None
+    interface_outputs = [("l", d.l)] + ([("pm", d.p)] if d.K is not None else []) + ([("dpd", d.dp_delta), ("g", d.g)] if ls else [])
+
+    def function(name: str, args: str, outputs, doc: str) -> list[str]:
+        body = [f"def {name}({args}):", f'    """{doc}"""']
+        for arg in args.split(", "):
+            body.append(f"    {arg} = numpy.asarray({arg}, dtype=float)")
+        for array, matrix in outputs:
+            body.append(f"    {array} = numpy.empty({sp.Matrix(matrix).rows * sp.Matrix(matrix).cols})")
+        body += _assignments(outputs, rename, "python")
+        # delta, dp/dxi delta and g are matrices (2-D, even with one column), the others vectors
+        shaped = [f"{array}.reshape({sp.Matrix(matrix).rows}, {sp.Matrix(matrix).cols})" if array in ("delta", "dpd", "g") else array
+                  for array, matrix in outputs]
+        body.append(f"    return {', '.join(shaped)}")
+        return body + ["", ""]
+
+    head = _head_comment(d, "numpy only")
+    lines = ['"""' + head[0], "", *head[1:], "",
+             f"Arrays: xi[i] is abstract state i ({', '.join(d.abstract_states)}), x[i] state i ({', '.join(d.states)}), "
+             f"u[j] input j ({', '.join(d.inputs)}), v[a] abstract input a ({', '.join(d.abstract_inputs)}).", '"""', "",
+             "import functools", "", "import numpy", "",
+             f"N_STATES = {d.n}", f"N_INPUTS = {d.n_inputs}", f"N_ABSTRACT_STATES = {d.n_hat}", f"N_ABSTRACT_INPUTS = {d.m_hat}",
+             f"N_OUTPUTS = {d.n_outputs}", "",
+             "#: Status of ashc_m.", "OK, OUTSIDE_CERTIFIED_SET, NOT_REAL = 0, 1, 2", "",
+             *(["# The spec's parameters.", *(f"PRM_{k} = {float(v)!r}" for k, v in d.parameters.items()), ""] if d.parameters else []),
+             f"INPUT_BOUNDS = {_py_rows(d.U)}  # U", f"ABSTRACT_DOMAIN = {_py_rows(d.V)}  # V",
+             f"M_DOMAIN = {_py_rows(d.m_domain)}  # where m is certified ({d.m_domain_set}): h(x) in this box",
+             f"M_DOMAIN_RTOL = {DOMAIN_RTOL!r}", f"Q = {d.q!r}", f"SATURATE = {d.saturate!r}"]
+    lines += [f"K = {_py_rows(d.K)}  # feedback gain (feedback: linear_gain)" if d.K is not None else "K = None  # identity feedback"]
+    lines += [f"L = {_py_rows(d.L)}  # M = L L^T" if ls else "L = None  # q = 0"]
+    if has_gain:
+        lines += [f"GAIN = {d.gain!r}", f"V_MAX = {d.v_max!r}"]
+    lines += ["", "",
+              "def _pinv(a):", '    """linalg.pinv: one column in closed form a^T / |a|^2 (zero for a zero column), else numpy\'s pinv."""',
+              "    if a.shape[1] == 1:", "        s = float(a[:, 0] @ a[:, 0])", "        return a.T / s if s > 0 else numpy.zeros_like(a.T)",
+              "    return numpy.linalg.pinv(a)", "", ""]
+    uses_x = d.K is not None or ls
+    lines += function("_interface_terms", "xi, x" if uses_x else "xi", interface_outputs, "l(xi)" + (", p(xi)" if d.K is not None else "")
+                      + (", dp/dxi delta(xi), g(x)" if ls else "") + ".")
+    lines += function("_abstract_terms", "xi", [("phi", d.phi_bar), ("delta", d.delta)], "phi_bar(xi), delta(xi).")
+    lines += function("_output_terms", "x", [("y", d.h)], "y = h(x).")
+    lines += function("_m_terms", "x", [("m", d.m)], "m(x), unchecked.")
+    lines += function("ashc_p", "xi", [("p", d.p)], "p(xi): the manifold map.")
+    lines += function("ashc_kappa", "xi", [("psi", d.kappa)], "psi = kappa(xi): the abstract output.")
+    lines += ["def ashc_m(x):",
+              '    """(status, xi = m(x)): OK, or OUTSIDE_CERTIFIED_SET (h(x) not in M_DOMAIN; xi is NaN) or NOT_REAL."""',
+              "    x = numpy.asarray(x, dtype=float)", "    y = _output_terms(x)",
+              "    tol = M_DOMAIN_RTOL * numpy.maximum(1.0, M_DOMAIN[:, 1] - M_DOMAIN[:, 0])",
+              "    if not numpy.all((y >= M_DOMAIN[:, 0] - tol) & (y <= M_DOMAIN[:, 1] + tol)):",
+              "        return OUTSIDE_CERTIFIED_SET, numpy.full(N_ABSTRACT_STATES, numpy.nan)", "    xi = _m_terms(x)",
+              "    return (OK if numpy.all(numpy.isfinite(xi)) else NOT_REAL), xi", "", ""]
+    terms = ", ".join(a for a, _ in interface_outputs)
+    lines += ["def ashc_interface(xi, x, v):",
+              f'    """u = SAT(l(xi){" + K (x - p(xi))" if d.K is not None else ""}{" + q(xi, x) v" if ls else ""}), saturation: {_saturate_text(d.saturate)}."""',
+              "    xi = numpy.asarray(xi, dtype=float)", "    x = numpy.asarray(x, dtype=float)", "    v = numpy.asarray(v, dtype=float)",
+              f"    {terms} = _interface_terms({'xi, x' if uses_x else 'xi'})",
+              "    feedback = K @ (x - pm)" if d.K is not None else "    feedback = numpy.zeros(N_INPUTS)",
+              "    correction = feedback"]
+    if ls:
+        lines += ["    q = _pinv(L.T @ g) @ (L.T @ dpd)  # eq. (43)", "    correction = correction + q @ v"]
+    if d.saturate == "scale":
+        lines += ["    lo, hi = INPUT_BOUNDS[:, 0], INPUT_BOUNDS[:, 1]", "    with numpy.errstate(divide='ignore', invalid='ignore'):",
+                  "        room = numpy.where(correction > 0, (hi - l) / correction, numpy.where(correction < 0, (lo - l) / correction, numpy.inf))",
+                  "    s = numpy.clip(numpy.min(room), 0.0, 1.0)", "    return l + s * correction"]
+    elif d.saturate:
+        lines += ["    return numpy.clip(l + correction, INPUT_BOUNDS[:, 0], INPUT_BOUNDS[:, 1])"]
+    else:
+        lines += ["    return l + correction"]
+    lines += ["", ""]
+    args = "xi, xi_ref" if has_gain else "xi, xi_ref, gain, v_max"
+    lines += [f"def ashc_controller({args}):", '    """v = clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max)."""',
+              *(["    gain, v_max = GAIN, V_MAX"] if has_gain else []),
+              "    xi = numpy.asarray(xi, dtype=float)", "    xi_ref = numpy.asarray(xi_ref, dtype=float)",
+              "    phi, delta = _abstract_terms(xi)",
+              "    return numpy.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi), -v_max, v_max)", "", "",
+              "def ashc_abstract_rhs(xi, v):", '    """dxi = phi_bar(xi) + delta(xi) v."""',
+              "    v = numpy.asarray(v, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    return phi + delta @ v", ""]
+    text = "\n".join(lines)
+    if "functools." not in text.split('"""', 2)[2]:   # sympy prints min/max of several arguments with functools.reduce
+        text = text.replace("import functools\n\n", "", 1)
+    return text
+
+
