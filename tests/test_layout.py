@@ -24,7 +24,8 @@ MAX_FUNCTION_LINES = 100
 MODULE_DEBTS = {
 }
 FUNCTION_DEBTS = {
-    "closedloop/falsify_core.py:run_one": 233,
+    # its hold loop stays written out: as an inline="always" function it cost 5% of a falsify campaign, as a call 12%
+    "closedloop/falsify_core.py:run_one": 146,
 }
 
 

@@ -213,6 +213,97 @@ def _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, amp, rho, alpha_h, 
     return last_switch
 
 
+@njit(inline="always", **OPTIONS)
+def _output_error(A, B, o_kap, o_h, p):
+    """|psi - y| = |kappa(xi) - h(x)| from the kernels' buffers."""
+    err = 0.0
+    for i in range(p):
+        err += (A[o_kap + i] - B[o_h + i]) ** 2
+    return math.sqrt(err)
+
+
+@njit(inline="always", **OPTIONS)
+def _state_checks(Z, nh, scale, diverge, lo, hi):
+    """(finite, inside): every entry of Z finite and within ``diverge`` times its scale; xi = Z[:nh] in V (1e-9 slack)."""
+    finite = True
+    for i in range(Z.size):
+        if not (math.isfinite(Z[i]) and abs(Z[i]) <= diverge * scale[i]):
+            finite = False
+    inside = True
+    for i in range(nh):
+        if not (Z[i] >= lo[i] - 1e-9 and Z[i] <= hi[i] + 1e-9):
+            inside = False
+    return finite, inside
+
+
+@njit(inline="always", **OPTIONS)
+def _account(k, k_at, active, err, floor, bound, acc):
+    """Sample k into the run's tallies ``acc`` (fout's row: the largest error / bound ratio, the largest after t = 0,
+    the largest error and, at acc[5], bound while the run is active); the sample of the largest ratio is returned.
+    A local row, copied to fout at the end: threads writing neighbouring rows of fout every hold share cache lines."""
+    ratio = 0.0
+    if active and err > floor:
+        ratio = (err - floor) / max(bound, 1e-300) if bound > 0 else np.inf
+    if ratio > acc[0]:
+        acc[0] = ratio
+        k_at = k
+    if k > 0:
+        acc[1] = max(acc[1], ratio)
+    if active:
+        acc[2] = max(acc[2], err if math.isfinite(err) else 0.0)
+        acc[5] = max(acc[5], bound)
+    return k_at
+
+
+@njit(inline="always", **OPTIONS)
+def _record(r, k, Z, err, bound, v_now, recZ, recE, recB, recV):
+    """Sample k of run r into the records (``record`` runs only)."""
+    for i in range(Z.size):
+        recZ[r, k, i] = Z[i]
+    recE[r, k] = err
+    recB[r, k] = bound
+    for a in range(v_now.size):
+        recV[r, k, a] = v_now[a]
+
+
+@njit(inline="always", **OPTIONS)
+def _guard(dims, off, A, B, wk, U, sat, Z, lo, hi, centre, step, v_max, v_plan, plan0, neg, u, dxi, dxi_r, dx):
+    """The guard of a held input: v_plan is kept if it keeps xi in V over ``step``, else reversed, else turned to
+    V's centre at |v| = v_max (NaN entries count as 0)."""
+    nh, mh = dims[0], dims[3]
+    any_nan = False
+    for a in range(mh):
+        plan0[a] = v_plan[a]
+        if v_plan[a] != v_plan[a]:
+            any_nan = True
+    _nan_to_num(plan0)
+    _apply(dims, off, A, B, wk, U, sat, plan0, u, dxi, dx)
+    if not any_nan and _stays(Z, dxi, step, lo, hi):
+        return
+    nonzero = False
+    for a in range(mh):
+        neg[a] = -plan0[a]
+        if plan0[a] != 0:
+            nonzero = True
+    _apply(dims, off, A, B, wk, U, sat, neg, u, dxi_r, dx)
+    if nonzero and _stays(Z, dxi_r, step, lo, hi):
+        for a in range(mh):
+            v_plan[a] = neg[a]
+        return
+    o_dplus, o_del, o_vin = off[O_DPLUS], off[O_DEL], off[O_VIN]
+    pinv_flat(A, o_del, nh, mh, wk, o_dplus)
+    nin = 0.0
+    for a in range(mh):
+        s = 0.0
+        for i in range(nh):
+            s += wk[o_dplus + a * nh + i] * (centre[i] - Z[i])
+        wk[o_vin + a] = s
+        nin += s * s
+    nin = math.sqrt(nin)
+    for a in range(mh):
+        v_plan[a] = wk[o_vin + a] * (v_max / max(nin, 1e-300))
+
+
 @njit(**OPTIONS)
 def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
             xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
@@ -224,32 +315,13 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     r : int, the run: its row of the per-run arrays and of the outputs; the other arguments as :func:`run_batch`."""
     nh, n, m, mh, p, H, S, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7], dims[8]
     q_ls, sat = iprm[0], iprm[1]
-    dt, v_limit, lam, eps, alpha_h, G, floor, rtol, diverge, lookahead = (fprm[0], fprm[1], fprm[2], fprm[3], fprm[4],
-                                                                          fprm[5], fprm[6], fprm[7], fprm[8], fprm[9])
+    dt, v_limit, lam, eps, alpha_h, G, floor, diverge, lookahead = fprm[0], fprm[1], fprm[2], fprm[3], fprm[4], fprm[5], fprm[6], fprm[8], fprm[9]
     d = nh + n
-    tab = DP54
-    ns = tab[1].size                 # the stages; ks[ns] is the slope at the step's end (FSAL)
-    A = np.empty(off[19])
-    B = np.empty(off[20])
-    wk = np.empty(off[21])
-    o_kap, o_h, o_vin = off[O_KAP], off[O_H], off[O_VIN]
-    v = np.empty(mh)
-    u = np.empty(m)
-    dxi = np.empty(nh)
-    dx = np.empty(n)
-    dxi_r = np.empty(nh)
-    Z = np.empty(d)
-    Zs = np.empty(d)
-    zs = np.empty(d)
-    ks = np.empty((DP54[0].shape[0], d))
-    v_plan = np.empty(mh)
-    plan0 = np.empty(mh)
-    neg = np.empty(mh)
-    v_now = np.zeros(mh)
-    prev = np.zeros(mh)
-    vc = np.empty(mh)
-    choice = np.empty(mh)
-    ee = np.empty(n)
+    A, B, wk = np.empty(off[19]), np.empty(off[20]), np.empty(off[21])     # the kernels' buffers and the loop's work
+    v, v_plan, plan0, neg, vc, choice = np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh)
+    v_now, prev = np.zeros(mh), np.zeros(mh)
+    u, dxi, dxi_r, dx, ee = np.empty(m), np.empty(nh), np.empty(nh), np.empty(n), np.empty(n)
+    Z, Zs, zs, ks = np.empty(d), np.empty(d), np.empty(d), np.empty((DP54[0].shape[0], d))
     for i in range(nh):
         Z[i] = xi0[r, i]
     for i in range(n):
@@ -264,96 +336,48 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     active = True
     left = 0
     diverged = 0
-    ratio = 0.0
-    ratio_late = 0.0
-    k_at = 0
-    max_err = 0.0
     vsup = 0.0
     at_limit = 0.0
     forced = 0
     accepted = 0
     rejected = 0
-    last_switch = -(10 ** 9)
-    largest_bound = 0.0
-    h_step = dt
     h_min = dt / 4096.0
+    rtol = fprm[7]
+    last_switch = -(10 ** 9)
+    acc = np.zeros(6)                # ratio, ratio_late, max_err, vsup, at_limit, largest_bound (fout's row)
+    k_at = 0
+    h_step = dt
     for k in range(H + 1):
         seg = min(k * S // H, S - 1)
         ref = refs[r, seg]
         nz = noise[r, seg]
-        finite = True
-        for i in range(d):
-            if not (math.isfinite(Z[i]) and abs(Z[i]) <= diverge * scale[i]):
-                finite = False
+        finite, inside = _state_checks(Z, nh, scale, diverge, lo, hi)
         if active and not finite:
             diverged = 1
         active = active and finite
-        for i in range(d):
-            Zs[i] = Z[i] if math.isfinite(Z[i]) else 0.0
-        _terms(exi, ex, Zs, dims, off, A, B, wk, K, L, q_ls)
-        inside = True
-        for i in range(nh):
-            if not (Z[i] >= lo[i] - 1e-9 and Z[i] <= hi[i] + 1e-9):
-                inside = False
         if active and not inside:
             left = 1
         active = active and inside
-        err = 0.0
-        for i in range(p):
-            err += (A[o_kap + i] - B[o_h + i]) ** 2
-        err = math.sqrt(err)
+        for i in range(d):
+            Zs[i] = Z[i] if math.isfinite(Z[i]) else 0.0
+        _terms(exi, ex, Zs, dims, off, A, B, wk, K, L, q_ls)
+        err = _output_error(A, B, off[O_KAP], off[O_H], p)
 
-        for a in range(mh):
-            v_now[a] = 0.0
+        v_now[:] = 0.0
         if k < H:
             if held:
-                for a in range(mh):
-                    v_plan[a] = vtab[r, k, a]
-                if greedy:
-                    if not (active and k - last_switch >= dwell[r]):
-                        for a in range(mh):
-                            v_plan[a] = prev[a]
-                    else:
-                        last_switch = _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, v_limit * amp[r], rho[r], alpha_h, dt, lookahead,
-                                              guarded, k, last_switch, prev, vc, u, dxi, dx, ee, choice, v_plan)
-                # Guard: a held input that would carry xi out of V is reversed, else turned to V's centre.
-                if guarded and active:
-                    any_nan = False
-                    for a in range(mh):
-                        plan0[a] = v_plan[a]
-                        if v_plan[a] != v_plan[a]:
-                            any_nan = True
-                    _nan_to_num(plan0)
-                    _apply(dims, off, A, B, wk, U, sat, plan0, u, dxi, dx)
-                    if any_nan or not _stays(Z, dxi, lookahead * dt, lo, hi):
-                        nonzero = False
-                        for a in range(mh):
-                            neg[a] = -plan0[a]
-                            if plan0[a] != 0:
-                                nonzero = True
-                        _apply(dims, off, A, B, wk, U, sat, neg, u, dxi_r, dx)
-                        if nonzero and _stays(Z, dxi_r, lookahead * dt, lo, hi):
-                            for a in range(mh):
-                                v_plan[a] = neg[a]
-                        else:
-                            o_dplus, o_del = off[O_DPLUS], off[O_DEL]
-                            pinv_flat(A, o_del, nh, mh, wk, o_dplus)
-                            nin = 0.0
-                            for a in range(mh):
-                                s = 0.0
-                                for i in range(nh):
-                                    s += wk[o_dplus + a * nh + i] * (centre[i] - Z[i])
-                                wk[o_vin + a] = s
-                                nin += s * s
-                            nin = math.sqrt(nin)
-                            for a in range(mh):
-                                v_plan[a] = wk[o_vin + a] * (v_limit * amp[r] / max(nin, 1e-300))
+                v_plan[:] = vtab[r, k]
+                if greedy and not (active and k - last_switch >= dwell[r]):
+                    v_plan[:] = prev                      # the adversary keeps its choice for dwell holds after a switch
+                elif greedy:
+                    last_switch = _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, v_limit * amp[r], rho[r], alpha_h, dt, lookahead,
+                                          guarded, k, last_switch, prev, vc, u, dxi, dx, ee, choice, v_plan)
+                if guarded and active:                    # out of V: the input reversed, else turned to V's centre
+                    _guard(dims, off, A, B, wk, U, sat, Z, lo, hi, centre, lookahead * dt, v_limit * amp[r], v_plan, plan0, neg, u, dxi, dxi_r, dx)
                 _nan_to_num(v_plan)
                 if greedy:
-                    for a in range(mh):
-                        prev[a] = v_plan[a]
-                for a in range(mh):
-                    v_now[a] = v_plan[a]
+                    prev[:] = v_plan
+                v_now[:] = v_plan
             if setpoint:
                 _setpoint_v(Zs, dims, off, A, wk, ref, gain, nz, v_limit, v_now)
             if keep_v:
@@ -367,33 +391,18 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
             if vn >= v_limit * (1 - 1e-9):
                 at_limit += 1.0
         bound = math.sqrt(w0 * math.exp(-(lam - eps) * tgrid[k]) / alpha_h) + G * vsup
-        rk = 0.0
-        if active and err > floor:
-            rk = (err - floor) / max(bound, 1e-300) if bound > 0 else np.inf
-        if rk > ratio:
-            ratio = rk
-            k_at = k
-        if k > 0:
-            ratio_late = max(ratio_late, rk)
-        if active:
-            max_err = max(max_err, err if math.isfinite(err) else 0.0)
-            largest_bound = max(largest_bound, bound)
+        k_at = _account(k, k_at, active, err, floor, bound, acc)
         if record:
-            for i in range(d):
-                recZ[r, k, i] = Z[i]
-            recE[r, k] = err
-            recB[r, k] = bound
-            for a in range(mh):
-                recV[r, k, a] = v_now[a]
+            _record(r, k, Z, err, bound, v_now, recZ, recE, recB, recV)
         if k == H:
             break
         if not active:
             continue
 
-        # Hold k: the engine's Dormand-Prince 5(4) steps, this run's error against rtol and atol.  Stage 0 (the slope
-        # at the start) is evaluated at the start of the hold, later taken from the last stage (FSAL).
         t = tgrid[k]
         t_end = tgrid[k + 1]
+        tab = DP54
+        ns = tab[1].size
         first = 0
         while t < t_end - 1e-14 * max(1.0, t_end):
             h_nat = h_step
@@ -405,7 +414,6 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                 else:
                     stage_input(tab, s, h_step, Z, ks, zs)
                 # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.
-                # (Written out here: a call with this many arrays costs their reference counts at every stage.)
                 _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
                 if setpoint:
                     _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)
@@ -435,12 +443,8 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
             else:
                 rejected += 1
                 h_step = max(h_min, h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0))
-    fout[r, 0] = ratio
-    fout[r, 1] = ratio_late
-    fout[r, 2] = max_err
-    fout[r, 3] = vsup
-    fout[r, 4] = at_limit
-    fout[r, 5] = largest_bound
+    acc[3], acc[4] = vsup, at_limit
+    fout[r, :6] = acc
     iout[r, 0] = k_at
     iout[r, 1] = left
     iout[r, 2] = diverged
