@@ -24,6 +24,7 @@ import sympy as sp
 from flint import arb
 
 from ashc_cli.numerics import boxsearch, interval
+from ashc_cli.numerics._infsup import fdn, fup
 from ashc_cli.problem.model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
@@ -137,10 +138,7 @@ def upper(x: arb) -> float:
     float
         The ball's upper end, rounded up to a double.
     """
-    if not x.is_finite():
-        return np.inf
-    v = float(x.upper())
-    return v if arb(v) >= x.upper() else float(np.nextafter(v, np.inf))
+    return fup(x) if x.is_finite() else np.inf
 
 
 def lower(x: arb) -> float:
@@ -155,10 +153,7 @@ def lower(x: arb) -> float:
     float
         The ball's lower end, rounded down to a double.
     """
-    if not x.is_finite():
-        return -np.inf
-    v = float(x.lower())
-    return v if arb(v) <= x.lower() else float(np.nextafter(v, -np.inf))
+    return fdn(x) if x.is_finite() else -np.inf
 
 
 class BoxFunction:
