@@ -21,6 +21,7 @@ __all__ = [
     "AshcError",
     "SpecError",
     "DesignError",
+    "ScenarioStopped",
     "NumericalError",
     "ArtefactError",
     "EXIT_CODES",
@@ -76,6 +77,12 @@ class DesignError(AshcError):
     def __init__(self, where: str, what: str, expected: str | None = None, *, check: str | None = None):
         self.check = check
         super().__init__(where, what, expected)
+
+
+class ScenarioStopped(DesignError):
+    """A simulated scenario stopped part-way (exit code 3): its run left the set where the design holds (the
+    m-relation's y leaving where m is certified).  An observation of one run, not of the design: when the spec has
+    another scenario, simulate keeps that one's results and records this one as a failing simulated check."""
 
 
 class NumericalError(AshcError):

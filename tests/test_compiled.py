@@ -25,7 +25,8 @@ from ashc_cli.errors import NumericalError  # noqa: E402
 from ashc_cli.design.pipeline import DESIGN, design_model, run  # noqa: E402
 from ashc_cli.problem.spec import load_spec  # noqa: E402
 from ashc_cli.design.stages import simulate  # noqa: E402
-from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, reference_state, sample_times  # noqa: E402
+from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, sample_times  # noqa: E402
+from ashc_cli.design.upstream import reference_state  # noqa: E402
 
 from .conftest import CUK, ROOT, SPECS  # noqa: E402
 from .oracle import MRelationOracle, tracking_law, use_oracles  # noqa: E402

@@ -33,7 +33,8 @@ from ashc_cli.design.pipeline import design_model, load_all, run
 from ashc_cli.problem.spec import Interface, load_spec
 from ashc_cli.design.upstream import certified_set, outside_certified_set
 from .oracle import tracking_law
-from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, DesignTerms, reference_state, sample_times
+from ashc_cli.design.stages.simulate import SAMPLE_DT, TRACKING_TOL, DesignTerms, sample_times
+from ashc_cli.design.upstream import reference_state
 
 from .conftest import CUK, SPECS, edited
 

@@ -8,10 +8,11 @@ from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.closedloop import plan as gplan
 
 from . import oracle as reference
+from ashc_cli.design import upstream
 from ashc_cli.design.stages import simulate
 from ashc_cli.design.stages.simulate import SAMPLE_DT, sample_times
 
-from .conftest import SPECS, edited
+from .conftest import SPECS, ashc, edited
 
 
 @pytest.fixture(scope="module")
@@ -211,7 +212,7 @@ def test_governor_holds_the_tolerance_from_an_adversarial_start(paper_design, pa
     model, plant, xi0, x0, W0, alpha_h = _adversarial_start(paper_design, paper_spec, 0.98, sign)
     plan = gplan.guaranteed_plan(5.0, "governor", W0, paper_design)
     law = plan.law("governor", 80.0, 1, np.inf, 2.0, 1.0)
-    ref = simulate.reference_state(model, plant, np.array([-80.9]), 0, paper_design["kappa"].expr("kappa"))
+    ref = upstream.reference_state(model, plant, np.array([-80.9]), 0, paper_design["kappa"].expr("kappa"))
     segments = simulate.tracking_segments(3.0, 3.0, 1)
     res = simulate.closed_loop_run(model, plant, paper_design, law, np.r_[xi0, x0, W0], segments, [ref], simulate.tracking_loop_for(model, paper_design, law))
     err = np.abs(plant.kappa(*res["xi"])[:, 0, :] - res["y"])[0]
@@ -417,3 +418,19 @@ def test_headline_prints_the_truth_when_a_bound_or_a_tolerance_is_exceeded():
                        "tracking/bound_evidence": "proved", "tracking/inside_certified_region": True})
     art.checks["tracking_error_within_tolerance"] = Check(0.1, False, "max |psi - y| - EPS")
     assert "> 0.4: the guaranteed tolerance is NOT met" in simulate.headline(art)
+
+
+def test_a_stopped_m_relation_keeps_the_tracking_results(tmp_path):
+    # The m-relation run of this edit leaves kappa(V) (a bad_inputs case on its own, exit 3); with the tracking
+    # scenario beside it, simulate.h5 keeps the tracking run and says which scenario stopped and why.
+    spec = edited(SPECS / "cuk_converter.yaml", tmp_path, ("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"),
+                  ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"'))
+    proc = ashc("simulate", str(spec), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    assert "FAILED (simulated): the m_relation scenario ran to its end (simulate.m_relation: at t = " in proc.stderr
+    art = read_artefact(tmp_path / "out" / "simulate.h5")
+    assert "tracking/t" in art.values and "m_relation/t" not in art.values
+    assert "leaves kappa(V) = [-126.188, 0], where m is certified" in str(art.values["m_relation/failed"])
+    chk = art.checks["m_relation_ran_to_the_end"]
+    assert not chk.passed and chk.evidence == "simulated"
+    assert all(c.passed for name, c in art.checks.items() if name.startswith("tracking"))

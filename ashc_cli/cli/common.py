@@ -329,8 +329,9 @@ STAGE_HELP = {
     "delta": "Check delta's rank on V and build the m-relation link v = b(x) + c(x) u (Theorem 5).",
     "bound": "Compute alpha_h, epsilon, dbar (q = 0 and least squares, eq. (37)) and the gain G of the error bound (eq. (38)).",
     "simulate": "Run the tracking and m-relation scenarios of the spec (Figs. 7, 8, 9, 10), designing first if needed. A scenario check "
-                "that fails (psi not settled, u outside U, ...) is printed as 'FAILED (simulated)' and listed by `ashc check`; the exit "
-                "status stays 0, since it observes one run and is not a design condition of Problem 1.",
+                "that fails (psi not settled, u outside U, an m-relation run that leaves where m is certified while the tracking run "
+                "completes, ...) is printed as 'FAILED (simulated)' and listed by `ashc check`; the exit status stays 0, since it "
+                "observes one run and is not a design condition of Problem 1. A scenario that stops with nothing else completed exits 3.",
 }
 
 #: The one-line summary of every command in `ashc --help` (click would cut the help at its first ". ",

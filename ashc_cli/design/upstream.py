@@ -1,12 +1,18 @@
-"""Functions of upstream artefacts that several stages read: p and dp/dxi from ``manifold.h5``, and the set
-where m is certified from ``inverse.h5``.  Stages import these, never each other's modules."""
+"""Functions of upstream artefacts that several stages read: p and dp/dxi from ``manifold.h5``, the set where m is
+certified from ``inverse.h5``, and the reference states of levels (kappa(xi) = level on V).  Stages import these,
+never each other's modules."""
 
 from __future__ import annotations
 
+import cvxpy as cp
 import numpy as np
+import scipy.optimize as sopt
+import sympy as sp
 
+from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact
-from ashc_cli.errors import ArtefactError
+from ashc_cli.errors import ArtefactError, DesignError
+from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model
 
 
@@ -138,3 +144,74 @@ def sample_box(model: Model, p_grid: np.ndarray) -> np.ndarray:
     if model.state_box is not None:
         return model.state_box
     return np.c_[p_grid.min(axis=1) - np.ptp(p_grid, axis=1) - 1.0, p_grid.max(axis=1) + np.ptp(p_grid, axis=1) + 1.0]
+
+
+# --- reference states: the least-norm xi in V with kappa(xi) = a level (simulate, tradeoff) -------------------
+
+
+def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: int, kappa: sp.Matrix) -> np.ndarray:
+    """The least-norm xi in V with kappa(xi) = level.
+
+    Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
+    Scalar abstraction: the roots of kappa - level on a fine grid of V, refined, the smallest kept.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (V fixed).
+    plant : DesignTerms
+        The design's compiled terms (``plant.kappa`` is read for a nonlinear kappa).
+    level : ndarray (p,)
+        The reference level.
+    index : int
+        The level's position in ``simulate.tracking.reference_levels`` (for the error message).
+    kappa : sympy Matrix (p, 1)
+        kappa(xi), the kappa artefact's formula.
+
+    Returns
+    -------
+    ndarray (n_hat,)
+
+    Raises
+    ------
+    DesignError
+        If kappa does not reach the level on V.
+    """
+    where = f"simulate.tracking.reference_levels[{index}]"
+    if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
+        K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
+        k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
+        xi = cp.Variable(model.n_hat)
+        problem = cp.Problem(cp.Minimize(cp.sum_squares(xi)), [K @ xi + k0 == level, xi >= model.V[:, 0], xi <= model.V[:, 1]])
+        problem.solve(solver=cp.CLARABEL)
+        if xi.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+            raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V ({problem.status})", "levels inside kappa(V)")
+        return np.asarray(xi.value, dtype=float)
+    if model.n_hat != 1:
+        return _reference_state_nonlinear(model, plant, level, where)
+    lo, hi = model.V[0]
+    grid = np.linspace(lo, hi, 20001)
+    err = plant.kappa(grid)[0, 0] - level[0]
+    roots = [grid[k] for k in np.flatnonzero(err == 0)]
+    for k in np.flatnonzero(np.sign(err[:-1]) * np.sign(err[1:]) < 0):
+        roots.append(sopt.brentq(lambda s: plant.kappa(s)[0, 0] - level[0], grid[k], grid[k + 1], xtol=1e-14))
+    if not roots:
+        k_lo, k_hi = float(np.min(err + level[0])), float(np.max(err + level[0]))
+        raise DesignError(where, f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
+                          "levels inside kappa(V)")
+    return np.array([min(roots, key=abs)])
+
+
+def _reference_state_nonlinear(model: Model, plant: DesignTerms, level: np.ndarray, where: str) -> np.ndarray:
+    """Several abstract states, nonlinear kappa: bounded least squares on kappa(xi) = level from the points
+    of a coarse grid of V; of the exact solutions found, the least-norm one."""
+    starts = domain_grid(model.V, 5 ** model.n_hat)
+    bounds = (model.V[:, 0], model.V[:, 1])
+    found = []
+    for start in starts.T:
+        fit = sopt.least_squares(lambda s: plant.kappa(*s)[:, 0] - level, start, bounds=bounds, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if np.abs(fit.fun).max() <= 1e-10 * max(1.0, np.abs(level).max()):
+            found.append(fit.x)
+    if not found:
+        raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V", "levels inside kappa(V)")
+    return min(found, key=np.linalg.norm)

@@ -20,27 +20,25 @@ the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. (22
 
 Both run on the compiled closed loops (ashc_cli/closedloop/compiled.py) and the one Runge-Kutta engine
 (ashc_cli/closedloop/rk.py: DOP853 and solve_ivp's terminal event, step for step), at the tolerances recorded in the
-artefact (meta ``tracking_integrator`` and ``m_relation_integrator``).  solve_ivp on the numpy laws of
-The numpy form of the laws is the tests' oracle (tests/oracle.py).
+artefact (meta ``tracking_integrator`` and ``m_relation_integrator``).  solve_ivp on the numpy form of the laws is
+the tests' oracle (tests/oracle.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
-import cvxpy as cp
 import numpy as np
-import scipy.optimize as sopt
 import sympy as sp
 
 from ashc_cli.closedloop import compiled
 from ashc_cli.closedloop.plan import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.design.upstream import reference_state
 from ashc_cli.numerics.proofs import SIMULATED
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import DesignError, ScenarioStopped
 from ashc_cli.problem.expr import parse_expression
-from ashc_cli.problem.grids import domain_grid
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
 from ashc_cli.problem.model import TIME, Model
 from ashc_cli.problem.spec import TimedLevel
@@ -64,74 +62,6 @@ REACH_SAMPLE_DWELLS = 5e-4
 #: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
 #: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
 EDGE_MARGIN = 1e-3
-
-
-def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: int, kappa: sp.Matrix) -> np.ndarray:
-    """The least-norm xi in V with kappa(xi) = level.
-
-    Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
-    Scalar abstraction: the roots of kappa - level on a fine grid of V, refined, the smallest kept.
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems (V fixed).
-    plant : DesignTerms
-        The design's compiled terms (``plant.kappa`` is read for a nonlinear kappa).
-    level : ndarray (p,)
-        The reference level.
-    index : int
-        The level's position in ``simulate.tracking.reference_levels`` (for the error message).
-    kappa : sympy Matrix (p, 1)
-        kappa(xi), the kappa artefact's formula.
-
-    Returns
-    -------
-    ndarray (n_hat,)
-
-    Raises
-    ------
-    DesignError
-        If kappa does not reach the level on V.
-    """
-    where = f"simulate.tracking.reference_levels[{index}]"
-    if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
-        K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
-        k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
-        xi = cp.Variable(model.n_hat)
-        problem = cp.Problem(cp.Minimize(cp.sum_squares(xi)), [K @ xi + k0 == level, xi >= model.V[:, 0], xi <= model.V[:, 1]])
-        problem.solve(solver=cp.CLARABEL)
-        if xi.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
-            raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V ({problem.status})", "levels inside kappa(V)")
-        return np.asarray(xi.value, dtype=float)
-    if model.n_hat != 1:
-        return _reference_state_nonlinear(model, plant, level, where)
-    lo, hi = model.V[0]
-    grid = np.linspace(lo, hi, 20001)
-    err = plant.kappa(grid)[0, 0] - level[0]
-    roots = [grid[k] for k in np.flatnonzero(err == 0)]
-    for k in np.flatnonzero(np.sign(err[:-1]) * np.sign(err[1:]) < 0):
-        roots.append(sopt.brentq(lambda s: plant.kappa(s)[0, 0] - level[0], grid[k], grid[k + 1], xtol=1e-14))
-    if not roots:
-        k_lo, k_hi = float(np.min(err + level[0])), float(np.max(err + level[0]))
-        raise DesignError(where, f"level {level[0]:g} is not reached by kappa on V (kappa(V) = [{k_lo:.6g}, {k_hi:.6g}])",
-                          "levels inside kappa(V)")
-    return np.array([min(roots, key=abs)])
-
-
-def _reference_state_nonlinear(model: Model, plant: DesignTerms, level: np.ndarray, where: str) -> np.ndarray:
-    """Several abstract states, nonlinear kappa: bounded least squares on kappa(xi) = level from the points
-    of a coarse grid of V; of the exact solutions found, the least-norm one."""
-    starts = domain_grid(model.V, 5 ** model.n_hat)
-    bounds = (model.V[:, 0], model.V[:, 1])
-    found = []
-    for start in starts.T:
-        fit = sopt.least_squares(lambda s: plant.kappa(*s)[:, 0] - level, start, bounds=bounds, xtol=1e-15, ftol=1e-15, gtol=1e-15)
-        if np.abs(fit.fun).max() <= 1e-10 * max(1.0, np.abs(level).max()):
-            found.append(fit.x)
-    if not found:
-        raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V", "levels inside kappa(V)")
-    return min(found, key=np.linalg.norm)
 
 
 # --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
@@ -640,11 +570,11 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
                           f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
 
     def stopped(t_out: float, z_out: np.ndarray):
-        """The DesignError of a run that left the certified set at t_out, in state z_out (the event's root)."""
+        """The ScenarioStopped of a run that left the certified set at t_out, in state z_out (the event's root)."""
         y_out = plant.h_m(z_out[nh:])[0][0, 0]
         at_lo = abs(y_out - d_lo) <= abs(y_out - d_hi)
         edge = f" (stopped {EDGE_MARGIN:.1%} short of its end {d_lo if at_lo else d_hi:.6g}, where m stops being real)" if (lo_edge if at_lo else hi_edge) else ""
-        return DesignError("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
+        return ScenarioStopped("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
                            f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
 
     t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
@@ -688,8 +618,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Raises
     ------
     DesignError
-        If the spec has no ``simulate`` scenario, a reference level is out of reach or the m-relation run leaves
-        the set where m is certified.
+        If the spec has no ``simulate`` scenario, a reference level is out of reach, a start is refused, or the
+        m-relation run leaves the set where m is certified (:class:`~ashc_cli.errors.ScenarioStopped`) and it is
+        the only scenario.  With a tracking scenario as well, the tracking results are kept: the m-relation gets a
+        failing check ``m_relation_ran_to_the_end`` with the reason, and ``m_relation/failed`` holds the error line.
     NumericalError
         If an integration fails or blows up.
     """
@@ -700,15 +632,23 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL,
                                       "sample_dt": SAMPLE_DT, "interface_q": model.spec.interface.q,
                                       "saturate": model.spec.interface.saturate})
-    for scenario, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)):
-        if getattr(sim, scenario) is not None:
+    scenarios = [(name, runner) for name, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)) if getattr(sim, name) is not None]
+    for scenario, runner in scenarios:
+        try:
             values, checks = runner(model, plant, upstream)
-            art.values.update(values)
-            # Which DOP853 ran (the same method and tolerances either way).
-            code = "ashc_cli.closedloop.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
-            art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
-            # Observed along one simulated run: evidence "simulated", never a proof.
-            art.checks.update({k: replace(c, evidence=SIMULATED) for k, c in checks.items()})
+        except ScenarioStopped as exc:
+            if len(scenarios) == 1:
+                raise
+            # Observed on this run only, as the other scenario checks: what completed is kept, this one says why it stopped.
+            art.values[f"{scenario}/failed"] = exc.line()
+            art.checks[f"{scenario}_ran_to_the_end"] = Check(np.nan, False, f"the {scenario} scenario ran to its end ({exc.line()})", SIMULATED)
+            continue
+        art.values.update(values)
+        # Which DOP853 ran (the same method and tolerances either way).
+        code = "ashc_cli.closedloop.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
+        art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
+        # Observed along one simulated run: evidence "simulated", never a proof.
+        art.checks.update({k: replace(c, evidence=SIMULATED) for k, c in checks.items()})
     return art
 
 
@@ -788,7 +728,8 @@ def headline(art: Artefact) -> str:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
     failed = _failed_checks(art)
     if failed:
-        parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" for name, chk in failed.items()))
+        parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" if np.isfinite(chk.value) else chk.description
+                                                        for name, chk in failed.items()))
     return ", ".join(parts)
 
 
