@@ -413,8 +413,10 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                         zs[i] = Z[i]
                 else:
                     stage_input(tab, s, h_step, Z, ks, zs)
-                # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.
-                _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
+                # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.  Stage 0
+                # runs only at the hold's start, where zs = Z and the terms are still those of the hold-start check.
+                if s > 0:
+                    _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
                 if setpoint:
                     _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)
                 else:
