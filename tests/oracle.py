@@ -14,11 +14,12 @@ import numpy as np
 import scipy.integrate as sint
 
 from ashc_cli.closedloop.compiled import MRelationRun, TrackingRun
+from ashc_cli.closedloop.batch import BatchPlant, interface
 from ashc_cli.closedloop.plan import GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, Law
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.numerics.linalg import pinv
 from ashc_cli.errors import NumericalError
-from ashc_cli.problem.model import TIME, apply_saturation, compile_flat
+from ashc_cli.problem.model import TIME, Model, apply_saturation, compile_flat
 
 
 def tracking_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,
@@ -219,6 +220,47 @@ def governor_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, w: float, xi
     slack = room - float(np.sum((plant.L.T @ r) ** 2)) / eps
     return v, u, phi[:, 0] + delta @ v, f_bar[:, 0] + g @ u, r, s, slack
 
+
+
+# --- falsify's loop in numpy on a batch of points (the compiled falsify runs' oracle) ---------------------------
+
+
+def _mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A stack of matrices (N, r, c) times a stack of vectors (N, c)."""
+    return (A @ v[:, :, None])[:, :, 0]
+
+
+def batch_apply(model: Model, pre: dict, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u, xi', x' for the batch with input v (N, m_hat): u = sat(l + K (x - p) + q v).
+
+    Parameters
+    ----------
+    model : Model
+    pre : dict
+        From :func:`interface`.
+    v : ndarray (N, m_hat)
+    """
+    a, b = pre["a"], pre["b"]
+    u = apply_saturation(a["l"][:, :, 0], pre["kx"] + _mv(pre["q"], v), model.U, model.spec.interface.saturate)
+    dxi = a["phi"][:, :, 0] + _mv(a["delta"], v)
+    dx = b["f_bar"][:, :, 0] + _mv(b["g"], u)
+    return u, dxi, dx
+
+
+def batch_controls(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray, v: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """v, u, xi' and x' for the batch (shapes (N, m_hat), (N, m), (N, n_hat), (N, n)) with the interface
+    u = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (model.apply_saturation) and the two systems.
+
+    Parameters
+    ----------
+    model : Model
+    plant : BatchPlant
+    xi, x : ndarray (n_hat, N), (n, N)
+    v : ndarray (N, m_hat)
+    """
+    u, dxi, dx = batch_apply(model, interface(model, plant, xi, x), v)
+    return v, u, dxi, dx
 
 
 def integrate(rhs, t_span, z0, t_eval, tol, what, events=None):

@@ -1,6 +1,6 @@
 """Tests of ashc_cli.closedloop.falsify_loop: falsify's runs as compiled code, one adaptive integration per run.
 
-The oracle is solve_ivp on the numpy form of the loop (closedloop.batch.controls): every hold of a compiled run is
+The oracle is solve_ivp on the numpy form of the loop (tests/oracle.py batch_controls): every hold of a compiled run is
 integrated again from the run's state with the input it held, and the error, bound and ratio are recomputed from
 its states; the greedy adversary's switches are checked against its law.
 """
@@ -10,7 +10,7 @@ import pytest
 import scipy.integrate as sint
 
 from ashc_cli.products import falsify as F
-from ashc_cli.closedloop import batch as CB
+from . import oracle as reference
 from ashc_cli.products import strategies as ST
 from ashc_cli.closedloop.compiled import Unsupported
 from ashc_cli.errors import DesignError
@@ -51,7 +51,7 @@ CASES = [CUK, COUNTER_SATURATION, SPECS / "bilinear_two_input.yaml", SPECS / "un
 
 
 def _slope(st, z, v, setpoint, b, seg):
-    """[xi', x'] of the numpy loop (closedloop.batch.controls, the interface of the linearisation) at z with the held v, or
+    """[xi', x'] of the numpy loop (tests/oracle.py batch_controls, the interface of the linearisation) at z with the held v, or
     the random strategy's set-point law v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped."""
     model, nh = st.model, st.model.n_hat
     xi, x = z[:nh, None], z[nh:, None]
@@ -59,7 +59,7 @@ def _slope(st, z, v, setpoint, b, seg):
         a = st.plant.at_xi(xi)
         v = pinv(a["delta"][0]) @ (b.gains[0] * (b.refs[seg][0] - z[:nh]) - a["phi"][0, :, 0]) + b.noise[seg][0]
         v = v * min(1.0, st.v_limit / max(np.linalg.norm(v), 1e-300))
-    _, _, dxi, dx = CB.controls(model, st.plant, xi, x, v[None, :])
+    _, _, dxi, dx = reference.batch_controls(model, st.plant, xi, x, v[None, :])
     return np.r_[dxi[0], dx[0]]
 
 
@@ -74,7 +74,7 @@ def _greedy_choice_is_the_best(st, b, z, chosen):
     J, mine = [], None
     for c in ST.unit_candidates(model.m_hat):
         vc = c * st.v_limit * b.amp[0]
-        _, _, dxi, dx = CB.controls(model, plant, xi, x, vc[None, :])
+        _, _, dxi, dx = reference.batch_controls(model, plant, xi, x, vc[None, :])
         ahead = z[:nh] + ST.GUARD_LOOKAHEAD * dt * dxi[0]
         if b.guard[0] and not np.all((ahead >= model.V[:, 0]) & (ahead <= model.V[:, 1])):
             continue

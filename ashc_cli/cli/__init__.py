@@ -23,6 +23,3 @@ from ashc_cli.cli import output_commands  # noqa: F401
 from ashc_cli.cli.common import Progress, app, main, plain_text
 
 __all__ = ["app", "main", "Progress", "plain_text"]
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

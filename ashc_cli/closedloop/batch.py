@@ -1,7 +1,7 @@
 """The falsifier's closed loop in numpy, on a batch of points at once: the design's maps fused into one compiled
-function of xi and one of x (:class:`BatchPlant`), the interface with its saturation, and the two systems.  The
-compiled runs (:mod:`ashc_cli.closedloop.falsify_core`) are checked against it (tests/test_falsify_loop.py); the
-falsifier's linearisation uses it.
+function of xi and one of x (:class:`BatchPlant`) and the interface's terms that do not depend on v
+(:func:`interface`), for the falsifier's linearisation.  The tests' numpy form of the whole loop
+(tests/oracle.py ``batch_controls``, the compiled runs' oracle) is built on them.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ashc_cli.numerics.linalg import pinv
-from ashc_cli.problem.model import Model, apply_saturation, compile_flat, sparse_jacobian
+from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
 
 
 class BatchPlant:
@@ -73,41 +73,3 @@ def interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) ->
     else:
         q = np.zeros((xi.shape[1], model.m, model.m_hat))
     return {"a": a, "b": b, "kx": kx, "q": q}
-
-
-def _mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A stack of matrices (N, r, c) times a stack of vectors (N, c)."""
-    return (A @ v[:, :, None])[:, :, 0]
-
-
-def apply(model: Model, pre: dict, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """u, xi', x' for the batch with input v (N, m_hat): u = sat(l + K (x - p) + q v).
-
-    Parameters
-    ----------
-    model : Model
-    pre : dict
-        From :func:`interface`.
-    v : ndarray (N, m_hat)
-    """
-    a, b = pre["a"], pre["b"]
-    u = apply_saturation(a["l"][:, :, 0], pre["kx"] + _mv(pre["q"], v), model.U, model.spec.interface.saturate)
-    dxi = a["phi"][:, :, 0] + _mv(a["delta"], v)
-    dx = b["f_bar"][:, :, 0] + _mv(b["g"], u)
-    return u, dxi, dx
-
-
-def controls(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray, v: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """v, u, xi' and x' for the batch (shapes (N, m_hat), (N, m), (N, n_hat), (N, n)) with the interface
-    u = sat(l(xi) + K (x - p(xi)) + q(xi, x) v) (model.apply_saturation) and the two systems.
-
-    Parameters
-    ----------
-    model : Model
-    plant : BatchPlant
-    xi, x : ndarray (n_hat, N), (n, N)
-    v : ndarray (N, m_hat)
-    """
-    u, dxi, dx = apply(model, interface(model, plant, xi, x), v)
-    return v, u, dxi, dx

@@ -8,9 +8,8 @@ import math
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.laws import pinv_flat, saturate
-from ashc_cli.closedloop.rk import DP54_EXPONENT, error_norm, stage_input, step_factor
+from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, error_norm, stage_input, step_factor
 
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
@@ -24,9 +23,6 @@ X_KERNEL = types.FunctionType(types.void(F1, F1))
 OPTIONS = dict(cache=True, error_model="numpy")
 
 SETPOINT, TABLE, GREEDY = 0, 1, 2
-#: The engine's Dormand-Prince 5(4) tableau (scipy's RK45), a global constant of the core.
-DP54 = rk.DP54
-
 
 #: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
 #: kernel's, wk the loop's work (row-major matrices).
@@ -408,14 +404,12 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
             h_nat = h_step
             h_step = min(h_step, t_end - t)
             for s in range(first, ns + 1):
+                # [xi', x'] at zs, held input or set-point law, non-finite entries 0.  Stage 0 runs at the hold's start
+                # only: zs = Z, and the terms in A, B and wk are still those of the hold-start check.
                 if s == 0:
-                    for i in range(d):
-                        zs[i] = Z[i]
+                    zs[:] = Z
                 else:
                     stage_input(tab, s, h_step, Z, ks, zs)
-                # [xi', x'] at zs with the held input, or the set-point law; entries that are not finite are 0.  Stage 0
-                # runs only at the hold's start, where zs = Z and the terms are still those of the hold-start check.
-                if s > 0:
                     _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
                 if setpoint:
                     _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)

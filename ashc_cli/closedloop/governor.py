@@ -278,7 +278,8 @@ def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L
     _governed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz, np.empty(2))
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), **OPTIONS)
+@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), nogil=True,
+      **OPTIONS)
 def governor_samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y, SCALE, SLACK):
     """At every row of Z: v, u, s and slack (_governed_loop), psi = kappa(xi) and y = h(x).
 

@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
-from ashc_cli.closedloop.rk import solve
+from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
@@ -354,7 +354,7 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
         the segment it stopped in (the number of segments when it did not); evaluations and accepted steps.
     """
     tab = (A, B, C, E, E3, D)
-    exponent = -1.0 / 8.0 if E3.size > 0 else -1.0 / 5.0
+    exponent = DOP853_EXPONENT if E3.size > 0 else DP54_EXPONENT
     y = z0.copy()
     tol = np.full(y.size, atol)
     v = np.empty(dims[3])
@@ -404,7 +404,7 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
         store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F2, F2, F2, F2, F2), **OPTIONS)
+@njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F2, F2, F2, F2, F2), nogil=True, **OPTIONS)
 def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, MX):
     """At every row of Z = [xi, x] (time t[k]): v and u (link_loop), psi = kappa(xi), y = h(x) and m(x).
 

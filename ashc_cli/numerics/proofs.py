@@ -24,7 +24,7 @@ import sympy as sp
 from flint import arb
 
 from ashc_cli.numerics import boxsearch, interval
-from ashc_cli.numerics._infsup import fdn, fup
+from ashc_cli.numerics._infsup import ball_of, fdn, fup
 from ashc_cli.problem.model import SIMPLIFY_MAX_OPS, Model
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
@@ -107,7 +107,7 @@ def ball(lo: float, hi: float) -> arb:
     -------
     arb
     """
-    return arb(lo).union(arb(hi))
+    return ball_of(lo, hi)
 
 
 def ball_box(box: np.ndarray) -> list[arb]:

@@ -14,7 +14,7 @@ The runs and how they are drawn are in :mod:`ashc_cli.products.strategies`.
 
 Integration: hold by hold with an embedded Dormand-Prince 5(4) pair (:data:`TOL`).  Each run is compiled code
 with its own step-size control, the runs shared by a pool of threads over every core
-(:mod:`ashc_cli.closedloop.falsify_loop`; the oracle of its tests is solve_ivp on :func:`ashc_cli.closedloop.batch.controls`).  The hold is at most the fastest linearised time
+(:mod:`ashc_cli.closedloop.falsify_loop`; the oracle of its tests is solve_ivp on the numpy loop of tests/oracle.py).  The hold is at most the fastest linearised time
 constant and 1/16 of the shortest linearised oscillation period.  The runs that decide the two reported ratios are integrated again with a tolerance 100 times
 tighter (:data:`TOL_VERIFY`), replaying the same v; the reported numbers and the stored worst runs come from
 that verification.  The floor (1e-7 of the output span) is taken off every error, so that a start that is

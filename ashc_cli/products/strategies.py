@@ -759,10 +759,8 @@ def replay(st: Setup, batch: Batch, res: dict, idx: np.ndarray) -> Batch:
     """
     b = batch.take(idx)
     held = b.mode != SETPOINT
-    if "vused" in res:
-        vused = res["vused"][idx]
-    else:
-        vused = st.loop.run(st, b, TOL, unit_candidates(st.model.m_hat), w0(st, b), DIVERGED, GUARD_LOOKAHEAD)["vused"]
+    # the inputs the runs held (integrate keeps none): run them again, recording them
+    vused = st.loop.run(st, b, TOL, unit_candidates(st.model.m_hat), w0(st, b), DIVERGED, GUARD_LOOKAHEAD)["vused"]
     b.vtab = np.where(held[:, None, None], vused, b.vtab)
     b.mode = np.where(held, TABLE, b.mode)
     b.guard = np.zeros(len(b), dtype=bool)

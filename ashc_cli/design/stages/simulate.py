@@ -242,8 +242,8 @@ def reach_time(t: np.ndarray, y: np.ndarray, level: np.ndarray, tolerance: float
 
 
 def reach_times(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray, levels: list[np.ndarray],
-                refs: list[np.ndarray], tolerance: float, dwell: float, horizon_dwells: int = REACH_HORIZON_DWELLS,
-                loop=None) -> np.ndarray:
+                refs: list[np.ndarray], tolerance: float, dwell: float, horizon_dwells: int = REACH_HORIZON_DWELLS, *,
+                loop) -> np.ndarray:
     """The time to reach each level within ``tolerance`` when each is held until it is reached.
 
     The levels are asked for in turn from z0; each is held in chunks of ``dwell`` until, at the end of a chunk,
@@ -272,7 +272,7 @@ def reach_times(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: 
     horizon_dwells : int
         The most chunks a level is held.
     loop : TrackingLoop
-        What integrates the loop (:func:`tracking_loop_for`); the default None is not usable.
+        What integrates the loop (:func:`tracking_loop_for`).
 
     Returns
     -------
