@@ -122,7 +122,8 @@ class UnsupportedExpression(ValueError):
 class Unsupported(Exception):
     """The compiled closed loop cannot run this design (numba is missing, or an expression has no numba form).
 
-    simulate and falsify turn it into a one-line DesignError (there is no other integrator).
+    simulate and falsify turn it into a one-line NumericalError, exit 4 (there is no other integrator; a missing
+    integrator is no design condition, and exit 3 from falsify means a broken bound).
     """
 
 

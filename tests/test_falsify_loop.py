@@ -13,7 +13,7 @@ from ashc_cli.products import falsify as F
 from . import oracle as reference
 from ashc_cli.products import strategies as ST
 from ashc_cli.closedloop.compiled import Unsupported
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import NumericalError
 from ashc_cli.numerics.linalg import pinv
 from ashc_cli.closedloop.falsify_loop import falsify_loop, layout
 from ashc_cli.design.pipeline import DESIGN, design_model, run
@@ -162,13 +162,14 @@ def test_layout_has_room_for_every_term():
 
 
 def test_without_the_compiled_loop_falsify_says_why(tmp_path, monkeypatch):
-    """ASHC_COMPILED=0 (or an expression numba cannot run): no numpy fallback any more, a one-line DesignError."""
+    """ASHC_COMPILED=0 (or an expression numba cannot run): no numpy fallback any more, a one-line NumericalError (exit 4,
+    not 3: no design condition failed, and falsify's 3 means a broken bound)."""
     spec = load_spec(CUK)
     arts = run(spec, tmp_path, DESIGN)
     monkeypatch.setenv("ASHC_COMPILED", "0")
     with pytest.raises(Unsupported):
         falsify_loop(design_model(spec, arts), arts, np.eye(4), np.eye(4), np.zeros((1, 4)))
-    with pytest.raises(DesignError, match="compiled closed loop"):
+    with pytest.raises(NumericalError, match="compiled closed loop"):
         F.falsify(design_model(spec, arts), arts, runs=6, seed=0, t_final=1.0)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.closedloop.compiled import Unsupported
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.closedloop.falsify_loop import falsify_loop
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.products.attack import attack
@@ -90,7 +90,7 @@ def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Se
     try:
         st.loop = falsify_loop(model, arts, plant.M, plant.L, plant.K)
     except Unsupported as exc:
-        raise DesignError("falsify", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
+        raise NumericalError("falsify", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
     return st
 
 

@@ -37,7 +37,7 @@ from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.design.upstream import reference_state
 from ashc_cli.numerics.proofs import SIMULATED
-from ashc_cli.errors import DesignError, ScenarioStopped
+from ashc_cli.errors import DesignError, NumericalError, ScenarioStopped
 from ashc_cli.problem.expr import parse_expression
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
 from ashc_cli.problem.model import TIME, Model
@@ -178,7 +178,7 @@ def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
     try:
         return compiled.tracking_loop(model, up)
     except compiled.Unsupported as exc:
-        raise DesignError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
+        raise NumericalError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
 
 
 def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray,
@@ -581,7 +581,7 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     try:
         loop = compiled.m_relation_loop(model, up, u_expr)
     except compiled.Unsupported as exc:
-        raise DesignError("simulate.m_relation", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
+        raise NumericalError("simulate.m_relation", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
     res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
                    rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
     if res.left is not None:
