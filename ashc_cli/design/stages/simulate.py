@@ -172,7 +172,7 @@ def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
 
     Raises
     ------
-    DesignError
+    NumericalError
         The loop cannot be compiled (numba missing, ``ASHC_COMPILED=0``, an expression with no numba form).
     """
     try:
@@ -528,8 +528,10 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     Raises
     ------
     DesignError
-        If h(x0) is outside (or, one output, at the edge of) the set where m is certified, m(x0) is not real, the run
-        leaves that set, or the loop cannot be compiled.
+        If h(x0) is outside (or, one output, at the edge of) the set where m is certified, m(x0) is not real, or the run
+        leaves that set (:class:`~ashc_cli.errors.ScenarioStopped`).
+    NumericalError
+        If the loop cannot be compiled.
     """
     mr = model.spec.simulate.m_relation
     names = {**model.params, "t": TIME}
