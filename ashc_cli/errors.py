@@ -127,4 +127,23 @@ class Unsupported(Exception):
     """
 
 
+class FitError(ValueError):
+    """:func:`ashc_cli.numerics.chebyshev.fit_adaptive` found no piecewise series meeting its test; the stage that
+    asked turns it into a DesignError naming where.
+
+    Parameters
+    ----------
+    interval : (float, float)
+        Where the fit failed.
+    measure : float
+        The best value the test returned there.
+    reason : str
+        Why splitting stopped (too many pieces, or pieces too narrow).
+    """
+
+    def __init__(self, interval: tuple[float, float], measure: float, reason: str):
+        super().__init__(reason)
+        self.interval, self.measure, self.reason = interval, measure, reason
+
+
 EXIT_CODES = {cls.__name__: cls.exit_code for cls in (SpecError, DesignError, NumericalError, ArtefactError)}

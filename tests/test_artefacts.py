@@ -103,3 +103,22 @@ def test_series_backed_exprs_are_stored_as_coefficients_and_built_when_read(tmp_
     assert back.expr("q") == expected and built == [1]
     assert back.exprs["q"].free_symbols == {xi} and back.exprs.get("q") is back.exprs["q"] and built == [1]
     assert dict(back.exprs.items()).keys() == {"p", "q"}
+
+
+def test_a_piecewise_series_is_stored_and_read_back_exactly(tmp_path):
+    import numpy as np
+    import sympy as sp
+
+    from ashc_cli.design.artefacts import Artefact, read_artefact, write_artefact
+    from ashc_cli.numerics import chebyshev
+
+    pieces = tuple(chebyshev.Series.column(np.random.default_rng(k).normal(size=(2, 6)), [[lo, hi]]) for k, (lo, hi) in enumerate([(0, 1), (1, 2.5)]))
+    s = chebyshev.PiecewiseSeries(pieces)
+    art = Artefact(stage="manifold")
+    xi = sp.Symbol("xi", real=True)
+    art.set_series("p", s, [xi])
+    write_artefact(tmp_path / "manifold.h5", art, spec_sha256="0" * 64, spec_name="t", parameters={}, upstream={}, names={})
+    back = read_artefact(tmp_path / "manifold.h5").series["p"]
+    assert isinstance(back, chebyshev.PiecewiseSeries) and np.array_equal(back.breaks, s.breaks)
+    z = np.linspace(-0.5, 3, 71)
+    assert np.array_equal(back(z), s(z))

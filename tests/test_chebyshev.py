@@ -77,3 +77,59 @@ def test_low_degree_series_keep_the_expanded_formula():
     x = sp.Symbol("x", real=True)
     assert not s.horner and s.to_sympy([x]) == chebyshev.to_sympy(s.coeffs, box, [x])
     assert sp.simplify(sp.nsimplify(s.to_sympy([x])[1], rational=True) - x**2) == 0
+
+
+def test_fit_adaptive_splits_where_one_series_is_not_enough_and_the_pieces_meet():
+    # Runge's function has poles at +-0.1i: degree 32 on [-1, 1] misses it by about 1e-2, pieces reach 1e-12.
+    import pytest
+
+    from ashc_cli.errors import FitError
+
+    f = lambda z: 1 / (1 + 100 * z**2)   # noqa: E731
+    grid = {}
+
+    def accept(piece):
+        t = np.linspace(*piece.box[0], 201)
+        err = float(np.abs(piece.at(t[None, :])[0] - f(t)).max())
+        grid[tuple(piece.box[0])] = err
+        return err <= 1e-12, err
+
+    s = chebyshev.fit_adaptive(lambda z: f(z), (-1.0, 1.0), accept)
+    assert isinstance(s, chebyshev.PiecewiseSeries) and 1 < len(s.pieces) <= chebyshev.MAX_PIECES
+    t = np.random.default_rng(1).uniform(-1, 1, 5000)
+    assert np.abs(s(t)[0, 0] - f(t)).max() < 1e-11
+    value, slope = s.jumps()
+    assert value.max() < 1e-14 and slope.max() < 1e-8          # the pieces pass through the sampled ends
+    # Breaks asked for are kept; an impossible tolerance names where it failed.
+    assert 0.3 in chebyshev.fit_adaptive(lambda z: f(z), (-1.0, 1.0), accept, breaks=[0.3]).breaks
+    with pytest.raises(FitError) as info:
+        chebyshev.fit_adaptive(lambda z: np.abs(z - 0.123), (-1.0, 1.0), lambda p: (False, 1.0), max_pieces=8)
+    assert "8 pieces" in info.value.reason
+
+
+def test_a_piecewise_series_evaluates_differentiates_and_maps_like_its_formula():
+    box = [(-2.0, -0.5), (-0.5, 1.0), (1.0, 3.0)]
+    f = lambda z: np.stack([np.sin(z), np.exp(-z)])   # noqa: E731
+    pieces = []
+    for lo, hi in box:
+        b = np.array([[lo, hi]])
+        z = chebyshev.extreme_points(b, 25)
+        pieces.append(chebyshev.Series.column(chebyshev.fit(f(z[0]), b, z, 24), b))
+    s = chebyshev.PiecewiseSeries(tuple(pieces))
+    assert s.shape == (2, 1) and s.horner and np.array_equal(s.breaks, [-2.0, -0.5, 1.0, 3.0])
+    xs = np.linspace(-2.5, 3.5, 601)   # beyond the ends too: the end pieces extend
+    inside = (xs >= -2) & (xs <= 3)
+    assert np.allclose(s(xs)[:, 0, inside], f(xs[inside]), atol=1e-12)
+    xi = sp.Symbol("xi", real=True)
+    formula = s.to_sympy([xi])
+    assert formula[0].has(sp.Piecewise)
+    lam = sp.lambdify(xi, formula, "numpy")
+    assert np.allclose(np.asarray(lam(xs), dtype=float).reshape(2, -1), s(xs)[:, 0, :], rtol=1e-13, atol=1e-13)
+    assert np.allclose(s.formula_at(xs[None, :]), s(xs), rtol=1e-13, atol=1e-13)
+    assert np.allclose(s.jacobian()(xs)[:, 0, inside], [np.cos(xs[inside]), -np.exp(-xs[inside])], atol=1e-10)
+    C = np.array([[1.0, 2.0]])
+    assert np.allclose(s.left(C)(xs), np.einsum("ij,jkN->ikN", C, s(xs)))
+    assert not s.is_constant()
+    # Stored as arrays and rebuilt.
+    again = chebyshev.PiecewiseSeries.from_arrays(s.coeffs, s.breaks, s.shape)
+    assert np.array_equal(again(xs), s(xs))

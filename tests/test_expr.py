@@ -95,6 +95,13 @@ def test_signal_functions_only_in_signals():
     assert np.isfinite(f(np.linspace(0, 10, 5))).all()
 
 
+def test_a_piecewise_fit_formula_round_trips_through_srepr():
+    # The formula of a piecewise Chebyshev fit (a Piecewise of comparisons) is stored and read back unchanged.
+    x = sp.Symbol("x", real=True)
+    e = sp.Piecewise((sp.Float(0.5) + x * (sp.Float(1.25) - x), x < sp.Float(0.75)), (sp.tanh(x), True))
+    assert from_srepr(sp.srepr(e)) == e
+
+
 def test_srepr_round_trip_and_refusal():
     e = parse("sqrt(4 - x**2)/(1 + y) + 0.25")
     assert from_srepr(sp.srepr(e)) == e

@@ -478,3 +478,56 @@ def test_within_budget_returns_the_result_or_times_out():
     assert within_budget(sorted, [3, 1, 2]) == [1, 2, 3]
     with pytest.raises(TimeoutError):
         within_budget(__import__("time").sleep, 5, seconds=0.2)
+
+
+# --- a left inverse on a wide domain, of a fitted p -------------------------------------------------------------
+
+def _motor_inverse(tmp_path, extra: str = ""):
+    from ashc_cli.design.pipeline import run
+
+    from .test_manifold import MOTOR
+
+    text = MOTOR.replace("  delta: identity", "  delta: identity" + extra)
+    return run(parse_spec_text(text), tmp_path, ["inverse"])
+
+
+#: The motor's exact left inverse: the input whose equilibrium speed is w.
+MOTOR_M = "(R/K)*((b + K**2/R)*w + c*tanh(w))"
+
+
+def test_the_constructed_m_of_a_fitted_p_on_a_wide_domain_is_kappa_inverse(tmp_path):
+    # kappa^-1 as one polynomial of degree 80 had coefficients near 1e13 and missed by 2.9e3; in pieces (each inverting
+    # one piece of kappa) it is kappa^-1 to 1e-9, and the exact inverse to within the fit of p.
+    arts = _motor_inverse(tmp_path)
+    inv, model = arts["inverse"], build_model(parse_spec_text(_motor_text()))
+    assert "pieces of degree" in inv.meta["method"] and inv.values["left_inverse_residual"] < 1e-9
+    w = np.linspace(-10, 10, 2001)
+    m = model.numeric(inv.exprs["m"], list(model.x))(w, 0 * w)[0, 0]
+    P = {"b": 0.2, "c": 0.8, "K": 0.1, "R": 2.0}
+    exact = P["R"] / P["K"] * ((P["b"] + P["K"] ** 2 / P["R"]) * w + P["c"] * np.tanh(w))
+    # p (hence kappa) is accurate to about 1e-7 in w, and dm/dw is about 20: m to a few 1e-6.
+    assert np.abs(m - exact).max() < 5e-6
+    assert inv.checks["condition_ii"].passed and inv.checks["condition_i"].passed
+
+
+def test_an_exact_hand_written_m_of_a_fitted_p_is_accepted_with_the_fits_error(tmp_path):
+    # The exact m misses m(p(xi)) = xi by |dm/dw| times the error of the fitted p (3e-7 here), not by round-off: the
+    # tolerance follows from that error (stored by the manifold stage) instead of refusing the right answer.
+    arts = _motor_inverse(tmp_path, f'\n  m: ["{MOTOR_M}"]')
+    inv, man = arts["inverse"], arts["manifold"]
+    assert inv.meta["construction"] == inverse.EXPLICIT
+    assert 1e-9 < inv.values["left_inverse_residual"] <= inv.meta["left_inverse_tol"] < 1e-4
+    assert man.values["p_error"].max() > 0
+    assert "fit error of p" in inv.checks["left_inverse"].description
+
+
+def test_a_hand_written_m_off_by_more_than_the_fit_is_still_refused(tmp_path):
+    # 1.001 m: off by 1e-3 of xi, far beyond what the fit of p explains.
+    with pytest.raises(DesignError, match=r"abstract\.m: the given m is not a left inverse of p on V.*fit error of p"):
+        _motor_inverse(tmp_path, f'\n  m: ["1.001*{MOTOR_M}"]')
+
+
+def _motor_text() -> str:
+    from .test_manifold import MOTOR
+
+    return MOTOR

@@ -9,7 +9,9 @@ Layout of ``<out>/<stage>.h5``::
     /values/<key>     a dataset per value (scalars, strings, arrays); keys may contain '/' (groups)
     /exprs/<name>     attrs shape; datasets srepr (exact, read back by a whitelist) and text (readable); or, for a
                       matrix kept as a Chebyshev series (:class:`~ashc_cli.numerics.chebyshev.Series`): attrs shape and
-                      variables (JSON names), datasets coeffs and box (the series, exact) and text (one line)
+                      variables (JSON names), datasets coeffs and box (the series, exact) and text (one line); a
+                      piecewise series (:class:`~ashc_cli.numerics.chebyshev.PiecewiseSeries`) adds breaks, its coeffs
+                      one (rows, deg + 1) block per piece
     /checks/<name>    attrs value (float), passed (bool), description (str), evidence (proved | sampled | simulated)
 
 A write goes to a temporary file in the same folder and is renamed over the target only once complete,
@@ -37,7 +39,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli import __version__
-from ashc_cli.numerics.chebyshev import Series
+from ashc_cli.numerics.chebyshev import PiecewiseSeries, Series
 from ashc_cli.errors import ArtefactError
 from ashc_cli.problem.expr import from_srepr
 
@@ -180,7 +182,7 @@ class Artefact:
         except KeyError:
             raise ArtefactError(self.stage, f"artefact holds no expression '{name}'", f"one of {sorted(self.exprs)}") from None
 
-    def set_series(self, name: str, series: Series, variables) -> None:
+    def set_series(self, name: str, series: Series | PiecewiseSeries, variables) -> None:
         """Store a matrix as a Chebyshev series in ``variables``; its formula (``exprs[name]``) is built when read."""
         if not isinstance(self.exprs, Exprs):
             self.exprs = Exprs(self.exprs)
@@ -302,7 +304,11 @@ def _write_series(grp: h5py.Group, series: Series, variables) -> None:
     grp.attrs["variables"] = json.dumps([str(v) for v in variables])
     grp.create_dataset("coeffs", data=series.coeffs)
     grp.create_dataset("box", data=series.box)
-    text = (f"Chebyshev series of degree {series.degree} per axis on {series.box.tolist()} in {', '.join(str(v) for v in variables)} "
+    what = f"Chebyshev series of degree {series.degree} per axis on {series.box.tolist()}"
+    if isinstance(series, PiecewiseSeries):
+        grp.create_dataset("breaks", data=series.breaks)
+        what = f"{len(series.pieces)} pieces of Chebyshev series of degree <= {series.degree} between the breaks {series.breaks.tolist()}"
+    text = (f"{what} in {', '.join(str(v) for v in variables)} "
             f"(one per entry of the {series.shape[0]} x {series.shape[1]} matrix; the formula is rebuilt from these coefficients when read)")
     grp.create_dataset("text", data=np.array([text], dtype=object), dtype=_STR)
 
@@ -356,7 +362,10 @@ def read_artefact(path: str | Path) -> Artefact:
                 if "coeffs" in grp:
                     # Variables are real symbols, as the model declares its states (model.state_symbol).
                     variables = [sp.Symbol(v, real=True) for v in json.loads(grp.attrs["variables"])]
-                    art.set_series(name, Series(grp["coeffs"][()], grp["box"][()], shape), variables)
+                    if "breaks" in grp:
+                        art.set_series(name, PiecewiseSeries.from_arrays(grp["coeffs"][()], grp["breaks"][()], shape), variables)
+                    else:
+                        art.set_series(name, Series(grp["coeffs"][()], grp["box"][()], shape), variables)
                     continue
                 entries = [from_srepr(s.decode() if isinstance(s, bytes) else s, str(path)) for s in grp["srepr"][()]]
                 art.exprs[name] = sp.Matrix(shape[0], shape[1], entries) if entries else sp.zeros(*shape)

@@ -13,11 +13,11 @@ import scipy.sparse.linalg as spla
 import sympy as sp
 
 from ashc_cli.numerics import chebyshev
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
 
-__all__ = ["ManifoldPlant", "manifold_field", "solve_collocation", "field_terms", "continuation", "solve_numeric_equilibria"]
+__all__ = ["ManifoldPlant", "manifold_field", "solve_collocation", "field_terms", "continuation", "solve_numeric_equilibria", "equilibrium_error"]
 
 
 def manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
@@ -59,20 +59,28 @@ class ManifoldPlant:
         return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), self.l(*z)[:, 0, :])
 
 
-def _relative_residual(model: Model, coeffs: np.ndarray, box: np.ndarray, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray) -> float:
-    """max |dp/dxi phi_bar - f_bar(p) - g(p) l| on z (phi = phi_bar on z), relative to the size of its terms,
-    max(1, |dp/dxi phi_bar|, |f_bar(p)|, |g(p) l|, |f_bar(p) + g(p) l|).
+def _residual_terms(p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray) -> tuple[np.ndarray, float]:
+    """|dp/dxi phi_bar - f_bar(p) - g(p) l| at each point of z (max over the rows) for a fitted p (a Series or
+    PiecewiseSeries; phi = phi_bar on z), and the size of its terms there, max(1, |dp/dxi phi_bar|,
+    |f_bar(p)|, |g(p) l|, |f_bar(p) + g(p) l|).
 
     The terms, not their sum: with phi_bar = 0 the sum is the residual itself, and a plant whose terms are
     large (the ladder's v / L, 1e5 at n = 512) could never meet an absolute tolerance.  ``run`` judges the
     stored p against the same scale.
     """
-    P = chebyshev.evaluate(coeffs, box, z)
-    lhs = sum(chebyshev.evaluate(chebyshev.derivative(coeffs, box, k), box, z) * phi[k] for k in range(model.n_hat))
+    P = p.at(z)[:, 0, :]
+    lhs = np.einsum("ikN,kN->iN", p.jacobian().at(z), phi) if np.any(phi) else np.zeros_like(P)
     fbar, gl = plant.sides(P, z)
     rhs = fbar + gl
     scale = max(1.0, np.abs(lhs).max(), np.abs(rhs).max(), np.abs(fbar).max(), np.abs(gl).max())
-    return float(np.abs(lhs - rhs).max() / scale)
+    return np.abs(lhs - rhs).max(axis=0), float(scale)
+
+
+def _relative_residual(model: Model, p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray, scale: float | None = None) -> float:
+    """max of :func:`_residual_terms` on z relative to the size of the terms there, or to ``scale`` when given
+    (the size of the terms on all of V, for a piece)."""
+    residual, own = _residual_terms(p, z, plant, phi)
+    return float(residual.max() / (own if scale is None else scale))
 
 
 def _check_grid(box: np.ndarray) -> np.ndarray:
@@ -98,13 +106,14 @@ def _stalled(history: list[float]) -> bool:
     return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
 
 
-def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple[sp.Matrix, int, float]:
+def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple[chebyshev.Series | chebyshev.PiecewiseSeries, int, float]:
     """Tensor Chebyshev collocation for eq. (14a) (phi_bar != 0), any number of abstract states.
 
     The coefficients minimise the PDE residual at 2 (degree + 1) Chebyshev nodes per axis (Gauss-Newton with
     the exact Jacobian: the residual is linear in p's coefficients through dp/dxi and nonlinear through
     F(p, xi)); the degree is raised from 1 until the relative residual on an independent grid is below
-    ``abstract.pde_tolerance``.
+    ``abstract.pde_tolerance``.  With one abstract state the degree stops at ``chebyshev.PIECE_MAX_DEGREE``,
+    or where the fit stops improving, and V is then split into pieces (:func:`_collocate_pieces`).
 
     Parameters
     ----------
@@ -115,10 +124,10 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
 
     Returns
     -------
-    p : sympy Matrix
-        Polynomials in xi.
+    p : Series or PiecewiseSeries
+        The fitted series (n x 1), kept numeric.
     degree : int
-        The degree per axis that reached the tolerance.
+        The degree per axis (the highest of a piece) that reached the tolerance.
     residual : float
         Relative residual on the independent grid.
 
@@ -126,7 +135,7 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
     ------
     DesignError
         If no degree up to ``abstract.pde_max_degree`` reaches ``abstract.pde_tolerance`` (the message
-        gives the best residual reached).
+        gives the best residual reached, and where on V for pieces).
     """
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box, n, nh = model.V, model.n, model.n_hat
@@ -137,8 +146,11 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
     phi_check = phi_num(*check)[:, 0, :]
     coeffs = np.zeros((n,) + (1,) * nh)
     best, history = np.inf, []
-    for degree in range(1, max_degree + 1):
+    top = min(max_degree, chebyshev.PIECE_MAX_DEGREE) if nh == 1 else max_degree
+    for degree in range(1, top + 1):
         if _stalled(history):
+            if nh == 1:
+                break
             raise DesignError("abstract.phi_bar", f"the polynomial fit of eq. (14a) stopped improving at degree {degree - 1} (relative residual "
                               f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial", "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
         grown = np.zeros((n,) + (degree + 1,) * nh)
@@ -161,12 +173,170 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
 
         fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
         coeffs = fit.x.reshape(grown.shape)
-        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
+        series = chebyshev.Series.column(coeffs, box)
+        best = min(best, _relative_residual(model, series, check, plant, phi_check))
         history.append(best)
         if best <= tol:
-            return chebyshev.to_sympy(coeffs, box, list(model.xi)), degree, best
+            return series, degree, best
+    if nh == 1:
+        p = _collocate_pieces(model, F, F_x, phi_num, plant, top)
+        return p, p.degree, _relative_residual(model, p, check, plant, phi_check)
     raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. (14a) on V to {tol:g}: the best relative residual is {best:.3g}",
                       "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")
+
+
+def _collocate_pieces(model: Model, F, F_x, phi_num, plant: ManifoldPlant, degree: int) -> chebyshev.PiecewiseSeries:
+    """Piecewise Chebyshev collocation for eq. (14a) with one abstract state: V is halved where the PDE residual
+    of a piece (on an independent grid of it, against the size of the terms on all of V) is above
+    ``pde_tolerance``, and all pieces are solved together, the PDE at 2 (degree + 1) nodes of each and p and
+    dp/dxi continuous at the breaks (weighted rows of the same least-squares problem).
+
+    Raises
+    ------
+    DesignError
+        If ``chebyshev.MAX_PIECES`` pieces, or pieces ``chebyshev.MIN_PIECE_FRACTION`` of V wide, are not
+        enough (the message names where on V the residual stays high).
+    """
+    tol = model.spec.abstract.pde_tolerance
+    lo, hi = (float(v) for v in model.V[0])
+    zeros = _zeros_of_phi(phi_num, lo, hi)
+    breaks = np.array([lo, _split_point(lo, hi, zeros), hi])
+    while True:
+        p = _solve_pieces(model, F, F_x, phi_num, breaks, degree)
+        check = _check_grid(model.V)
+        _, scale = _residual_terms(p, check, plant, phi_num(*check)[:, 0, :])
+        failing, best = [], {}
+        for k, piece in enumerate(p.pieces):
+            grid = domain_grid(piece.box, PIECE_CHECK_POINTS)
+            residual, _ = _residual_terms(p, grid, plant, phi_num(*grid)[:, 0, :])
+            best[k] = float(residual.max() / scale)
+            # Half the tolerance on the piece's grid: between its points, and at the breaks, the residual is higher
+            # (the stage judges p on a finer grid of V).
+            if best[k] > tol / 2:
+                failing.append(k)
+        if not failing:
+            return p
+        widths = np.diff(breaks)
+        worst = max(failing, key=best.get)
+        too_many = len(breaks) - 1 + len(failing) > chebyshev.MAX_PIECES
+        if too_many or widths[failing].min() / 2 < (hi - lo) * chebyshev.MIN_PIECE_FRACTION:
+            why = (f"{chebyshev.MAX_PIECES} pieces are not enough" if too_many else
+                   "the pieces there are already too narrow: p has a kink or a near-singularity there")
+            raise DesignError("abstract.phi_bar", f"no piecewise polynomial ({len(breaks) - 1} pieces of degree {degree}) solves eq. (14a) to {tol:g}: "
+                              f"near xi in [{breaks[worst]:.6g}, {breaks[worst + 1]:.6g}] the relative residual is {best[worst]:.3g}; {why}",
+                              "a domain V that stops short of it, a larger abstract.pde_tolerance or pde_max_degree, or phi_bar = 0")
+        breaks = np.sort(np.r_[breaks, [_split_point(breaks[k], breaks[k + 1], zeros) for k in failing]])
+
+
+def _zeros_of_phi(phi_num, lo: float, hi: float) -> np.ndarray:
+    """Where phi_bar (one abstract state) vanishes or changes sign on [lo, hi], to the spacing of a 20001-point grid."""
+    xs = np.linspace(lo, hi, 20001)
+    phi = np.asarray(phi_num(xs), dtype=float).reshape(-1)
+    change = np.flatnonzero((phi[:-1] == 0) | (np.sign(phi[:-1]) * np.sign(phi[1:]) < 0))
+    return 0.5 * (xs[change] + xs[change + 1])
+
+
+def _split_point(a: float, b: float, zeros: np.ndarray) -> float:
+    """Where [a, b] is halved: its midpoint, unless phi_bar vanishes within a quarter of the width of it; then a
+    quarter of the width from that zero, so that the zero stays inside a piece.
+
+    At a zero of phi_bar eq. (14a) is singular, and beside the smooth p it has solutions p + c |xi - xi0|^r
+    (r from the plant's eigenvalues), continuous with their first derivatives: a break there lets the
+    collocation choose one of them (on a DC motor, |p| = 3e3 instead of 40)."""
+    mid = 0.5 * (a + b)
+    near = zeros[np.abs(zeros - mid) < (b - a) / 4]
+    if not near.size:
+        return mid
+    z0 = float(near[np.argmin(np.abs(near - mid))])
+    return z0 + (b - a) / 4 if z0 <= mid else z0 - (b - a) / 4
+
+
+def _solve_pieces(model: Model, F, F_x, phi_num, breaks: np.ndarray, degree: int) -> chebyshev.PiecewiseSeries:
+    """The least-squares collocation of :func:`_collocate_pieces` on the pieces between ``breaks``."""
+    n, K, d1 = model.n, len(breaks) - 1, degree + 1
+    basis = np.eye(d1)
+    blocks = []
+    for a, b in zip(breaks[:-1], breaks[1:]):
+        box = np.array([[a, b]])
+        z = chebyshev.nodes(box, 2 * d1)
+        V = chebyshev.evaluate(basis, box, z).T                                                  # (N, d + 1)
+        E = chebyshev.evaluate(chebyshev.derivative(basis, box, 0), box, z).T * phi_num(*z)[0, 0][:, None]
+        blocks.append((box, z, V, E))
+    # p and dp/dxi at the ends of each piece: T_j(+-1) and T_j'(+-1) (scaled to xi).
+    j = np.arange(d1)
+    ends = [(np.ones(d1), (-1.0) ** j, j**2 * 2.0 / (b - a), (-1.0) ** (j + 1) * j**2 * 2.0 / (b - a)) for a, b in zip(breaks[:-1], breaks[1:])]
+    # Continuity rows weighted like the PDE rows: a jump of p by e costs about |dp/dxi phi| would.
+    w_value = max(float(np.abs(E).max()) for *_, E in blocks)
+    w_slope = max(1.0, max(float(np.abs(phi_num(*z)[0, 0]).max()) for _, z, *_ in blocks))
+
+    def unpack(c: np.ndarray) -> np.ndarray:
+        return c.reshape(K, n, d1)
+
+    def residual(c: np.ndarray) -> np.ndarray:
+        C = unpack(c)
+        out = [(C[k] @ E.T - F(*(C[k] @ V.T), *z)[:, 0, :]).ravel() for k, (_, z, V, E) in enumerate(blocks)]
+        for k in range(K - 1):
+            out.append(w_value * (C[k] @ ends[k][0] - C[k + 1] @ ends[k + 1][1]))
+            out.append(w_slope * (C[k] @ ends[k][2] - C[k + 1] @ ends[k + 1][3]))
+        return np.concatenate(out)
+
+    def jacobian(c: np.ndarray) -> sps.csc_matrix:
+        C = unpack(c)
+        parts, row = [], 0
+        for k, (_, z, V, E) in enumerate(blocks):
+            Fx = F_x(*(C[k] @ V.T), *z)                                                         # (n, n, N)
+            Jk = (np.einsum("ij,NK->iNjK", np.eye(n), E) - np.einsum("ijN,NK->iNjK", Fx, V)).reshape(n * len(V), n * d1)
+            parts.append((sps.csr_matrix(Jk), row, k * n * d1))
+            row += n * len(V)
+        eye = np.eye(n)
+        for k in range(K - 1):
+            for weight, left, right in ((w_value, ends[k][0], ends[k + 1][1]), (w_slope, ends[k][2], ends[k + 1][3])):
+                parts.append((sps.csr_matrix(weight * np.kron(eye, left[None, :])), row, k * n * d1))
+                parts.append((sps.csr_matrix(-weight * np.kron(eye, right[None, :])), row, (k + 1) * n * d1))
+                row += n
+        coo = [(m.tocoo(), r0, c0) for m, r0, c0 in parts]
+        rows = np.concatenate([m.row + r0 for m, r0, _ in coo])
+        cols = np.concatenate([m.col + c0 for m, _, c0 in coo])
+        data = np.concatenate([m.data for m, _, _ in coo])
+        return sps.csc_matrix((data, (rows, cols)), shape=(row, K * n * d1))
+
+    # From zero, not from the last fit: away from the zeros of phi_bar eq. (14a) is an ODE whose homogeneous
+    # solutions (growing like |xi|^r, r up to the plant's fastest rate) barely change the residual, and Gauss-Newton
+    # keeps whatever part of them its start holds (|p| reached 1.8e5 on a DC motor from a warm start).
+    C = unpack(_gauss_newton(residual, jacobian, np.zeros(K * n * d1)))
+    return chebyshev.PiecewiseSeries(tuple(chebyshev.Series.column(C[k], blocks[k][0]) for k in range(K)))
+
+
+#: Gauss-Newton on the pieces stops after this many steps, or when a step no longer lowers the residual.
+GAUSS_NEWTON_STEPS = 30
+
+
+def _gauss_newton(residual, jacobian, c: np.ndarray) -> np.ndarray:
+    """Minimise |residual(c)| by damped Gauss-Newton steps, each the sparse least-squares solution of
+    J dc = -r through the augmented system [[I, J], [J^T, -mu I]] (sparse LU: QR-like accuracy, unlike the
+    normal equations; mu, 1e-14 of |J|^2, steadies the directions the collocation leaves nearly free)."""
+    r = residual(c)
+    cost = float(r @ r)
+    for _ in range(GAUSS_NEWTON_STEPS):
+        J = jacobian(c)
+        m, N = J.shape
+        mu = 1e-14 * float(abs(J).power(2).sum(axis=0).max())
+        A = sps.bmat([[sps.identity(m), J], [J.T, -mu * sps.identity(N)]], format="csc")
+        dc = spla.splu(A).solve(np.r_[-r, np.zeros(N)])[m:]
+        step = 1.0
+        while step >= 1.0 / 64:
+            trial = c + step * dc
+            r_trial = residual(trial)
+            if np.all(np.isfinite(r_trial)) and float(r_trial @ r_trial) < cost:
+                break
+            step /= 2
+        else:
+            return c
+        improvement = cost - float(r_trial @ r_trial)
+        c, r, cost = trial, r_trial, float(r_trial @ r_trial)
+        if improvement <= 1e-12 * cost or np.abs(step * dc).max() <= 1e-15 * max(1.0, np.abs(c).max()):
+            return c
+    return c
 
 
 #: Newton's method at a node has converged when |F(x, xi)| is below this, relative to max(1, |f_bar|, |g l|).
@@ -254,12 +424,62 @@ def _inverse_norm1(lu, n: int, steps: int = 5) -> float:
     return estimate
 
 
-def continuation(model: Model, z: np.ndarray) -> np.ndarray:
+def _newton(terms, guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
+    """Newton's method for F(x, xi) = 0 at xi = ``at`` from ``guess`` (``terms`` from :func:`field_terms`), or None
+    where dF/dx is singular or it does not converge in 50 steps."""
+    x = guess.astype(float).copy()
+    for _ in range(50):
+        value, Fx, _ = terms(x, at)
+        if not (np.all(np.isfinite(Fx.data)) and np.all(np.isfinite(value))):
+            return None
+        lu = _factor(Fx)
+        if lu is None:
+            return None
+        # |F| is judged against the size of its terms, |dF/dx| |x|: round-off, not 1, is the floor.
+        scale = max(1.0, float(abs(Fx).max() * np.abs(x).max()))
+        if np.abs(value).max() <= NEWTON_RTOL * scale:
+            return x
+        x = x + lu.solve(-value)
+    value, Fx, _ = terms(x, at)
+    return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(abs(Fx).max() * np.abs(x).max())) else None
+
+
+def equilibrium_error(model: Model, p, z: np.ndarray) -> np.ndarray:
+    """How far a fitted p is from the equilibria it stands for: per state, max over the points z of |x*(xi) - p(xi)|,
+    x* the equilibrium Newton's method reaches from p(xi) (inf where it does not).
+
+    The checks downstream that compose p with something exact (a hand-written m) inherit this error.
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+    p : callable
+        p for numpy (``p(*xi)`` of shape (n, 1, N)): a series, or a compiled formula.
+    z : ndarray (n_hat, N)
+        Points of V.
+
+    Returns
+    -------
+    ndarray (n,)
+    """
+    terms = field_terms(model)
+    P = np.asarray(p(*z), dtype=float)[:, 0, :]
+    error = np.zeros(model.n)
+    for k in range(z.shape[1]):
+        x = _newton(terms, P[:, k], z[:, k])
+        if x is None:
+            return np.full(model.n, np.inf)
+        error = np.maximum(error, np.abs(x - P[:, k]))
+    return error
+
+
+def continuation(model: Model, z: np.ndarray, known: tuple[np.ndarray, np.ndarray] | None = None, terms=None) -> np.ndarray:
     """Equilibria x with F(x, xi) = f_bar(x) + g(x) l(xi) = 0 at the points z, by Newton continuation.
 
-    Starts at the point nearest the centre of V (from ``abstract.manifold_guess``, else the origin, else
-    the centre of ``concrete.state_box``), then visits each next-nearest point, predicting from the nearest
-    solved one along the tangent dp/dxi = -(dF/dx)^-1 dF/dxi and correcting by Newton's method.
+    Without ``known`` it starts at the point nearest the centre of V (from ``abstract.manifold_guess``, else
+    the origin, else the centre of ``concrete.state_box``); then it visits each next-nearest point, predicting
+    from the nearest solved one along the tangent dp/dxi = -(dF/dx)^-1 dF/dxi and correcting by Newton's method.
 
     Parameters
     ----------
@@ -267,6 +487,10 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         The spec's systems (V fixed; ``abstract.manifold_guess`` and ``concrete.state_box`` give starts).
     z : ndarray (n_hat, N)
         Points of V, visited nearest-first.
+    known : (ndarray (n_hat, K), ndarray (n, K)), optional
+        Points already solved on the branch and their equilibria: the walk starts from them (the same branch).
+    terms : callable, optional
+        :func:`field_terms` of the model (compiled here when None).
 
     Returns
     -------
@@ -279,44 +503,41 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         If no start converges, or the branch turns (dF/dx singular) or is lost at some xi.
     """
     n, N = model.n, z.shape[1]
-    terms = field_terms(model)
-    centre = model.V.mean(axis=1)
-    first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
+    terms = terms or field_terms(model)
 
     def newton(guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
-        x = guess.astype(float).copy()
-        for _ in range(50):
-            value, Fx, _ = terms(x, at)
-            if not (np.all(np.isfinite(Fx.data)) and np.all(np.isfinite(value))):
-                return None
-            lu = _factor(Fx)
-            if lu is None:
-                return None
-            # |F| is judged against the size of its terms, |dF/dx| |x|: round-off, not 1, is the floor.
-            scale = max(1.0, float(abs(Fx).max() * np.abs(x).max()))
-            if np.abs(value).max() <= NEWTON_RTOL * scale:
-                return x
-            x = x + lu.solve(-value)
-        value, Fx, _ = terms(x, at)
-        return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(abs(Fx).max() * np.abs(x).max())) else None
+        return _newton(terms, guess, at)
 
-    starts = []
-    if model.spec.abstract.manifold_guess is not None:
-        starts.append(np.array(model.spec.abstract.manifold_guess, dtype=float))
-    starts.append(np.zeros(n))
-    if model.state_box is not None:
-        starts.append(model.state_box.mean(axis=1))
-    x0 = next((x for x in (newton(s, z[:, first]) for s in starts) if x is not None), None)
-    if x0 is None:
-        raise DesignError("abstract.manifold_guess", f"Newton's method finds no equilibrium f_bar(x) + g(x) l(xi) = 0 at xi = {np.round(z[:, first], 6).tolist()} from {len(starts)} start(s)",
-                          "a manifold_guess: n numbers near the equilibrium at the centre of V")
-    X = np.full((n, N), np.nan)
-    X[:, first] = x0
-    solved = np.zeros(N, dtype=bool)
-    solved[first] = True
-    distance = np.linalg.norm(z - z[:, [first]], axis=0)
-    nearest = np.full(N, first)
-    for _ in range(N - 1):
+    if known is not None:
+        # Continue from the solved points: they join the walk as solved, and only z's points are returned.
+        z_known, x_known = known
+        z, K = np.concatenate([z_known, z], axis=1), z_known.shape[1]
+        X = np.concatenate([x_known, np.full((n, N), np.nan)], axis=1)
+        solved = np.r_[np.ones(K, dtype=bool), np.zeros(N, dtype=bool)]
+    else:
+        centre = model.V.mean(axis=1)
+        first = int(np.argmin(np.linalg.norm(z - centre[:, None], axis=0)))
+        starts = []
+        if model.spec.abstract.manifold_guess is not None:
+            starts.append(np.array(model.spec.abstract.manifold_guess, dtype=float))
+        starts.append(np.zeros(n))
+        if model.state_box is not None:
+            starts.append(model.state_box.mean(axis=1))
+        x0 = next((x for x in (newton(s, z[:, first]) for s in starts) if x is not None), None)
+        if x0 is None:
+            raise DesignError("abstract.manifold_guess", f"Newton's method finds no equilibrium f_bar(x) + g(x) l(xi) = 0 at xi = {np.round(z[:, first], 6).tolist()} from {len(starts)} start(s)",
+                              "a manifold_guess: n numbers near the equilibrium at the centre of V")
+        K, X = 0, np.full((n, N), np.nan)
+        X[:, first] = x0
+        solved = np.zeros(N, dtype=bool)
+        solved[first] = True
+    # The distance of every point to its nearest solved point, and which one that is.
+    distance, nearest = np.full(z.shape[1], np.inf), np.zeros(z.shape[1], dtype=int)
+    for j in np.flatnonzero(solved):
+        to_j = np.linalg.norm(z - z[:, [j]], axis=0)
+        closer = to_j < distance
+        distance, nearest = np.where(closer, to_j, distance), np.where(closer, j, nearest)
+    for _ in range(int((~solved).sum())):
         k = int(np.argmin(np.where(solved, np.inf, distance)))
         j = nearest[k]
         _, Fx, Fxi = terms(X[:, j], z[:, j])
@@ -329,16 +550,18 @@ def continuation(model: Model, z: np.ndarray) -> np.ndarray:
         to_k = np.linalg.norm(z - z[:, [k]], axis=0)
         closer = to_k < distance
         distance, nearest = np.where(closer, to_k, distance), np.where(closer, k, nearest)
-    return X
+    return X[:, K:]
 
 
-def solve_numeric_equilibria(model: Model, plant: ManifoldPlant | None = None) -> tuple[chebyshev.Series, int, float]:
+def solve_numeric_equilibria(model: Model, plant: ManifoldPlant | None = None) -> tuple[chebyshev.Series | chebyshev.PiecewiseSeries, int, float]:
     """p for phi_bar = 0 without a closed form: Newton continuation on Chebyshev nodes, then a Chebyshev fit.
 
-    The equilibria are found at Chebyshev nodes (31 first, twice as many whenever the degree outgrows
-    them); the fitted degree is raised until the relative residual of f(p(xi), l(xi)) = 0 on an independent
-    grid (:func:`_relative_residual`) is below ``pde_tolerance``, or the fit stops improving
-    (:func:`_stalled`), or the safety cap ``pde_max_degree`` is reached.
+    One abstract state: :func:`ashc_cli.numerics.chebyshev.fit_adaptive` interpolates the equilibria at the
+    Chebyshev nodes of V (and of its pieces, where one series of degree <= ``chebyshev.PIECE_MAX_DEGREE`` is not
+    enough), keeping on each interval the lowest degree whose relative residual of f(p(xi), l(xi)) = 0 on an
+    independent grid of it (:func:`_relative_residual`, against the size of the terms on all of V) is below
+    ``pde_tolerance``.  Several abstract states: one tensor series, its degree raised until that residual on
+    an independent grid of V is met, or the fit stops improving (:func:`_stalled`), or ``pde_max_degree``.
 
     Parameters
     ----------
@@ -347,19 +570,52 @@ def solve_numeric_equilibria(model: Model, plant: ManifoldPlant | None = None) -
 
     Returns
     -------
-    p : Series
+    p : Series or PiecewiseSeries
         The fitted series (n x 1), kept numeric.
-    degree, residual : as :func:`solve_collocation`
+    degree : int
+        The highest degree of a piece.
+    residual : float
+        The relative residual on an independent grid of V.
+
+    Raises
+    ------
+    DesignError
+        If no fit meets ``pde_tolerance`` (the message says where on V, and what to change).
     """
     tol, max_degree = model.spec.abstract.pde_tolerance, model.spec.abstract.pde_max_degree
     box = model.V
     plant = plant or ManifoldPlant(model)
+    terms = field_terms(model)
     check = _check_grid(box)
     phi_check = np.zeros((model.n_hat, check.shape[1]))   # phi_bar = 0 here
+    if model.n_hat == 1:
+        solved: list[tuple[np.ndarray, np.ndarray]] = []
+        scale = []
+
+        def sample(z: np.ndarray) -> np.ndarray:
+            X = continuation(model, z, _stacked(solved), terms)
+            solved.append((z, X))
+            if not scale:   # the size of the terms on all of V, from the first (whole-V) nodes
+                fbar, gl = plant.sides(X, z)
+                scale.append(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
+            return X
+
+        def accept(piece: chebyshev.Series) -> tuple[bool, float]:
+            grid = domain_grid(piece.box, PIECE_CHECK_POINTS)
+            measure = _relative_residual(model, piece, grid, plant, np.zeros((1, grid.shape[1])), scale[0])
+            return measure <= tol, measure
+
+        try:
+            p = chebyshev.fit_adaptive(sample, box[0], accept, max_degree=min(max_degree, chebyshev.PIECE_MAX_DEGREE))
+        except FitError as exc:
+            raise DesignError("abstract.domain", f"the Chebyshev fit of the numeric equilibrium manifold does not reach {tol:g} near xi in "
+                              f"[{exc.interval[0]:.6g}, {exc.interval[1]:.6g}] (best relative residual {exc.measure:.3g}; {exc.reason}): p has a kink "
+                              "or a near-singularity there", "a domain V that stops short of it, or a larger abstract.pde_tolerance") from None
+        return p, p.degree, _relative_residual(model, p, check, plant, phi_check)
     best, history = np.inf, []
     nodes_degree = min(max_degree, FIRST_NODES_DEGREE)
     z = chebyshev.nodes(box, nodes_degree + 1)
-    X = continuation(model, z)
+    X = continuation(model, z, terms=terms)
     degree = 0
     while degree < max_degree:
         degree += 1
@@ -367,15 +623,26 @@ def solve_numeric_equilibria(model: Model, plant: ManifoldPlant | None = None) -
             # More nodes for a higher degree: the equilibria are found again at twice as many.
             nodes_degree = min(max_degree, 2 * nodes_degree)
             z = chebyshev.nodes(box, nodes_degree + 1)
-            X = continuation(model, z)
-        coeffs = chebyshev.fit(X, box, z, degree)
-        best = min(best, _relative_residual(model, coeffs, box, check, plant, phi_check))
+            X = continuation(model, z, terms=terms)
+        series = chebyshev.Series.column(chebyshev.fit(X, box, z, degree), box)
+        best = min(best, _relative_residual(model, series, check, plant, phi_check))
         history.append(best)
         if best <= tol:
-            return chebyshev.Series.column(coeffs, box), degree, best
+            return series, degree, best
         if _stalled(history):
             raise DesignError("abstract.domain", f"the Chebyshev fit of the numeric equilibrium manifold stopped improving at degree {degree} "
                               f"(relative residual {best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial",
                               "a smaller domain V, or a larger abstract.pde_tolerance")
     raise DesignError("abstract.domain", f"the numeric equilibrium manifold is not fitted to {tol:g} by Chebyshev polynomials of degree <= {max_degree}: the best relative residual is {best:.3g}",
                       "a smaller domain V, or a larger abstract.pde_max_degree or pde_tolerance")
+
+
+#: Points of the independent grid on which one piece of a fit is judged.
+PIECE_CHECK_POINTS = 201
+
+
+def _stacked(solved: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The points solved so far and their equilibria, side by side (None before the first)."""
+    if not solved:
+        return None
+    return np.concatenate([z for z, _ in solved], axis=1), np.concatenate([X for _, X in solved], axis=1)

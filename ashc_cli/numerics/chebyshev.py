@@ -22,7 +22,10 @@ import numpy as np
 import numpy.polynomial.chebyshev as cheb
 import sympy as sp
 
-__all__ = ["nodes", "evaluate", "derivative", "fit", "to_sympy", "power_coefficients", "Series"]
+from ashc_cli.errors import FitError
+
+__all__ = ["nodes", "evaluate", "derivative", "fit", "to_sympy", "power_coefficients", "Series", "PiecewiseSeries", "fit_adaptive", "extreme_points",
+           "PIECE_MAX_DEGREE", "MAX_PIECES"]
 
 #: Power-basis coefficients below this fraction of the largest are dropped (round-off).
 CHOP_RTOL = 1e-13
@@ -291,13 +294,7 @@ class Series:
         if not self.horner:
             raise ValueError("formula_at evaluates the Horner formula: one axis and a degree above EXPAND_MAX_DEGREE")
         z = np.asarray(z, dtype=float).reshape(len(self.box), -1)
-        lo, hi = self.box[0]
-        s = float(2.0 / (hi - lo)) * z[0] - float((lo + hi) / (hi - lo))
-        power = _chopped(power_coefficients(self.coeffs))
-        value = np.repeat(power[:, -1:], z.shape[1], axis=1)
-        for k in range(self.degree - 1, -1, -1):
-            value = power[:, k:k + 1] + s[None, :] * value
-        return value.reshape(self.shape + (z.shape[1],))
+        return _horner_values(self.coeffs, self.box[0], z[0]).reshape(self.shape + (z.shape[1],))
 
     @property
     def horner(self) -> bool:
@@ -312,16 +309,50 @@ class Series:
         """
         if not self.horner:
             return to_sympy(self.coeffs, self.box, symbols).reshape(*self.shape)
-        lo, hi = self.box[0]
-        # s written as sympy writes (2 xi - (lo + hi)) / (hi - lo), with the same two coefficients as formula_at.
-        s = sp.Float(float(2.0 / (hi - lo))) * symbols[0] - sp.Float(float((lo + hi) / (hi - lo)))
-        entries = []
-        for power in _chopped(power_coefficients(self.coeffs)):
-            expr = sp.Float(power[-1]) if power[-1] != 0 else sp.S.Zero
-            for c in power[-2::-1]:
-                expr = sp.Add(sp.Float(c), sp.Mul(s, expr)) if c != 0 else sp.Mul(s, expr)
-            entries.append(expr)
-        return sp.Matrix(self.shape[0], self.shape[1], entries)
+        return sp.Matrix(self.shape[0], self.shape[1], _horner_exprs(self.coeffs, self.box[0], symbols[0]))
+
+    def is_constant(self) -> bool:
+        """Whether every entry is constant: of degree 0 in its chopped power basis, as its formula reads (dp/dxi
+        constant: p affine)."""
+        return _power_is_constant(self.coeffs)
+
+
+def _power_is_constant(coeffs: np.ndarray) -> bool:
+    """Whether each row's power-basis series has every non-constant term below ``CHOP_RTOL`` of its largest."""
+    power = np.abs(power_coefficients(coeffs)).reshape(len(coeffs), -1)   # column 0: the constant term
+    return bool(np.all(power[:, 1:].max(axis=1, initial=0.0) <= CHOP_RTOL * power.max(axis=1)))
+
+
+def _scaled_one(lo: float, hi: float) -> tuple[float, float]:
+    """(a, b) with s = a z - b mapping [lo, hi] to [-1, 1]: the two coefficients the formula and its values share."""
+    return float(2.0 / (hi - lo)), float((lo + hi) / (hi - lo))
+
+
+def _horner_values(coeffs: np.ndarray, interval, z: np.ndarray) -> np.ndarray:
+    """Horner's scheme on the chopped power coefficients of one-axis series (rows, deg + 1) at the points z (N,):
+    the numbers the formula of :func:`_horner_exprs` gives, shape (rows, N)."""
+    a, b = _scaled_one(*interval)
+    s = a * np.asarray(z, dtype=float) - b
+    power = _chopped(power_coefficients(coeffs))
+    value = np.repeat(power[:, -1:], s.shape[0], axis=1)
+    for k in range(power.shape[1] - 2, -1, -1):
+        value = power[:, k:k + 1] + s[None, :] * value
+    return value
+
+
+def _horner_exprs(coeffs: np.ndarray, interval, symbol) -> list:
+    """Each row of one-axis series (rows, deg + 1) as Horner's scheme in the scaled variable s = a z - b,
+    c_0 + s (c_1 + s (...)): linear in the degree to build, print and compile."""
+    a, b = _scaled_one(*interval)
+    # s written as sympy writes (2 z - (lo + hi)) / (hi - lo), with the same two coefficients as _horner_values.
+    s = sp.Float(a) * symbol - sp.Float(b)
+    entries = []
+    for power in _chopped(power_coefficients(coeffs)):
+        expr = sp.Float(power[-1]) if power[-1] != 0 else sp.S.Zero
+        for c in power[-2::-1]:
+            expr = sp.Add(sp.Float(c), sp.Mul(s, expr)) if c != 0 else sp.Mul(s, expr)
+        entries.append(expr)
+    return entries
 
 
 def _chop(expr: sp.Expr) -> sp.Expr:
@@ -329,3 +360,255 @@ def _chop(expr: sp.Expr) -> sp.Expr:
     terms = sp.Add.make_args(expr)
     big = max((abs(float(t.as_coeff_Mul()[0])) for t in terms), default=0.0)
     return sp.Add(*[t for t in terms if abs(float(t.as_coeff_Mul()[0])) > CHOP_RTOL * 100 * big])
+
+
+#: One Chebyshev piece's degree is raised at most to this before its interval is split in two: up to here a
+#: series that meets a tolerance of 1e-9 converges fast enough that its Horner formula (power coefficients in
+#: the piece's own scaled variable) keeps its digits; at degree 80 on one wide interval they reached 1e13.
+PIECE_MAX_DEGREE = 32
+#: At most this many pieces on one interval; an interval is not split below this fraction of the whole.
+MAX_PIECES = 64
+MIN_PIECE_FRACTION = 2.0 ** -12
+
+
+@dataclass(frozen=True)
+class PiecewiseSeries:
+    """A matrix of one-variable Chebyshev series on consecutive intervals (one :class:`Series` per piece),
+    kept numeric like a :class:`Series`, with the same methods.
+
+    Its formula (:meth:`to_sympy`) is a sympy ``Piecewise`` of each piece's Horner formula in its own scaled
+    variable, nested as a balanced tree of comparisons; the first and last pieces extend beyond the ends.
+
+    Attributes
+    ----------
+    pieces : tuple of Series
+        One-axis series of one shape, on intervals that meet end to end, in increasing order.
+    """
+
+    pieces: tuple
+
+    def __post_init__(self):
+        pieces = tuple(self.pieces)
+        object.__setattr__(self, "pieces", pieces)
+        if not pieces or any(len(s.box) != 1 or s.shape != pieces[0].shape for s in pieces):
+            raise ValueError("the pieces must be one-axis series of one shape")
+        ends = np.array([s.box[0] for s in pieces])
+        if np.any(ends[1:, 0] != ends[:-1, 1]) or np.any(ends[:, 1] <= ends[:, 0]):
+            raise ValueError("the pieces' intervals must meet end to end, in increasing order")
+
+    @classmethod
+    def from_arrays(cls, coeffs: np.ndarray, breaks: np.ndarray, shape) -> PiecewiseSeries:
+        """The series stored as arrays: coeffs (pieces, rows, deg + 1), breaks (pieces + 1,)."""
+        breaks = np.asarray(breaks, dtype=float)
+        return cls(tuple(Series(c, [[lo, hi]], shape) for c, lo, hi in zip(np.asarray(coeffs, dtype=float), breaks[:-1], breaks[1:])))
+
+    @property
+    def breaks(self) -> np.ndarray:
+        """The ends of the pieces, increasing: shape (pieces + 1,)."""
+        return np.r_[[s.box[0, 0] for s in self.pieces], self.pieces[-1].box[0, 1]]
+
+    @property
+    def coeffs(self) -> np.ndarray:
+        """The pieces' coefficients, padded to one degree: shape (pieces, rows, deg + 1)."""
+        out = np.zeros((len(self.pieces), self.pieces[0].coeffs.shape[0], self.degree + 1))
+        for k, s in enumerate(self.pieces):
+            out[k, :, : s.degree + 1] = s.coeffs
+        return out
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.pieces[0].shape
+
+    @property
+    def box(self) -> np.ndarray:
+        """The whole interval, shape (1, 2)."""
+        return np.array([[self.breaks[0], self.breaks[-1]]])
+
+    @property
+    def degree(self) -> int:
+        """The highest degree of a piece."""
+        return max(s.degree for s in self.pieces)
+
+    @property
+    def horner(self) -> bool:
+        """Always: the formula is Horner's scheme, piece by piece."""
+        return True
+
+    def _piece_of(self, z: np.ndarray) -> np.ndarray:
+        """The index of the piece each point (N,) falls in (the end pieces take what lies beyond them)."""
+        return np.clip(np.searchsorted(self.breaks[1:-1], z, side="right"), 0, len(self.pieces) - 1)
+
+    def _by_piece(self, z: np.ndarray, values) -> np.ndarray:
+        z = np.asarray(z, dtype=float).reshape(1, -1)
+        out = np.empty(self.shape + (z.shape[1],))
+        which = self._piece_of(z[0])
+        for k, s in enumerate(self.pieces):
+            mask = which == k
+            if mask.any():
+                out[..., mask] = values(s, z[:, mask])
+        return out
+
+    def at(self, z: np.ndarray) -> np.ndarray:
+        """Values at the points z (1, N): shape ``shape + (N,)``."""
+        return self._by_piece(z, lambda s, zk: s.at(zk))
+
+    def __call__(self, *arrays) -> np.ndarray:
+        """As :meth:`Series.__call__`."""
+        (arr,) = arrays
+        arr = np.asarray(arr, dtype=float)
+        return self.at(arr.reshape(1, -1)).reshape(self.shape + arr.shape)
+
+    def formula_at(self, z: np.ndarray) -> np.ndarray:
+        """The values of :meth:`to_sympy`'s formula at z (1, N), piece by piece with its coefficients and scheme."""
+        return self._by_piece(z, lambda s, zk: _horner_values(s.coeffs, s.box[0], zk[0]).reshape(self.shape + (zk.shape[1],)))
+
+    def jacobian(self) -> PiecewiseSeries:
+        """d/dz of a column, piece by piece."""
+        return PiecewiseSeries(tuple(s.jacobian() for s in self.pieces))
+
+    def left(self, A: np.ndarray) -> PiecewiseSeries:
+        """A S for a constant matrix A, piece by piece."""
+        return PiecewiseSeries(tuple(s.left(A) for s in self.pieces))
+
+    def right(self, B: np.ndarray) -> PiecewiseSeries:
+        """S B for a constant matrix B, piece by piece."""
+        return PiecewiseSeries(tuple(s.right(B) for s in self.pieces))
+
+    def is_constant(self) -> bool:
+        """Whether every piece is constant and all pieces agree (to ``CHOP_RTOL`` of the largest value)."""
+        values = np.array([s.coeffs[:, 0] for s in self.pieces])
+        return all(s.is_constant() for s in self.pieces) and bool(np.ptp(values, axis=0).max() <= CHOP_RTOL * max(np.abs(values).max(), 1e-300))
+
+    def jumps(self) -> tuple[np.ndarray, np.ndarray]:
+        """How far neighbouring pieces disagree at each inner break: max over entries of |left - right| for the
+        values and for the first derivatives, each of shape (pieces - 1,)."""
+        inner = self.breaks[1:-1]
+        left = [s.at(np.array([[b]]))[..., 0] for s, b in zip(self.pieces[:-1], inner)]
+        right = [s.at(np.array([[b]]))[..., 0] for s, b in zip(self.pieces[1:], inner)]
+        d = self.jacobian()
+        dleft = [s.at(np.array([[b]]))[..., 0] for s, b in zip(d.pieces[:-1], inner)]
+        dright = [s.at(np.array([[b]]))[..., 0] for s, b in zip(d.pieces[1:], inner)]
+        value = np.array([np.abs(a - b).max() for a, b in zip(left, right)])
+        slope = np.array([np.abs(a - b).max() for a, b in zip(dleft, dright)])
+        return value, slope
+
+    def to_sympy(self, symbols) -> sp.Matrix:
+        """The matrix as sympy ``Piecewise`` entries: each piece's Horner formula, chosen by comparisons of the
+        variable with the breaks (a balanced tree: depth log2 of the number of pieces)."""
+        z = symbols[0]
+        forms = [_horner_exprs(s.coeffs, s.box[0], z) for s in self.pieces]
+        breaks = self.breaks
+
+        def tree(lo: int, hi: int, row: int):
+            if hi - lo == 1:
+                return forms[lo][row]
+            mid = (lo + hi) // 2
+            return sp.Piecewise((tree(lo, mid, row), z < sp.Float(float(breaks[mid]))), (tree(mid, hi, row), True))
+
+        rows = self.shape[0] * self.shape[1]
+        return sp.Matrix(self.shape[0], self.shape[1], [tree(0, len(self.pieces), r) for r in range(rows)])
+
+
+def _through_ends(coeffs: np.ndarray, at_lo: np.ndarray | None, at_hi: np.ndarray | None) -> np.ndarray:
+    """One-axis series (rows, deg + 1) changed in their constant and linear terms to take the values at_lo at
+    s = -1 and at_hi at s = 1 (an end given as None is left where it is): a fit moved by its error at the ends
+    it shares with a neighbour, so that neighbouring pieces meet (T_k(1) = 1, T_k(-1) = (-1)^k)."""
+    out = np.array(coeffs, dtype=float)
+    if at_lo is None and at_hi is None:
+        return out
+    if out.shape[1] < 2:
+        out = np.pad(out, ((0, 0), (0, 1)))
+    k = np.arange(out.shape[1])
+    miss_hi = 0.0 if at_hi is None else at_hi - out.sum(axis=1)
+    miss_lo = 0.0 if at_lo is None else at_lo - out @ (-1.0) ** k
+    out[:, 0] += 0.5 * (miss_hi + miss_lo)
+    out[:, 1] += 0.5 * (miss_hi - miss_lo)
+    return out
+
+
+def extreme_points(box: np.ndarray, count: int) -> np.ndarray:
+    """The Chebyshev points of the second kind (the extremes of T_(count-1), ends included) of a one-axis box.
+
+    Parameters
+    ----------
+    box : ndarray (1, 2)
+        [[lo, hi]].
+    count : int
+        How many points (at least 2).
+
+    Returns
+    -------
+    ndarray (1, count)
+        Ascending, with lo and hi exactly at the ends.
+    """
+    lo, hi = (float(v) for v in np.asarray(box, dtype=float).reshape(2))
+    s = np.cos(np.pi * np.arange(count) / (count - 1))[::-1]
+    z = (lo + hi) / 2 + (hi - lo) / 2 * s
+    z[0], z[-1] = lo, hi
+    return z[None, :]
+
+
+def fit_adaptive(sample, interval, accept, max_degree: int = PIECE_MAX_DEGREE, max_pieces: int = MAX_PIECES, breaks=()):
+    """A one-variable Chebyshev interpolant on ``interval``, split into pieces where one series is not enough.
+
+    On each interval the function is sampled at ``max_degree + 1`` Chebyshev points of the second kind (the
+    ends included) and fitted by least squares, then moved to pass through the sampled ends (so neighbouring
+    pieces agree at their common end to the accuracy of ``sample``); the lowest degree that passes ``accept``
+    is kept.  An interval where no degree
+    passes is split in two, until ``max_pieces`` pieces or a piece narrower than ``MIN_PIECE_FRACTION`` of the
+    whole.
+
+    Parameters
+    ----------
+    sample : callable
+        ``sample(z)`` for points z (1, N) returns the values (rows, N).
+    interval : sequence of two floats
+        [lo, hi].
+    accept : callable
+        ``accept(series)`` for a :class:`Series` on one interval returns (passed, measure): whether it is good
+        enough there, and the number judged (smaller is better).
+    max_degree : int
+        The highest degree of a piece.
+    max_pieces : int
+        The most pieces.
+    breaks : sequence of float
+        Points inside ``interval`` where pieces must meet from the start (where the function is known to be
+        only piecewise smooth: kappa^-1 of a piecewise p).
+
+    Returns
+    -------
+    Series or PiecewiseSeries
+        A single (column) series when one interval was enough.
+
+    Raises
+    ------
+    ashc_cli.errors.FitError
+        With the interval where the fit failed and the best measure reached there.
+    """
+    lo, hi = float(interval[0]), float(interval[1])
+    min_width = (hi - lo) * MIN_PIECE_FRACTION
+    ends = np.unique(np.r_[lo, [float(b) for b in breaks if lo < float(b) < hi], hi])
+    todo, done = list(zip(ends[:-1], ends[1:])), []
+    while todo:
+        a, b = todo.pop(0)
+        box = np.array([[a, b]])
+        z = extreme_points(box, max_degree + 1)
+        values = sample(z)
+        best = np.inf
+        for degree in range(1, max_degree + 1):
+            # Least squares on the max_degree + 1 points (nearly the best fit of this degree), through the ends.
+            piece = Series.column(_through_ends(fit(values, box, z, degree), values[:, 0] if a > lo else None, values[:, -1] if b < hi else None), box)
+            passed, measure = accept(piece)
+            best = min(best, measure)
+            if passed:
+                done.append(piece)
+                break
+        else:
+            if len(done) + len(todo) + 2 > max_pieces:
+                raise FitError((a, b), best, f"{max_pieces} pieces of degree <= {max_degree} are not enough")
+            if (b - a) / 2 < min_width:
+                raise FitError((a, b), best, f"the pieces near [{a:.6g}, {b:.6g}] are already {MIN_PIECE_FRACTION:g} of the interval wide")
+            mid = 0.5 * (a + b)
+            todo[:0] = [(a, mid), (mid, b)]
+    done.sort(key=lambda s: s.box[0, 0])
+    return done[0] if len(done) == 1 else PiecewiseSeries(tuple(done))

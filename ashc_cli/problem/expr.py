@@ -342,10 +342,13 @@ _SREPR_CALLS: dict[str, object] = {
     for name in (
         "Symbol", "Dummy", "Integer", "Rational", "Float", "Add", "Mul", "Pow", "Abs", "sign", "exp", "log",
         "sin", "cos", "tan", "tanh", "atan", "asin", "acos", "Min", "Max", "Tuple",
+        # A piecewise Chebyshev fit's formula (numerics.chebyshev.PiecewiseSeries): pieces chosen by comparisons.
+        "Piecewise", "StrictLessThan",
     )
 }
+_SREPR_CALLS["ExprCondPair"] = lambda expr, cond: (expr, cond)   # a Piecewise argument
 _SREPR_CALLS.update({"triangle": triangle, "square": square, "step": step})
-_SREPR_NAMES = {"pi": sp.pi, "E": sp.E, "oo": sp.oo, "zoo": sp.zoo, "nan": sp.nan, "I": sp.I}
+_SREPR_NAMES = {"pi": sp.pi, "E": sp.E, "oo": sp.oo, "zoo": sp.zoo, "nan": sp.nan, "I": sp.I, "true": sp.true}
 
 
 def from_srepr(text: str, where: str = "artefact") -> sp.Expr:

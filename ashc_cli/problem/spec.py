@@ -145,7 +145,8 @@ class Abstract(_Strict):
     #: Relative residual the polynomial solver of the invariance PDE must reach on an independent grid.
     pde_tolerance: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 1e-8
     #: Safety cap on the polynomial degree of the PDE solvers, which raise the degree until
-    #: ``pde_tolerance`` is met or the fit stops improving (the degree used is reported).
+    #: ``pde_tolerance`` is met or the fit stops improving (the degree used is reported).  With one abstract
+    #: state each piece's degree is at most min(this, 32), and V is split into pieces where one is not enough.
     pde_max_degree: Annotated[int, Field(ge=1, le=128)] = 64
     #: A point near the equilibrium p at the centre of V, where Newton continuation starts (phi_bar = 0, no closed form).
     manifold_guess: list[FiniteFloat] | None = None

@@ -39,19 +39,17 @@ import sympy as sp
 
 from ashc_cli.numerics import proofs
 from ashc_cli.design.artefacts import Artefact, Check
-from ashc_cli.errors import DesignError
-from ashc_cli.numerics import chebyshev
+from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy
-from ashc_cli.design.inverse_construct import LEFT_INVERSE_TOL, MAX_INVERSE_DEGREE, branch_residuals, closed_form_branches, numeric_inverse
+from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, branch_residuals, closed_form_branches,
+                                               composed_tolerances, numeric_inverse)
 from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
 UPSTREAM = ("manifold", "kappa")
 
-#: h(x) - kappa(m(x)) must be below this, relative to the size of Y, on samples of X_y.
-CONDITION_II_RTOL = 1e-9
 SAMPLES = 2000
 #: A left inverse K of an affine p satisfies condition (ii) exactly when max |C (I - P K)| is below this (relative to max |C|).
 CONDITION_II_MATRIX_RTOL = 1e-10
@@ -123,24 +121,25 @@ def _condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray
 
 
 def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.ndarray,
-                   failure: tuple[str, str] | None = None) -> None:
+                   failure: tuple[str, str] | None = None, tol_i: float = LEFT_INVERSE_TOL, tol_ii: float = CONDITION_II_RTOL) -> None:
     """Conditions (i) and (ii) of Theorem 6, measured the same way on every path.
 
     ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).  ``failure`` (what, expected)
     replaces the generic explanation when condition (ii) fails (the affine path knows why: no left inverse of
-    P satisfies C (I - P K) = 0).
+    P satisfies C (I - P K) = 0).  ``tol_i`` and ``tol_ii`` are the tolerances of the two conditions (larger than
+    the defaults for a hand-written m composed with a fitted p: :func:`composed_tolerances`).
     """
     m_num = model.numeric(m, list(model.x))
     m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
     p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
     cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
     cond_ii = _condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
-    if not cond_ii <= CONDITION_II_RTOL:   # NaN (m not real at a sample) fails too
+    if not cond_ii <= tol_ii:   # NaN (m not real at a sample) fails too
         what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary 1)")
         raise DesignError("abstract", f"condition (ii) of Theorem 6 fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
-    art.checks["condition_i"] = Check(cond_i, cond_i <= LEFT_INVERSE_TOL, "Theorem 6 (i): max |p(m(x)) - x| / max|x| on Im(p)")
-    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= CONDITION_II_RTOL, "Theorem 6 (ii) via Corollary 1: max |h(x - p(m(x)))| / |Y| on samples of X_y")
+    art.checks["condition_i"] = Check(cond_i, cond_i <= tol_i, f"Theorem 6 (i): max |p(m(x)) - x| / max|x| on Im(p) (<= {tol_i:.3g})")
+    art.checks["condition_ii"] = Check(cond_ii, cond_ii <= tol_ii, f"Theorem 6 (ii) via Corollary 1: max |h(x - p(m(x)))| / |Y| on samples of X_y (<= {tol_ii:.3g})")
 
 
 def p_is_affine(man: Artefact, model: Model) -> bool:
@@ -159,9 +158,7 @@ def p_is_affine(man: Artefact, model: Model) -> bool:
     bool
     """
     if "dp_dxi" in man.series:
-        coeffs = man.series["dp_dxi"].coeffs
-        power = np.abs(chebyshev.power_coefficients(coeffs)).reshape(len(coeffs), -1)   # column 0: the constant term
-        return bool(np.all(power[:, 1:].max(axis=1, initial=0.0) <= chebyshev.CHOP_RTOL * power.max(axis=1)))
+        return man.series["dp_dxi"].is_constant()
     return not any(e.free_symbols & set(model.xi) for e in man.expr("dp_dxi"))
 
 
@@ -476,21 +473,26 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         If m is not a left inverse of p on V (check ``left_inverse``), is not real and finite on X_y
         (``m_real_on_Y``), fails condition (ii) (``condition_ii``), or kappa(V) does not cover Y (``V_covers_Y``).
     """
-    p = man.expr("p")
     m = model.m_given
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     m_num = model.numeric(m, list(model.x))
+    tol = composed_tolerances(model, man, m, p_grid)
+    # A fitted p (floats, or a series) is never exactly a left inverse's partner: sympy is not asked (on a fit of degree
+    # 80 it spent 900 s simplifying m(p(xi)) - xi).
+    fitted = "p" in man.series or tol["p_error"] > 0
+    p = None if fitted else man.expr("p")
+    from_fit = f" (1e-9 plus {COMPOSE_SAFETY:g} x the fit error of p, {tol['p_error']:.2g} per state at most, through dm/dx)" if tol["left"] > LEFT_INVERSE_TOL else ""
 
     # m(p(xi)) = xi on V (Theorem 6, step 1: p is injective on V with m as its left inverse).
     back = np.broadcast_to(m_num(*p_grid)[:, 0, :], grid.shape)
     errors = np.abs(back - grid).max(axis=0)
     left_residual = float(errors.max()) if np.all(np.isfinite(back)) else np.inf
-    if not left_residual <= LEFT_INVERSE_TOL:
+    if not left_residual <= tol["left"]:
         worst = int(np.argmax(np.where(np.isfinite(errors), errors, np.inf)))
         raise DesignError("abstract.m", f"the given m is not a left inverse of p on V: max |m(p(xi)) - xi| = {left_residual:.3g} (at xi = {np.round(grid[:, worst], 6).tolist()})",
-                          f"m(p(xi)) = xi for every xi in V (Theorem 6), to {LEFT_INVERSE_TOL:g}; or leave abstract.m out to have m constructed", check="left_inverse")
+                          f"m(p(xi)) = xi for every xi in V (Theorem 6), to {tol['left']:.3g}{from_fit}; or leave abstract.m out to have m constructed", check="left_inverse")
     polynomial = all(e.is_polynomial(*model.x) for e in m)
-    symbolic_left = proofs.symbolic_zero(list(m.xreplace(dict(zip(model.x, p))) - model.xi))
+    symbolic_left = not fitted and proofs.symbolic_zero(list(m.xreplace(dict(zip(model.x, p))) - model.xi))
 
     # m real and finite where it is used: on the samples of X_y (everywhere when m is a polynomial).
     samples = x_y_samples(model, p_grid)
@@ -501,10 +503,9 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     radicands = sorted({str(pw.base) for e in m for pw in e.atoms(sp.Pow) if pw.exp.is_Rational and pw.exp.q % 2 == 0})
 
     # Condition (ii): h(p(m(x))) = h(x), symbolically when sympy can; sampled in _checks_common.
-    composed = model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h
-    symbolic_ii = proofs.symbolic_zero(list(composed))
+    symbolic_ii = not fitted and proofs.symbolic_zero(list(model.h.xreplace(dict(zip(model.x, p))).xreplace(dict(zip(model.xi, m))) - model.h))
     cond_ii = _condition_ii_measure(model, p_function(man, model), m, samples)
-    if not cond_ii <= CONDITION_II_RTOL:
+    if not cond_ii <= tol["ii"]:
         raise DesignError("abstract.m", f"the given m fails condition (ii) of Theorem 6: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y",
                           "x - p(m(x)) in Ker(h) for x in X_y (Corollary 1): kappa(m(x)) = h(x); or leave abstract.m out to have m constructed", check="condition_ii")
 
@@ -513,7 +514,7 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
 
     grid_dk = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
     art = Artefact(stage=NAME, meta={"method": "explicit m from the spec (abstract.m), checked", "construction": EXPLICIT, "samples": SAMPLES, "sample_seed": 0,
-                                      "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
+                                      "left_inverse_tol": tol["left"], "condition_i_tol": tol["i"], "condition_ii_rtol": tol["ii"]})
     art.exprs.update({"m": m, "dm_dx": sparse_jacobian(m, model.x)})
     art.values.update({
         "V": V, "Y": Y, "kappa_range": k_range,
@@ -524,7 +525,7 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     })
     # Proved only for a polynomial m (defined everywhere); sympy's identities may hold only where m is real.
     proved_left, proved_ii = bool(polynomial and symbolic_left), bool(polynomial and symbolic_ii)
-    left_text = f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V, with the spec's m as left inverse"
+    left_text = f"max |m(p(xi)) - xi| on V (<= {tol['left']:.3g}{from_fit}): p is injective on V, with the spec's m as left inverse"
     art.checks["left_inverse"] = Check(left_residual, True, left_text + ("; proved (m(p(xi)) - xi simplifies to 0, sympy)" if proved_left else ""),
                                        proofs.PROVED if proved_left else proofs.SAMPLED)
     art.checks["V_covers_Y"] = Check(cover_value, True, cover_text)
@@ -538,7 +539,7 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
                  "so m(x) lies in V (where the abstraction is certified) exactly when h(x) lies in kappa(V)")
     else:
         _certify(art, model, Y, "Y", "Y: the spec's m is checked (conditions (i), (ii)) on X_y = h^-1(Y)")
-    _checks_common(art, model, p_function(man, model), m, p_grid)
+    _checks_common(art, model, p_function(man, model), m, p_grid, tol_i=tol["i"], tol_ii=tol["ii"])
     if proved_left:   # p(m(p(xi))) = p(xi) follows from m(p(xi)) = xi
         relabel_proved(art, "condition_i", "m(p(xi)) = xi symbolically")
     if proved_ii:
@@ -584,17 +585,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
 def _run_scalar(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """One abstract state and one output: m = kappa^-1(h(x)) (:func:`run`), its branch and where it is real."""
-    kappa = kap.expr("kappa")
-    m_of_y, y, method, n_branches, left_residual, y_grid = _scalar_branch(model, man, kappa)
+    m_of_y, y, method, n_branches, left_residual, y_grid = _scalar_branch(model, man, kap)
     m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
     real_lo, real_hi, radicands = _real_on_Y(model, m_of_y, y, y_grid)
     return _scalar_artefact(model, man, kap, m, m_of_y, y, method, n_branches, left_residual, y_grid, real_lo, real_hi, radicands)
 
 
-def _scalar_branch(model: Model, man: Artefact, kappa: sp.Matrix):
+def _scalar_branch(model: Model, man: Artefact, kap: Artefact):
     """(m_of_y, y, method, branches, left residual, kappa on V's grid): the branch of kappa(m) = y that is a
     left inverse of p on V (a closed form, else a Chebyshev interpolant of kappa^-1); a DesignError naming
     where kappa turns when none is."""
+    kappa = kap.expr("kappa")
     y = output_symbol()
     grid = np.asarray(man.value("xi_grid"))
     p_grid = np.asarray(man.value("p_grid"))
@@ -605,10 +606,18 @@ def _scalar_branch(model: Model, man: Artefact, kappa: sp.Matrix):
     branches = [b[0] for b in candidates]
     method = "closed form (sympy.solve of kappa(m) = y)"
     if not branches or min(residuals) > LEFT_INVERSE_TOL:
-        numeric = numeric_inverse(model, kappa, grid[0], y_grid, y)
+        kappa_fn = kap.series["kappa"] if "kappa" in kap.series else model.numeric(kappa, list(model.xi))
+        pieces = getattr(kap.series.get("kappa"), "breaks", ())
+        try:
+            numeric = numeric_inverse(kappa_fn, grid[0], y_grid, y, pieces[1:-1] if len(pieces) else ())
+        except FitError as exc:
+            raise DesignError("abstract.m", f"kappa is strictly monotone on V = {model.V.tolist()} (so p is injective), but sympy finds no closed form "
+                              f"of m and its piecewise Chebyshev interpolant misses kappa^-1 by {exc.measure:.3g} near y in [{exc.interval[0]:.6g}, "
+                              f"{exc.interval[1]:.6g}] ({exc.reason}: kappa is too steep there for polynomial pieces)",
+                              "abstract.m written by hand (it is checked, not trusted), or a smaller abstract.domain", check="left_inverse") from None
         if numeric is not None:
             branches, residuals = [numeric[0]], [numeric[1]]
-            method = f"Chebyshev interpolant of kappa^-1 on kappa(V), degree {numeric[2]} (no closed form)"
+            method = f"Chebyshev interpolant of kappa^-1 on kappa(V), {numeric[2]} (no closed form)"
     if not branches:
         raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V", "a kappa that is invertible on V", check="left_inverse")
     best = int(np.argmin(residuals))
@@ -619,8 +628,8 @@ def _scalar_branch(model: Model, man: Artefact, kappa: sp.Matrix):
         where = f"; kappa turns at xi = {np.round(turns, 4).tolist()[:3]}" if turns.size else ""
         if not turns.size and method.startswith("Chebyshev"):
             raise DesignError("abstract.m", f"kappa is strictly monotone on V = {model.V.tolist()} (so p is injective), but sympy finds no closed form "
-                              f"of m and its Chebyshev interpolant of degree <= {MAX_INVERSE_DEGREE} reaches only max |m(p(xi)) - xi| = "
-                              f"{left_residual:.3g} (kappa is too steep in places for one polynomial)",
+                              f"of m and its piecewise Chebyshev interpolant reaches only max |m(p(xi)) - xi| = "
+                              f"{left_residual:.3g} (kappa is too steep in places for polynomial pieces)",
                               "abstract.m written by hand (it is checked, not trusted), or a smaller abstract.domain", check="left_inverse")
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone", check="left_inverse")

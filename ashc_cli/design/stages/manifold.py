@@ -34,7 +34,7 @@ from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model
-from ashc_cli.design.manifold_numeric import ManifoldPlant, manifold_field, solve_collocation, solve_numeric_equilibria
+from ashc_cli.design.manifold_numeric import ManifoldPlant, equilibrium_error, manifold_field, solve_collocation, solve_numeric_equilibria
 
 NAME = "manifold"
 UPSTREAM: tuple[str, ...] = ()
@@ -319,8 +319,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         art.values["p_formula_deviation"] = on["deviation"]
     else:
         art.exprs.update({"p": p, "dp_dxi": on["dp"]})
+    if isinstance(series, chebyshev.PiecewiseSeries):
+        art.checks["p_continuous"] = _continuity_check(series, on["p_grid"], tolerance)
     art.values.update({"V": V, "xi_grid": on["grid"], "p_grid": on["p_grid"], "residual": on["residual"], "residual_scale": on["scale"],
-                       "l_range": l_range})
+                       "l_range": l_range, "p_error": _p_error(model, p, series, method, tolerance, V)})
     points = on["grid"].shape[1]
     if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, _pde_residual_expr(model, p)))):
         art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. (14a) exactly", proofs.PROVED)
@@ -360,7 +362,7 @@ def _solve(model: Model, plant: ManifoldPlant):
                 raise DesignError(numeric_failure.where, f"{closed_form_failure}; numerically: {numeric_failure.what}", numeric_failure.expected,
                                   check=numeric_failure.check) from None
             branches, tolerance = 1, fitted_tolerance
-            method = f"Newton continuation on Chebyshev nodes + Chebyshev fit, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
+            method = f"Newton continuation on Chebyshev nodes + Chebyshev fit, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid)"
     else:
         p, branches = _solve_sylvester(model), 1
         method = "Sylvester equation A P + B Q = P S (scipy.linalg.solve_sylvester)"
@@ -370,9 +372,9 @@ def _solve(model: Model, plant: ManifoldPlant):
                                   "a box [[lo, hi], ...] per abstract state for the PDE solver")
             p, degree, fit_residual = solve_collocation(model, plant)
             tolerance = fitted_tolerance
-            method = f"Chebyshev collocation, degree {degree} (relative residual {fit_residual:.2g} on an independent grid)"
+            method = f"Chebyshev collocation, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid)"
     series = None
-    if isinstance(p, chebyshev.Series):
+    if isinstance(p, (chebyshev.Series, chebyshev.PiecewiseSeries)):
         if p.horner:
             series = p
         else:   # a low degree: the expanded, chopped polynomial (an exact solution reads as one) is p
@@ -383,6 +385,47 @@ def _solve(model: Model, plant: ManifoldPlant):
             p, tolerance = exact_p, RESIDUAL_RTOL
             method += "; its coefficients recognised as rationals that solve eq. (14a) exactly (sympy)"
     return p, series, branches, method, tolerance
+
+
+#: Points of V at which a fitted p of equilibria is compared with the equilibria themselves (``values/p_error``).
+P_ERROR_POINTS = 201
+
+
+def _p_error(model: Model, p, series, method: str, tolerance: float, V: np.ndarray) -> np.ndarray:
+    """Per state, how far p may be from the exact solution of eq. (14a): 0 for a closed form or an exact p (its
+    residual is round-off), the distance to the Newton-solved equilibria on ``P_ERROR_POINTS`` points of V for a
+    fit of equilibria, NaN for a collocation (not estimated: the checks that compose p keep their own tolerances)."""
+    if tolerance == RESIDUAL_RTOL:
+        return np.zeros(model.n)
+    if method.startswith("Newton continuation"):
+        fn = series if series is not None else model.numeric(p, list(model.xi))
+        return equilibrium_error(model, fn, domain_grid(V, P_ERROR_POINTS))
+    return np.full(model.n, np.nan)
+
+
+def _continuity_check(series: chebyshev.PiecewiseSeries, p_grid: np.ndarray, tolerance: float) -> Check:
+    """The pieces of a fitted p must join smoothly: at every break, |jump of p| <= 1e3 tolerance max(1, |p|) and
+    |jump of dp/dxi| <= sqrt(tolerance) max(1, |dp/dxi|) (a smooth p fitted to ``tolerance`` meets both by
+    orders of magnitude); a DesignError names the break where p has a kink instead."""
+    value, slope = series.jumps()
+    dp = np.abs(series.jacobian().at(domain_grid(series.box, GRID_POINTS))).max()
+    value_rel = value / max(1.0, float(np.abs(p_grid).max()))
+    slope_rel = slope / max(1.0, float(dp))
+    bad = np.flatnonzero((value_rel > 1e3 * tolerance) | (slope_rel > np.sqrt(tolerance)))
+    if bad.size:
+        k = int(bad[np.argmax(slope_rel[bad])])
+        raise DesignError("abstract.domain", f"p is not smooth at xi = {series.breaks[k + 1]:.6g}: where two pieces of the fit meet, p jumps by {value[k]:.3g} "
+                          f"and dp/dxi by {slope[k]:.3g} (p has a kink or a singularity there)", "a domain V that stops short of it, or an l that makes p smooth", check="p_continuous")
+    worst = float(max(value_rel.max(), slope_rel.max()))
+    return Check(worst, True, f"the {len(series.pieces)} pieces of p join smoothly: the largest jump at a break, of p relative to max(1, |p|) and of dp/dxi relative "
+                 f"to max(1, |dp/dxi|) (<= 1e3 x {tolerance:g} and <= sqrt({tolerance:g}))")
+
+
+def _fit_text(p, degree: int) -> str:
+    """How a fitted p is made up: ``degree 17``, or ``6 pieces of degree <= 32 (breaks at ...)``."""
+    if isinstance(p, chebyshev.PiecewiseSeries):
+        return f"{len(p.pieces)} pieces of degree <= {degree} on V (breaks at {', '.join(f'{b:.6g}' for b in p.breaks[1:-1])})"
+    return f"degree {degree}"
 
 
 def _on_grid(model: Model, plant: ManifoldPlant, p, series, V: np.ndarray, tolerance: float) -> dict:
