@@ -306,3 +306,22 @@ def test_collocation_splits_v_and_keeps_a_zero_of_phi_bar_inside_a_piece():
     scale = max(1.0, np.abs(f).max(), np.abs(lhs).max())
     assert np.abs(lhs - f).max() / scale < 1e-8
     assert np.abs(p(xi)).max() < 10   # the bounded solution, not one of the |xi|^r family beside it
+
+
+def test_newton_halves_a_step_that_leaves_where_f_is_finite():
+    # The two tanks (sqrt outflows): from the centre of the state box a full Newton step lands at x < 0, where
+    # sqrt(x) is not real; halving the step finds the equilibria x1 = (b xi / c1)^2, x2 = (b xi / c2)^2.
+    import numpy as np
+
+    from .test_stabilise import TWO_TANKS
+
+    art = manifold.run(build_model(parse_spec_text(TWO_TANKS)), {})
+    xi = np.linspace(1, 4, 301)
+    p = build_model(parse_spec_text(TWO_TANKS)).numeric(art.exprs["p"], [sp_symbol_xi()])(xi)[:, 0, :]
+    assert np.abs(p - np.stack([(0.3 * xi / 0.5) ** 2, (0.3 * xi / 0.4) ** 2])).max() < 1e-9
+
+
+def sp_symbol_xi():
+    from ashc_cli.problem.model import state_symbol
+
+    return state_symbol("xi")

@@ -600,3 +600,41 @@ def test_an_inverted_pendulum_gets_a_gain_and_a_local_certificate_that_holds(tmp
     assert 0 < bd["w0_max_certified"] < np.inf and 0 < bd["v_max_certified"] < np.inf     # local: the box and no clipping
     art = falsify(design_model(spec, arts), arts, 64, t_final=5.0)
     assert art.values["max_ratio"] <= 1.0 and art.values["certificate_counterexamples"] == 0
+
+
+#: Two tanks in cascade with Torricelli outflows, written for these tests: df/dx has c / (2 sqrt(x)), not finite at
+#: x = 0, which the state box excludes; the equilibria at u = xi are x1 = (b xi / c1)^2, x2 = (b xi / c2)^2.
+TWO_TANKS = """
+name: two_tanks
+parameters: {c1: 0.5, c2: 0.4, b: 0.3}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["-c1*sqrt(x1)", "c1*sqrt(x1) - c2*sqrt(x2)"]
+  g: [["b"], ["0"]]
+  h: ["x2"]
+  input_bounds: [[0.5, 4]]
+  output_set: [[1, 5]]
+  state_box: [[0.05, 30], [0.05, 30]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise, feedback: identity}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[1, 4]]
+  delta: identity
+interface: {q: least_squares, saturate: true}
+"""
+
+
+def test_a_jacobian_singular_at_the_origin_outside_the_box_is_no_crash():
+    # The constant entries of the polytope's matrices were read off df/dx at x = 0 (1/sqrt(0): a TypeError, exit 1).
+    model = build_model(parse_spec_text(TWO_TANKS))
+    art = stabilise.run(model, {})
+    assert art.values["lambda"] > 0 and art.checks["lmi_margin"].passed and art.checks["M_positive"].passed
+    _, A_list, ranges, meta = terms.jacobian_polytope(model)
+    # df2/dx2 = -c2 / (2 sqrt(x2)) ranges over [-0.4 / (2 sqrt(0.05)), -0.4 / (2 sqrt(30))]; df1/dx2 = 0 stays 0.
+    k = meta["jacobian_entries"].index("df2/dx2")
+    assert ranges[k][0] == pytest.approx(-0.2 / np.sqrt(0.05), rel=1e-9) and ranges[k][1] == pytest.approx(-0.2 / np.sqrt(30), rel=1e-9)
+    assert all(A[0, 1] == 0 for A in A_list)

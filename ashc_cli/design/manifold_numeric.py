@@ -439,7 +439,13 @@ def _newton(terms, guess: np.ndarray, at: np.ndarray) -> np.ndarray | None:
         scale = max(1.0, float(abs(Fx).max() * np.abs(x).max()))
         if np.abs(value).max() <= NEWTON_RTOL * scale:
             return x
-        x = x + lu.solve(-value)
+        step = lu.solve(-value)
+        # Halve the step while it leaves where F is finite (a tank's outflow sqrt(h) at h < 0).
+        for _ in range(30):
+            if np.all(np.isfinite(terms(x + step, at)[0])):
+                break
+            step = step / 2
+        x = x + step
     value, Fx, _ = terms(x, at)
     return x if np.abs(value).max() <= 1e3 * NEWTON_RTOL * max(1.0, float(abs(Fx).max() * np.abs(x).max())) else None
 

@@ -126,7 +126,12 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
             pad = 1e-9 * max(1.0, abs(lo), abs(hi))
             ranges.append((lo - pad, hi + pad))
             how.append("sampled")
-    J0 = np.array(model.substitute(J.xreplace({a: 0 for a in args})), dtype=float)
+    # The constant entries; the varying ones are set at each corner (never evaluated at x = 0, where 1/sqrt(x) of a
+    # tank's outflow is not finite though the box excludes 0).
+    J0 = np.zeros(J.shape)
+    for (i, j), e in np.ndenumerate(np.array(J, dtype=object)):
+        if (i, j) not in varying and e != 0:
+            J0[i, j] = float(model.substitute(e))
     A_list = []
     for corner in itertools.product(*ranges):
         A = J0.copy()
