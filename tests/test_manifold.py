@@ -325,3 +325,59 @@ def sp_symbol_xi():
     from ashc_cli.problem.model import state_symbol
 
     return state_symbol("xi")
+
+
+# --- several solutions of eq. (14a): the abstraction is the plant itself ------------------------------------------
+
+#: A Duffing oscillator abstracted by itself (phi_bar = f_bar, l = 0, delta = g): p = xi and p = 0 both solve eq. (14a).
+SELF = """
+name: duffing_self
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["x2", "-x1 - x2 - x1**3"]
+  g: [["0"], ["1"]]
+  h: ["x1"]
+  input_bounds: [[-5, 5]]
+  output_set: [[-0.5, 0.5]]
+  state_box: [[-2, 2], [-3, 3]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise, feedback: identity}
+abstract:
+  states: [xi1, xi2]
+  inputs: [v]
+  phi_bar: ["xi2", "-xi1 - xi2 - xi1**3"]
+  l: ["0"]
+  domain: [[-1, 1], [-1, 1]]
+  delta: [["0"], ["1"]]
+"""
+
+
+def test_of_several_solutions_the_injective_p_is_taken():
+    # From p = 0 the collocation stops at p = 0 (exact, rank 0); it starts again from p = xi and keeps that.
+    import sympy as sp
+
+    model = build_model(parse_spec_text(SELF))
+    art = manifold.run(model, {})
+    assert sp.simplify(art.exprs["p"] - model.xi) == sp.zeros(2, 1)
+    assert art.checks["pde_residual"].evidence == "proved"
+
+
+def test_a_given_p_is_checked_not_trusted():
+    import sympy as sp
+
+    def given(p: str) -> str:
+        return SELF.replace('  delta: [["0"], ["1"]]', f'  delta: [["0"], ["1"]]\n  p: {p}')
+
+    model = build_model(parse_spec_text(given('["xi1", "xi2"]')))
+    art = manifold.run(model, {})
+    assert art.meta["method"] == manifold.EXPLICIT_P and sp.simplify(art.exprs["p"] - model.xi) == sp.zeros(2, 1)
+    assert art.checks["pde_residual"].evidence == "proved"
+    with pytest.raises(DesignError, match=r"abstract\.p: the given p does not solve eq\. \(14a\) on V") as info:
+        manifold.run(build_model(parse_spec_text(given('["xi1", "0"]'))), {})
+    assert info.value.check == "pde_residual"
+    with pytest.raises(DesignError, match=r"abstract\.p: dp/dxi of the given p has rank < n_hat = 2"):
+        manifold.run(build_model(parse_spec_text(given('["0", "0"]'))), {})
+    with pytest.raises(Exception, match=r"abstract\.p"):
+        build_model(parse_spec_text(given('["xi1"]')))                # one expression per concrete state
+    with pytest.raises(Exception, match=r"abstract\.p"):
+        build_model(parse_spec_text(given('["x1", "xi2"]')))          # in the abstract states only

@@ -106,7 +106,7 @@ def _stalled(history: list[float]) -> bool:
     return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
 
 
-def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple[chebyshev.Series | chebyshev.PiecewiseSeries, int, float]:
+def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np.ndarray | None = None) -> tuple[chebyshev.Series | chebyshev.PiecewiseSeries, int, float]:
     """Tensor Chebyshev collocation for eq. (14a) (phi_bar != 0), any number of abstract states.
 
     The coefficients minimise the PDE residual at 2 (degree + 1) Chebyshev nodes per axis (Gauss-Newton with
@@ -121,6 +121,8 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
         The spec's systems (V, the abstract maps and ``abstract.pde_*`` are read).
     plant : ManifoldPlant, optional
         f_bar, g and l compiled once (built here when None).
+    seed : ndarray (n, n_hat), optional
+        Start the degree-1 fit from p(xi) = seed xi instead of p = 0 (where eq. (14a) has several solutions).
 
     Returns
     -------
@@ -156,6 +158,8 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None) -> tuple
         grown = np.zeros((n,) + (degree + 1,) * nh)
         grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
         z = chebyshev.nodes(box, 2 * (degree + 1))
+        if seed is not None and degree == 1:
+            grown = chebyshev.fit(np.asarray(seed, dtype=float) @ z, box, z, 1)
         K = (degree + 1) ** nh
         basis = np.eye(K).reshape((K,) + (degree + 1,) * nh)
         V = chebyshev.evaluate(basis, box, z).T                                   # (N, K)

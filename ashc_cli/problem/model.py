@@ -435,6 +435,8 @@ class Model:
     names: dict[str, sp.Symbol] = field(default_factory=dict)
     #: The left inverse m(x) the spec gives (``abstract.m``, n_hat x 1 in the concrete states), or None.
     m_given: sp.Matrix | None = None
+    #: The manifold p(xi) the spec gives (``abstract.p``, n x 1 in the abstract states), or None.
+    p_given: sp.Matrix | None = None
 
     @property
     def n(self) -> int:
@@ -624,10 +626,14 @@ def build_model(spec: Spec) -> Model:
     if a.m is not None:
         m_given = _matrix(a.m, names, "abstract.m", (nh, 1))
         _check_free(m_given, pset | set(x), "abstract.m", "the concrete states")
+    p_given = None
+    if a.p is not None:
+        p_given = _matrix(a.p, names, "abstract.p", (n, 1))
+        _check_free(p_given, pset | set(xi), "abstract.p", "the abstract states")
     V = None if a.domain == "auto" else np.array(a.domain, dtype=float)
     return Model(
         spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
         phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
         Y=np.array(c.output_set, dtype=float), V=V, names=names,
-        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float), m_given=m_given,
+        state_box=None if c.state_box is None else np.array(c.state_box, dtype=float), m_given=m_given, p_given=p_given,
     )

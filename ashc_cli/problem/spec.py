@@ -153,6 +153,10 @@ class Abstract(_Strict):
     #: An explicit left inverse m(x) of p (n_hat expressions in the concrete states and parameters).  The
     #: inverse stage checks it (m(p(xi)) = xi on V, condition (ii) on X_y) instead of constructing one.
     m: list[Expr] | None = None
+    #: An explicit manifold p(xi) (n expressions in the abstract states and parameters), where eq. (14a) has several
+    #: solutions (the abstraction is the plant itself: p = xi and p = 0).  Checked, never trusted: it must solve
+    #: eq. (14a) (symbolically, or to pde_tolerance on a grid of V) and have dp/dxi of full rank.
+    p: list[Expr] | None = None
 
 
 class Interface(_Strict):
@@ -545,6 +549,8 @@ def _check_shapes(spec: Spec) -> None:
         _check_len("abstract.manifold_guess", a.manifold_guess, n, "one number per concrete state")
     if a.m is not None:
         _check_len("abstract.m", a.m, nh, "one expression in the concrete states per abstract state")
+    if a.p is not None:
+        _check_len("abstract.p", a.p, n, "one expression in the abstract states per concrete state")
     _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
     _check_len("abstract.l", a.l, m, "one per concrete input")
     if a.domain != "auto":

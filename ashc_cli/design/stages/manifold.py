@@ -117,7 +117,7 @@ def _solve_sylvester(model: Model) -> sp.Matrix | None:
     gap = np.abs(np.linalg.eigvals(A)[:, None] - np.linalg.eigvals(S)[None, :]).min()
     if gap < SYLVESTER_SEPARATION:
         raise DesignError("abstract.phi_bar", f"A and S share an eigenvalue (distance {gap:.3g}): the Sylvester equation A P + B Q = P S has no unique solution",
-                          "a phi_bar whose eigenvalues differ from the plant's")
+                          "a phi_bar whose eigenvalues differ from the plant's, or abstract.p: the solution you mean (checked, not trusted)")
     P = sla.solve_sylvester(A, -S, -B @ Q)              # A P - P S = -B Q
     try:
         p0 = np.linalg.solve(A, P @ s0 - a - B @ q0)     # constant part: A p0 + a + B q0 = P s0
@@ -308,7 +308,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     plant = ManifoldPlant(model)
     p, series, branches, method, tolerance = _solve(model, plant)
     V = model.V if model.V is not None else _auto_domain(model, p)
-    on = _on_grid(model, plant, p, series, V, tolerance)
+    try:
+        on = _on_grid(model, plant, p, series, V, tolerance)
+    except NumericalError as exc:
+        if model.p_given is None:
+            raise
+        raise DesignError("abstract.p", f"the given p does not solve eq. (14a) on V: the {exc.what}",
+                          f"dp/dxi phi_bar = f_bar(p) + g(p) l(xi) on V, to {tolerance:g} relative; or leave abstract.p out to have p solved for",
+                          check="pde_residual") from None
+    if model.p_given is not None and not _full_rank(on["dp_grid"]):
+        raise DesignError("abstract.p", f"dp/dxi of the given p has rank < n_hat = {model.n_hat} somewhere on V: p is not injective there",
+                          "a p with dp/dxi of full rank on V (Theorem 6 needs a left inverse m)", check="pde_residual")
     l_range, excursion, l_proved, grid_excursion, l_inside = _l_in_U(model, V, on["l_grid"])
     art = Artefact(stage=NAME, meta={"method": method, "branches": branches,
                                       "grid_points": int(on["grid"].shape[1]), "residual_rtol": tolerance,
@@ -345,6 +355,8 @@ def _solve(model: Model, plant: ManifoldPlant):
     the residual p must meet (round-off for a closed form, the spec's pde_tolerance for a fit)."""
     # A closed form must solve the PDE to round-off; a fitted p to the spec's pde_tolerance.
     tolerance, fitted_tolerance = RESIDUAL_RTOL, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
+    if model.p_given is not None:
+        return model.p_given, None, 1, EXPLICIT_P, fitted_tolerance
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
         p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
         if not (model.use_numeric and model.V is not None):
@@ -371,6 +383,16 @@ def _solve(model: Model, plant: ManifoldPlant):
                 raise DesignError("abstract.domain", "'auto' needs a p defined independently of V (phi_bar = 0 with a closed form, or a linear plant)",
                                   "a box [[lo, hi], ...] per abstract state for the PDE solver")
             p, degree, fit_residual = solve_collocation(model, plant)
+            if not _full_rank(p.jacobian().at(domain_grid(model.V, 201))):
+                # Several solutions (the abstraction is the plant itself, l = 0: p = 0 and p = xi): start again from
+                # xi in the first n_hat states, and keep the injective solution if that reaches one.
+                seed = np.zeros((model.n, model.n_hat))
+                seed[:model.n_hat] = np.eye(model.n_hat)
+                p, degree, fit_residual = solve_collocation(model, plant, seed=seed)
+                if not _full_rank(p.jacobian().at(domain_grid(model.V, 201))):
+                    raise DesignError("abstract.p", f"eq. (14a) is solved by a p whose dp/dxi has rank < n_hat = {model.n_hat} on V (from p = 0 and from "
+                                      "p = xi in the first states): p is not injective, and no left inverse m exists",
+                                      "abstract.p: the manifold you mean, n expressions in the abstract states (checked, not trusted)", check="pde_residual")
             tolerance = fitted_tolerance
             method = f"Chebyshev collocation, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid)"
     series = None
@@ -421,6 +443,17 @@ def _continuity_check(series: chebyshev.PiecewiseSeries, p_grid: np.ndarray, tol
                  f"to max(1, |dp/dxi|) (<= 1e3 x {tolerance:g} and <= sqrt({tolerance:g}))")
 
 
+EXPLICIT_P = "explicit p from the spec (abstract.p), checked: eq. (14a) and the rank of dp/dxi on a grid of V"
+#: dp/dxi has full rank where its smallest singular value is above this, relative to max(1, its largest).
+RANK_RTOL = 1e-9
+
+
+def _full_rank(dp_grid: np.ndarray) -> bool:
+    """Whether dp/dxi (n, n_hat, N) has rank n_hat at every point of the grid."""
+    sv = np.linalg.svd(np.moveaxis(np.asarray(dp_grid, dtype=float), -1, 0), compute_uv=False)   # (N, n_hat)
+    return bool(np.all(sv.min(axis=1) > RANK_RTOL * np.maximum(1.0, sv.max(axis=1))))
+
+
 def _fit_text(p, degree: int) -> str:
     """How a fitted p is made up: ``degree 17``, or ``6 pieces of degree <= 32 (breaks at ...)``."""
     if isinstance(p, chebyshev.PiecewiseSeries):
@@ -454,7 +487,7 @@ def _on_grid(model: Model, plant: ManifoldPlant, p, series, V: np.ndarray, toler
         residual, scale = max(residual, formula_residual), max(scale, formula_scale)
     if not np.isfinite(residual) or residual > tolerance * scale:
         raise NumericalError(NAME, f"residual of eq. (14a) on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
-    on.update(p_grid=p_grid, residual=residual, scale=scale)
+    on.update(p_grid=p_grid, dp_grid=dp_grid, residual=residual, scale=scale)
     return on
 
 
