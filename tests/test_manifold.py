@@ -381,3 +381,26 @@ def test_a_given_p_is_checked_not_trusted():
         build_model(parse_spec_text(given('["xi1"]')))                # one expression per concrete state
     with pytest.raises(Exception, match=r"abstract\.p"):
         build_model(parse_spec_text(given('["x1", "xi2"]')))          # in the abstract states only
+
+
+def test_domain_auto_without_a_closed_form_is_found_along_the_fitted_manifold():
+    # The CSTR (Arrhenius exp(-E/T)): f(p, xi) = 0 has no closed form, so V is found along p fitted where l(xi) is in
+    # U = [1, 2]; V must then contain kappa^-1(Y), here solved independently (scipy's fsolve at the ends of Y).
+    import numpy as np
+    from scipy.optimize import brentq, fsolve
+
+    from .conftest import SPECS
+
+    text = (SPECS / "cstr.yaml").read_text().replace("  domain: [[1.0, 2.0]]", "  domain: auto")
+    art = manifold.run(build_model(parse_spec_text(text)), {})
+    V = art.values["V"][0]
+    assert art.meta["domain"] == "auto" and art.meta["method"].startswith("Newton continuation")
+    q, k0, E, hr, ua, cf, tf = 1.0, 20.0, 8.0, 3.0, 2.0, 1.0, 1.0
+
+    def output(xi):
+        f = lambda s: [q * (cf - s[0]) - k0 * np.exp(-E / s[1]) * s[0], q * (tf - s[1]) + hr * k0 * np.exp(-E / s[1]) * s[0] + ua * (xi - s[1])]   # noqa: E731
+        return fsolve(f, [0.8, 1.3], xtol=1e-14)[1]
+
+    ends = [brentq(lambda xi, y=y: output(xi) - y, 1.0, 2.0, xtol=1e-13) for y in (1.2, 1.5)]
+    assert 1.0 <= V[0] <= min(ends) and max(ends) <= V[1] <= 2.0
+    assert art.values["residual"] <= 1e-8 * art.values["residual_scale"]

@@ -22,6 +22,7 @@ evaluated on a grid of V and stored, together with the check that l maps V into 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -228,7 +229,8 @@ def _auto_search_box(model: Model) -> np.ndarray:
 
 
 def _auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
-    """``abstract.domain: auto`` for one abstract state: the largest interval V around kappa^-1(Y) on which
+    """``abstract.domain: auto`` for one abstract state (p a formula, or a series fitted on the search interval):
+    the largest interval V around kappa^-1(Y) on which
     l(xi) is in U, p is finite and C^1, kappa = h o p is strictly monotone (so p is injective and kappa(V)
     covers Y), and the manifold is no steeper than ``AUTO_SLOPE_RATIO`` times its steepest point over
     kappa^-1(Y) (beyond that dbar, hence the error bound, grows without helping the outputs in Y).
@@ -244,10 +246,17 @@ def _auto_domain(model: Model, p: sp.Matrix) -> np.ndarray:
     lo, hi = _auto_search_box(model)[0]
     xi = model.xi[0]
     xs = np.linspace(lo, hi, AUTO_GRID)
-    kappa = model.h.xreplace(dict(zip(model.x, p)))
-    k = model.numeric(kappa, [xi])(xs)[0, 0]
-    dk = model.numeric(kappa.diff(xi), [xi])(xs)[0, 0]
-    slope = np.linalg.norm(model.numeric(p.diff(xi), [xi])(xs)[:, 0, :], axis=0)
+    if isinstance(p, (chebyshev.Series, chebyshev.PiecewiseSeries)):
+        # A fitted p (no closed form): kappa = h(p) and dkappa/dxi = dh/dx(p) dp/dxi from the series' values.
+        P, dP = p(xs)[:, 0, :], p.jacobian()(xs)[:, 0, :]
+        k = model.numeric(model.h, list(model.x))(*P)[0, 0]
+        dh = np.broadcast_to(model.numeric(model.h.jacobian(model.x), list(model.x))(*P), (1, model.n, len(xs)))[0]
+        dk, slope = np.einsum("iN,iN->N", dh, dP), np.linalg.norm(dP, axis=0)
+    else:
+        kappa = model.h.xreplace(dict(zip(model.x, p)))
+        k = model.numeric(kappa, [xi])(xs)[0, 0]
+        dk = model.numeric(kappa.diff(xi), [xi])(xs)[0, 0]
+        slope = np.linalg.norm(model.numeric(p.diff(xi), [xi])(xs)[:, 0, :], axis=0)
     ok = np.isfinite(k) & np.isfinite(dk) & np.isfinite(slope) & (dk != 0)
     Y = model.Y[0]
     inside = ok & (k >= Y[0]) & (k <= Y[1])
@@ -306,8 +315,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         If the residual of the PDE on V is above tolerance.
     """
     plant = ManifoldPlant(model)
-    p, series, branches, method, tolerance = _solve(model, plant)
-    V = model.V if model.V is not None else _auto_domain(model, p)
+    p, series, branches, method, tolerance, found_V = _solve(model, plant)
+    V = found_V if found_V is not None else _auto_domain(model, p)
     try:
         on = _on_grid(model, plant, p, series, V, tolerance)
     except NumericalError as exc:
@@ -349,14 +358,15 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
 
 def _solve(model: Model, plant: ManifoldPlant):
-    """(p, series, branches, method, tolerance): p by the first method that applies (a closed form, Newton
+    """(p, series, branches, method, tolerance, V): p by the first method that applies (a closed form, Newton
     continuation with a Chebyshev fit, the Sylvester equation, Chebyshev collocation), its coefficients
     recognised as exact where they are; ``series`` is p kept numeric (then p is that series too); tolerance is
-    the residual p must meet (round-off for a closed form, the spec's pde_tolerance for a fit)."""
+    the residual p must meet (round-off for a closed form, the spec's pde_tolerance for a fit); V is the domain, found
+    here for ``domain: auto`` without a closed form (else the spec's, or None for ``auto`` to be found from p)."""
     # A closed form must solve the PDE to round-off; a fitted p to the spec's pde_tolerance.
     tolerance, fitted_tolerance = RESIDUAL_RTOL, max(RESIDUAL_RTOL, model.spec.abstract.pde_tolerance)
     if model.p_given is not None:
-        return model.p_given, None, 1, EXPLICIT_P, fitted_tolerance
+        return model.p_given, None, 1, EXPLICIT_P, fitted_tolerance, model.V
     if all(sp.simplify(e) == 0 for e in model.phi_bar):
         p, closed_form_failure = None, "numeric fast path chosen (sympy not tried)"
         if not (model.use_numeric and model.V is not None):
@@ -364,11 +374,15 @@ def _solve(model: Model, plant: ManifoldPlant):
                 p, branches = _solve_algebraic(model)
                 method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
             except DesignError as exc:
-                if model.V is None:
+                if model.V is None and model.n_hat != 1:
                     raise
                 closed_form_failure = exc.what
         if p is None:
             try:
+                if model.V is None:
+                    # domain: auto without a closed form: fit p where l(xi) is in U, find V along it, fit p on V.
+                    searched, _ = solve_numeric_equilibria(dataclasses.replace(model, V=_auto_search_box(model)), plant)[:2]
+                    model = dataclasses.replace(model, V=_auto_domain(model, searched))
                 p, degree, fit_residual = solve_numeric_equilibria(model, plant)
             except DesignError as numeric_failure:
                 raise DesignError(numeric_failure.where, f"{closed_form_failure}; numerically: {numeric_failure.what}", numeric_failure.expected,
@@ -395,6 +409,7 @@ def _solve(model: Model, plant: ManifoldPlant):
                                       "abstract.p: the manifold you mean, n expressions in the abstract states (checked, not trusted)", check="pde_residual")
             tolerance = fitted_tolerance
             method = f"Chebyshev collocation, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid)"
+    found_V = model.V
     series = None
     if isinstance(p, (chebyshev.Series, chebyshev.PiecewiseSeries)):
         if p.horner:
@@ -406,7 +421,7 @@ def _solve(model: Model, plant: ManifoldPlant):
         if exact_p is not None:
             p, tolerance = exact_p, RESIDUAL_RTOL
             method += "; its coefficients recognised as rationals that solve eq. (14a) exactly (sympy)"
-    return p, series, branches, method, tolerance
+    return p, series, branches, method, tolerance, found_V
 
 
 #: Points of V at which a fitted p of equilibria is compared with the equilibria themselves (``values/p_error``).
