@@ -311,3 +311,14 @@ def test_t_final_must_be_positive_before_any_work(command, tmp_path):
     assert res.exit_code == 2
     assert res.stderr == "error: --t-final: 0 s; expected a positive, finite length of run in seconds\n"
     assert not (tmp_path / "o").exists()
+
+
+def test_a_reader_that_goes_away_is_no_internal_error(tmp_path):
+    # `ashc summary out | head -1`: the pipe closes before summary is done; exit 0, no "error: internal".
+    import subprocess
+
+    from .conftest import SPECS, ashc
+
+    ashc("design", str(SPECS / "cuk_converter.yaml"), "--out", str(tmp_path), check=True)
+    proc = subprocess.run(f"{sys.executable} -m ashc_cli.cli summary {tmp_path} | head -c 10", shell=True, capture_output=True, text=True, timeout=120)
+    assert "internal" not in proc.stderr and "Traceback" not in proc.stderr

@@ -404,3 +404,31 @@ def test_domain_auto_without_a_closed_form_is_found_along_the_fitted_manifold():
     ends = [brentq(lambda xi, y=y: output(xi) - y, 1.0, 2.0, xtol=1e-13) for y in (1.2, 1.5)]
     assert 1.0 <= V[0] <= min(ends) and max(ends) <= V[1] <= 2.0
     assert art.values["residual"] <= 1e-8 * art.values["residual_scale"]
+
+
+def test_a_tight_tolerance_is_met_on_the_stages_own_grid_and_its_fit_error_is_kept():
+    # Found by an independent check: at pde_tolerance 1e-9 a fit accepted at the tolerance on each piece's grid
+    # missed it on the stage's finer grid (exit 4), and p_error read 0 (the fit was taken for a closed form).
+    import numpy as np
+
+    text = MOTOR.replace("  delta: identity", "  delta: identity\n  pde_tolerance: 1.0e-9")
+    art = manifold.run(build_model(parse_spec_text(text)), {})
+    assert art.values["residual"] <= 1e-9 * art.values["residual_scale"]
+    xi = np.linspace(-60, 60, 601)
+    error = np.abs(art.series["p"](xi)[:, 0, :] - motor_equilibria(xi)).max(axis=1)
+    assert np.all(art.values["p_error"] > 0) and np.all(10 * art.values["p_error"] > error)
+
+
+def test_continuation_splits_a_step_across_a_steep_term():
+    # Friction c tanh(200 w): the branch bends within one step of the Chebyshev nodes; the step is split until
+    # Newton follows it (it was lost at xi = -15.86, "dF/dx singular or Newton diverges").
+    import numpy as np
+    from scipy.optimize import brentq
+
+    text = MOTOR.replace("c*tanh(w)", "c*tanh(200*w)")
+    art = manifold.run(build_model(parse_spec_text(text)), {})
+    P = MOTOR_PARAMETERS
+    xi = np.linspace(-60, 60, 241)
+    w = np.array([brentq(lambda w: (P["b"] + P["K"] ** 2 / P["R"]) * w + P["c"] * np.tanh(200 * w) - P["K"] * x / P["R"], -100, 100, xtol=1e-15, rtol=1e-15)
+                  for x in xi])
+    assert np.abs(art.series["p"](xi)[0, 0] - w).max() < 1e-6

@@ -4,6 +4,7 @@ documented exit code), the live progress display on stderr and the step that bri
 from __future__ import annotations
 
 import functools
+import os
 import json
 import re
 import sys
@@ -98,6 +99,10 @@ def guard(fn):
         except KeyboardInterrupt:
             typer.echo("error: interrupted; artefacts written before the interruption are intact", err=True)
             raise typer.Exit(130) from None
+        except BrokenPipeError:
+            # The reader went away (`ashc summary out | head`): nothing more to say to it, and no error of ashc's.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            raise typer.Exit(0) from None
         except (typer.Exit, typer.Abort):
             raise
         except Exception as exc:  # a bug: say so in one line unless debugging
