@@ -151,3 +151,12 @@ def test_eval_accepts_every_declared_name_and_refuses_undeclared_ones(cli_run):
     assert proc.returncode == 0, proc.stderr
     proc = ashc("eval", str(out), "m", "--at", "x4=-6.9732,x9=1")
     assert proc.returncode == 2 and "unknown variable(s) x9" in proc.stderr
+
+
+def test_p_and_kappa_only_on_V(paper_design):
+    # V = [0, 0.95]: p and kappa are solved there; beyond it (a fitted p would extrapolate its end piece) eval refuses.
+    assert evaluate(paper_design, "p", {"xi": 0.95})
+    with pytest.raises(SpecError, match=r"eval p: xi=1.2 is outside V = \[0, 0.95\]"):
+        evaluate(paper_design, "p", {"xi": 1.2})
+    with pytest.raises(SpecError, match=r"eval kappa: xi=-0.1 is outside V"):
+        evaluate(paper_design, "kappa", {"xi": -0.1})

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 
+import json
+
 import numpy as np
 import sympy as sp
 
@@ -21,6 +23,9 @@ __all__ = ["summary", "EVALUABLE", "parse_point", "evaluate", "no_negative_zero"
 #: Functions built from m: evaluated only at states x whose output h(x) lies where m is certified
 #: (``inverse.m_domain``).
 BUILT_FROM_M = ("m", "b", "c")
+
+#: Functions of xi solved on V only: evaluated only at points of V (a fitted p extrapolates beyond it).
+ON_V = ("p", "kappa")
 
 #: Names ``ashc eval`` knows, with the stage and stored expression each comes from.
 EVALUABLE = {
@@ -201,7 +206,8 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     SpecError
         If the name is unknown, a needed variable is missing, or a given name is not a design variable; or,
         for m and the b, c built from it, if y = h(x) at the point lies outside the set where m is certified
-        (``inverse.m_domain``): m is a left inverse there only, and a Chebyshev interpolant extrapolates.
+        (``inverse.m_domain``): m is a left inverse there only, and a Chebyshev interpolant extrapolates; for p and
+        kappa, if xi lies outside V.
     ArtefactError
         If the stage holding the function has not been run (for m, b, c: also the inverse stage), or the
         inverse artefact does not record where m is certified.
@@ -220,6 +226,8 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
         raise SpecError("--at", f"unknown variable(s) {', '.join(sorted(unknown))}", "names the spec declares (states, inputs, abstract states and inputs)")
     if name in BUILT_FROM_M:
         _require_certified(arts, name, point)
+    if name in ON_V:
+        _require_in_V(arts, name, point)
     if key is not None:
         values = _values(art.expr(key), point, params, name)
     else:
@@ -227,6 +235,22 @@ def evaluate(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> l
     if np.any(np.isnan(values)):
         raise DesignError(name, f"{name} is not real at {point}", "a point where it is defined (see `ashc summary`)")
     return no_negative_zero(values.tolist())
+
+
+def _require_in_V(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> None:
+    """Refuse to evaluate p or kappa at an abstract state outside V (``manifold.V``), where eq. (14a) was not solved."""
+    man = arts.get("manifold")
+    if man is None or "V" not in man.values:
+        return
+    V = np.asarray(man.values["V"], dtype=float).reshape(-1, 2)
+    names = (man.provenance.get("names") or {}).get("abstract_states", [])
+    if len(names) != len(V) or not all(n in point for n in names):
+        return   # a missing abstract state is refused where the expression is evaluated
+    xi = np.array([point[n] for n in names], dtype=float)
+    if outside_certified_set(V, xi):
+        shown = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, xi))
+        raise SpecError(f"eval {name}", f"{shown} is outside V = {format_box(V)}, where p solves eq. (14a) (beyond it a fitted p extrapolates)",
+                        f"a point of V = {format_box(V)}")
 
 
 def _require_certified(arts: dict[str, Artefact], name: str, point: dict[str, float]) -> None:
