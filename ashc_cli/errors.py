@@ -24,6 +24,8 @@ __all__ = [
     "ScenarioStopped",
     "NumericalError",
     "ArtefactError",
+    "FitError",
+    "CoverError",
     "EXIT_CODES",
 ]
 
@@ -144,6 +146,25 @@ class FitError(ValueError):
     def __init__(self, interval: tuple[float, float], measure: float, reason: str):
         super().__init__(reason)
         self.interval, self.measure, self.reason = interval, measure, reason
+
+
+class CoverError(ValueError):
+    """Newton finds no xi in V with kappa(xi) = y for some y of Y (kappa(V) does not cover Y, eq. (10), or kappa
+    is not invertible there); the inverse stage turns it into a DesignError naming the output.
+
+    Parameters
+    ----------
+    y : ndarray (p,)
+        The first such output.
+    residual : float
+        The best max |kappa(xi) - y| / max(1, |Y|) Newton reached.
+    excursion : float
+        How far outside V the solution found lies (<= 0 inside).
+    """
+
+    def __init__(self, y, residual: float, excursion: float):
+        super().__init__("no preimage in V")
+        self.y, self.residual, self.excursion = y, residual, excursion
 
 
 EXIT_CODES = {cls.__name__: cls.exit_code for cls in (SpecError, DesignError, NumericalError, ArtefactError)}

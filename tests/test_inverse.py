@@ -531,3 +531,71 @@ def _motor_text() -> str:
     from .test_manifold import MOTOR
 
     return MOTOR
+
+
+#: Johansson's quadruple tank, nonlinear (Torricelli outflows), in deviation coordinates x = h - H about the levels
+#: H of the pump voltages U, with l = xi (pump voltage deviations): written for these tests.  p is the steady state
+#: of the voltages U + xi, and kappa(xi) = kc (x1, x2) there; sympy's solve of kappa(m) = y meets a quartic whose
+#: branches are not real on V, so m is the numeric kappa^-1 of several abstract states.
+QUADRUPLE_TANK = """
+name: quadruple_tank_deviation
+parameters: {A1: 28.0, A2: 32.0, A3: 28.0, A4: 32.0, a1: 0.071, a2: 0.057, a3: 0.071, a4: 0.057, k1: 3.33, k2: 3.35, g1: 0.7, g2: 0.6, kc: 0.5,
+             gr: 981.0, H1: 12.4, H2: 12.7, H3: 1.8, H4: 1.4, U1: 3.0, U2: 3.0}
+concrete:
+  states: [x1, x2, x3, x4]
+  inputs: [u1, u2]
+  f_bar: ["-a1/A1*sqrt(2*gr*(H1 + x1)) + a3/A1*sqrt(2*gr*(H3 + x3)) + g1*k1/A1*U1",
+          "-a2/A2*sqrt(2*gr*(H2 + x2)) + a4/A2*sqrt(2*gr*(H4 + x4)) + g2*k2/A2*U2",
+          "-a3/A3*sqrt(2*gr*(H3 + x3)) + (1 - g2)*k2/A3*U2", "-a4/A4*sqrt(2*gr*(H4 + x4)) + (1 - g1)*k1/A4*U1"]
+  g: [["g1*k1/A1", "0"], ["0", "g2*k2/A2"], ["0", "(1 - g2)*k2/A3"], ["(1 - g1)*k1/A4", "0"]]
+  h: ["kc*x1", "kc*x2"]
+  input_bounds: [[-1.5, 1.5], [-1.5, 1.5]]
+  output_set: [[-1.0, 1.0], [-1.0, 1.0]]
+  state_box: [[-10, 14], [-10, 14], [-1.7, 2.5], [-1.3, 2.0]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise, feedback: identity}
+abstract:
+  states: [xi1, xi2]
+  inputs: [v1, v2]
+  phi_bar: ["0", "0"]
+  l: ["xi1", "xi2"]
+  domain: [[-1.2, 1.2], [-1.2, 1.2]]
+interface: {q: least_squares, saturate: scale}
+"""
+
+
+def _tank_inverse_exact(y1, y2):
+    """kappa^-1 of the quadruple tank by hand: at steady state the lower tanks' outflows are the pumps' flows into
+    them, a1 sqrt(2 g h1) = g1 k1 v1 + (1 - g2) k2 v2 and a2 sqrt(2 g h2) = (1 - g1) k1 v1 + g2 k2 v2 (the upper
+    tanks pass their inflow on), linear in the voltages v = U + xi."""
+    A = np.array([[0.7 * 3.33, 0.4 * 3.35], [0.3 * 3.33, 0.6 * 3.35]])
+    flows = np.stack([0.071 * np.sqrt(2 * 981.0 * (12.4 + y1 / 0.5)), 0.057 * np.sqrt(2 * 981.0 * (12.7 + y2 / 0.5))])
+    return np.linalg.solve(A, flows.reshape(2, -1)).reshape(flows.shape) - 3.0
+
+
+def test_a_numeric_m_of_two_abstract_states_is_kappa_inverse_to_1e_9(tmp_path):
+    from ashc_cli.design.pipeline import run
+
+    arts = run(parse_spec_text(QUADRUPLE_TANK), tmp_path, ["inverse"])
+    inv, model = arts["inverse"], build_model(parse_spec_text(QUADRUPLE_TANK))
+    assert inv.meta["method"].startswith("tensor Chebyshev series of kappa^-1 on Y")
+    assert inv.meta["m_domain_set"] == "Y"
+    rng = np.random.default_rng(7)
+    y = rng.uniform(-1, 1, (2, 500))
+    y[:, :4] = [[-1, -1, 1, 1], [-1, 1, -1, 1]]      # the corners of Y
+    x = np.vstack([y / 0.5, np.zeros((2, 500))])     # h(x) = y; m reads h only
+    m = model.numeric(inv.exprs["m"], list(model.x))(*x)[:, 0, :]
+    assert np.abs(m - _tank_inverse_exact(y[0], y[1])).max() < 1e-9
+    for name in ("left_inverse", "condition_i", "condition_ii", "V_covers_Y", "m_real_on_Y"):
+        assert inv.checks[name].passed, name
+    assert inv.checks["left_inverse"].evidence != "proved"           # a fit: sampled, never proved
+    assert inv.values["left_inverse_residual"] < 1e-9 and inv.values["m_fit_error"] < 1e-11
+
+
+def test_a_numeric_m_whose_preimage_leaves_V_is_refused_naming_the_output(tmp_path):
+    from ashc_cli.design.pipeline import run
+
+    text = QUADRUPLE_TANK.replace("domain: [[-1.2, 1.2], [-1.2, 1.2]]", "domain: [[-0.8, 0.8], [-0.8, 0.8]]")
+    with pytest.raises(DesignError, match=r"abstract\.domain: .*no solution xi in V for y = \[0\.9, -1\.0\].*0\.0108 outside V.*abstract\.m written by hand"):
+        run(parse_spec_text(text), tmp_path, ["inverse"])
+    # The exact solution there lies outside V by the 0.0108 the message gives.
+    assert _tank_inverse_exact(np.array([0.9]), np.array([-1.0]))[0, 0] == pytest.approx(0.8108, abs=1e-4)

@@ -1,6 +1,7 @@
 """Constructions of the left inverse m for the inverse stage (Section IV-C): the closed-form branches of
-kappa(m) = y that sympy finds, and, for one abstract state without one, kappa^-1 as a Chebyshev interpolant;
-and the tolerances of the checks of a hand-written m against a fitted p.
+kappa(m) = y that sympy finds; without one, kappa^-1 as a (piecewise) Chebyshev interpolant for one abstract state
+(:func:`numeric_inverse`) and as a tensor Chebyshev series on Y from Newton solutions for several
+(:func:`inverse_on_box`); and the tolerances of the checks of a hand-written m against a fitted p.
 :mod:`ashc_cli.design.stages.inverse` chooses among them and checks what it chose."""
 
 from __future__ import annotations
@@ -10,11 +11,13 @@ import sympy as sp
 
 from ashc_cli.numerics import chebyshev
 from ashc_cli.design.artefacts import Artefact
-from ashc_cli.design.upstream import dp_function
-from ashc_cli.problem.model import Model, sparse_jacobian, within_budget
+from ashc_cli.design.upstream import dp_function, p_function
+from ashc_cli.errors import CoverError, DesignError, FitError
+from ashc_cli.problem.grids import domain_grid
+from ashc_cli.problem.model import Model, lambdify, sparse_jacobian, within_budget
 
 __all__ = ["LEFT_INVERSE_TOL", "CONDITION_II_RTOL", "COMPOSE_SAFETY", "SOLVE_MAX_OPS", "closed_form_branches", "branch_residuals", "numeric_inverse",
-           "composed_tolerances"]
+           "composed_tolerances", "solve_kappa", "inverse_on_box", "kappa_inverse_on_Y"]
 
 #: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
 LEFT_INVERSE_TOL = 1e-9
@@ -210,3 +213,196 @@ def composed_tolerances(model: Model, man: Artefact, m: sp.Matrix, p_grid: np.nd
     out["i"] += COMPOSE_SAFETY * float(np.einsum("ikN,kN->iN", np.abs(dp), moved).max() / max(1.0, np.abs(p_grid).max()))
     out["ii"] += COMPOSE_SAFETY * float(np.einsum("ijN,j->iN", np.abs(dh), e).max() / max(1.0, np.ptp(model.Y, axis=1).max()))
     return out
+
+
+#: Largest degree per axis of the tensor series of kappa^-1 on Y (several abstract states).
+BOX_MAX_DEGREE = {2: 40, 3: 16}
+#: Newton iterations, and step halvings per iteration, for kappa(xi) = y.
+NEWTON_STEPS, NEWTON_HALVINGS = 60, 40
+#: |kappa(xi) - y| / max(1, |Y|) below this is a solution of kappa(xi) = y.
+NEWTON_RTOL = 1e-13
+
+
+def solve_kappa(kappa_fn, dkappa_fn, y: np.ndarray, start: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Damped Newton for kappa(xi) = y at every column of y at once (as many outputs as abstract states).
+
+    A step is halved (up to ``NEWTON_HALVINGS`` times) until it lowers |kappa(xi) - y| and keeps kappa finite.
+
+    Parameters
+    ----------
+    kappa_fn, dkappa_fn : callable
+        kappa (values (p, 1, N)) and dkappa/dxi (values (p, n_hat, N)), one array per abstract state.
+    y : ndarray (p, N)
+        The outputs.
+    start : ndarray (n_hat, N)
+        The starting points (e.g. the nearest point of kappa's grid of V).
+    scale : float
+        Residuals are measured relative to max(1, scale).
+
+    Returns
+    -------
+    (xi, residual) : ndarray (n_hat, N), ndarray (N,)
+        The points reached and max_k |kappa_k(xi) - y_k| / max(1, scale) there.
+    """
+    n_hat, N = start.shape
+
+    def residual_at(z):
+        r = np.asarray(kappa_fn(*z), dtype=float).reshape(-1, N) - y
+        return r, np.where(np.all(np.isfinite(r), axis=0), np.abs(r).max(axis=0), np.inf) / max(1.0, scale)
+
+    xi = np.array(start, dtype=float)
+    r, size = residual_at(xi)
+    for _ in range(NEWTON_STEPS):
+        active = size > NEWTON_RTOL
+        if not active.any():
+            break
+        J = np.moveaxis(np.broadcast_to(np.asarray(dkappa_fn(*xi), dtype=float), (y.shape[0], n_hat, N)), -1, 0)
+        with np.errstate(all="ignore"):
+            try:
+                delta = np.linalg.solve(J, r.T[..., None])[..., 0].T
+            except np.linalg.LinAlgError:
+                delta = np.stack([np.linalg.lstsq(Jk, rk, rcond=None)[0] for Jk, rk in zip(J, r.T)], axis=1)
+        delta = np.where(np.isfinite(delta), delta, 0.0)
+        t = np.where(active, 1.0, 0.0)
+        for _ in range(NEWTON_HALVINGS):
+            trial = xi - t * delta
+            r_new, size_new = residual_at(trial)
+            worse = active & ~(size_new < size)
+            if not worse.any():
+                break
+            t = np.where(worse, t / 2, t)
+        better = size_new < size
+        xi = np.where(better, trial, xi)
+        r = np.where(better, r_new, r)
+        size = np.where(better, size_new, size)
+    return xi, size
+
+
+def inverse_on_box(kappa_fn, dkappa_fn, xi_grid: np.ndarray, kappa_grid: np.ndarray, Y: np.ndarray, V: np.ndarray,
+                   ys: list[sp.Symbol]) -> dict:
+    """kappa^-1 on the output box Y as a tensor Chebyshev series, for several abstract states and as many outputs
+    (the paper's m = kappa^-1(h(x)) of Section IV-C where sympy finds no closed form).
+
+    kappa(xi) = y is solved by Newton (:func:`solve_kappa`, from the nearest point of kappa's grid of V) at the
+    Chebyshev nodes of Y; the lowest even degree per axis whose series and formula both stay within
+    ``LEFT_INVERSE_TOL`` / 100 of the Newton solutions on an independent grid of Y (corners and edges included) is
+    kept.  Every solution must lie in V: that is eq. (10), kappa(V) covers Y, on the nodes and the grid.
+
+    Parameters
+    ----------
+    kappa_fn, dkappa_fn : callable
+        kappa and its Jacobian for numpy (one array per abstract state).
+    xi_grid, kappa_grid : ndarray (n_hat, N), (p, N)
+        The grid of V and kappa on it (starting points).
+    Y, V : ndarray (p, 2), (n_hat, 2)
+        The output box and the domain.
+    ys : list of Symbol
+        The output symbols the formula is written in.
+
+    Returns
+    -------
+    dict
+        m_of_y (sympy Matrix (n_hat, 1)), degree, error (max deviation of the formula from the Newton solutions on
+        the check grid), check_points, check_xi (the solutions there, (n_hat, k)) and excursion (largest distance
+        of a solution outside V, <= 0 inside).
+
+    Raises
+    ------
+    CoverError
+        If Newton finds no solution in V for some y of Y.
+    ashc_cli.errors.FitError
+        If no degree up to ``BOX_MAX_DEGREE`` reaches the tolerance.
+    """
+    n_hat = len(V)
+    scale = float(np.ptp(Y, axis=1).max())
+    max_degree = BOX_MAX_DEGREE.get(n_hat, 8)
+
+    def preimages(y: np.ndarray) -> tuple[np.ndarray, float]:
+        nearest = np.argmin(((kappa_grid[:, :, None] - y[:, None, :]) ** 2).sum(axis=0), axis=0)
+        xi, size = solve_kappa(kappa_fn, dkappa_fn, y, xi_grid[:, nearest], scale)
+        excursion = np.max(np.r_[V[:, :1] - xi, xi - V[:, 1:]], axis=0)
+        bad = ~(size <= NEWTON_RTOL * 100) | ~(excursion <= 1e-12 * max(1.0, float(np.ptp(V, axis=1).max())))
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise CoverError(y[:, k], float(size[k]), float(excursion[k]) if np.isfinite(excursion[k]) else np.inf)
+        return xi, float(excursion.max())
+
+    check_y = domain_grid(Y, 41 ** n_hat if n_hat == 2 else 13 ** n_hat)
+    check_xi, excursion = preimages(check_y)
+    best = (np.inf, None)
+    for degree in range(4, max_degree + 1, 2):
+        z = chebyshev.nodes(Y, degree + 1)
+        xi_nodes, exc = preimages(z)
+        excursion = max(excursion, exc)
+        coeffs = chebyshev.fit(xi_nodes, Y, z, degree)
+        series_error = float(np.abs(chebyshev.evaluate(coeffs, Y, check_y) - check_xi).max())
+        if series_error > LEFT_INVERSE_TOL / 100:
+            best = min(best, (series_error, degree), key=lambda b: b[0])
+            continue
+        m_of_y = chebyshev.to_sympy(coeffs, Y, ys)
+        formula = np.broadcast_to(lambdify(m_of_y, ys)(*check_y)[:, 0, :], check_xi.shape)
+        error = float(np.abs(formula - check_xi).max())
+        if error <= LEFT_INVERSE_TOL / 100:
+            return {"m_of_y": m_of_y, "degree": degree, "error": error, "check_points": check_y.shape[1], "check_xi": check_xi,
+                    "check_y": check_y, "excursion": excursion}
+        best = min(best, (error, degree), key=lambda b: b[0])
+    raise FitError(tuple(map(tuple, Y.tolist())), best[0], f"degree {max_degree} per axis is not enough (best {best[0]:.3g} at degree {best[1]})")
+
+
+def kappa_inverse_on_Y(model: Model, man: Artefact, kap: Artefact, ys: list, y_grid: np.ndarray, closed_residual: float) -> dict:
+    """m = kappa^-1(h(x)) as a tensor Chebyshev series on Y (:func:`inverse_on_box`) for several abstract states
+    without a closed form, and its left-inverse residual where it is used.
+
+    Parameters
+    ----------
+    model : Model
+    man, kap : Artefact
+        The manifold (xi_grid, p_grid, p) and kappa (kappa, dkappa_dxi, its series) artefacts.
+    ys : list of Symbol
+        The output symbols m_of_y is written in.
+    y_grid : ndarray (p, N)
+        kappa on V's grid.
+    closed_residual : float
+        The best residual of sympy's branches (for the messages).
+
+    Returns
+    -------
+    dict
+        :func:`inverse_on_box`'s result, with left_residual (max |m(p(xi)) - xi| at the points of V's grid with
+        kappa(xi) in Y and at the Newton solutions on the check grid) and p_points (p at those points: where
+        condition (i) is measured).
+
+    Raises
+    ------
+    DesignError
+        Naming ``abstract.domain`` (no preimage in V, or p not injective there) or ``abstract.m`` (no fit).
+    """
+    grid = np.asarray(man.value("xi_grid"))
+    kappa_fn = kap.series["kappa"] if "kappa" in kap.series else model.numeric(kap.expr("kappa"), list(model.xi))
+    dkappa_fn = model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
+    closed = f"sympy finds no closed form of m (best residual {closed_residual:.3g})"
+    try:
+        fit = inverse_on_box(kappa_fn, dkappa_fn, grid, y_grid, model.Y, model.V, ys)
+    except CoverError as exc:
+        where = (f"the nearest solution lies {exc.excursion:.3g} outside V" if exc.residual <= 1e-11 and np.isfinite(exc.excursion)
+                 else f"Newton from the nearest point of kappa's grid stops at |kappa(xi) - y| = {exc.residual:.3g}")
+        raise DesignError("abstract.domain", f"{closed}, and kappa(xi) = y has no solution xi in V for y = {np.round(exc.y, 6).tolist()} of Y ({where}): "
+                          "kappa(V) does not cover Y (eq. (10)), or kappa is not invertible there",
+                          "a larger domain V or a smaller output_set; or abstract.m written by hand (checked, not trusted)", check="V_covers_Y") from None
+    except FitError as exc:
+        raise DesignError("abstract.m", f"{closed}, and a tensor Chebyshev series of kappa^-1 on Y misses it by {exc.measure:.3g} ({exc.reason})",
+                          "abstract.m written by hand (it is checked, not trusted), or a smaller output_set", check="left_inverse") from None
+    m_fn = model.numeric(fit["m_of_y"], ys)
+    scale = max(1.0, float(np.ptp(model.V, axis=1).max()))
+    inside = np.all((y_grid >= model.Y[:, :1] - 1e-12 * scale) & (y_grid <= model.Y[:, 1:] + 1e-12 * scale), axis=0)
+    back_v = np.broadcast_to(m_fn(*y_grid[:, inside])[:, 0, :], (model.n_hat, int(inside.sum())))
+    back_y = np.broadcast_to(m_fn(*fit["check_y"])[:, 0, :], fit["check_xi"].shape)
+    left = max(float(np.abs(back_v - grid[:, inside]).max(initial=0.0)), float(np.abs(back_y - fit["check_xi"]).max()))
+    if not left <= LEFT_INVERSE_TOL:
+        worst = grid[:, inside][:, int(np.argmax(np.abs(back_v - grid[:, inside]).max(axis=0)))] if inside.any() else fit["check_xi"][:, 0]
+        raise DesignError("abstract.domain", f"p is not injective where kappa(xi) is in Y: the series of kappa^-1 gives max |m(p(xi)) - xi| = {left:.3g} "
+                          f"(at xi = {np.round(worst, 6).tolist()})",
+                          "a domain V on which kappa is one-to-one, or abstract.m written by hand (checked, not trusted)", check="left_inverse")
+    p_num = p_function(man, model)
+    points = np.c_[np.asarray(man.value("p_grid"))[:, inside], np.broadcast_to(p_num(*fit["check_xi"])[:, 0, :], (model.n, fit["check_xi"].shape[1]))]
+    return {**fit, "left_residual": left, "p_points": points}

@@ -43,7 +43,7 @@ from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy
 from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, branch_residuals, closed_form_branches,
-                                               composed_tolerances, numeric_inverse)
+                                               composed_tolerances, kappa_inverse_on_Y, numeric_inverse)
 from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
@@ -121,21 +121,24 @@ def _condition_ii_measure(model: Model, p_num, m: sp.Matrix, samples: np.ndarray
 
 
 def _checks_common(art: Artefact, model: Model, p_num, m: sp.Matrix, p_grid: np.ndarray,
-                   failure: tuple[str, str] | None = None, tol_i: float = LEFT_INVERSE_TOL, tol_ii: float = CONDITION_II_RTOL) -> None:
+                   failure: tuple[str, str] | None = None, tol_i: float = LEFT_INVERSE_TOL, tol_ii: float = CONDITION_II_RTOL,
+                   cond_i_points: np.ndarray | None = None) -> None:
     """Conditions (i) and (ii) of Theorem 6, measured the same way on every path.
 
     ``p_num`` is p for numpy (:func:`ashc_cli.design.upstream.p_function`).  ``failure`` (what, expected)
     replaces the generic explanation when condition (ii) fails (the affine path knows why: no left inverse of
     P satisfies C (I - P K) = 0).  ``tol_i`` and ``tol_ii`` are the tolerances of the two conditions (larger than
-    the defaults for a hand-written m composed with a fitted p: :func:`composed_tolerances`).
+    the defaults for a hand-written m composed with a fitted p: :func:`composed_tolerances`).  ``cond_i_points``
+    (states of Im(p), columns) replaces p_grid for condition (i) where m is fitted on Y only (X_y cap Im(p)).
     """
     m_num = model.numeric(m, list(model.x))
-    m_back = np.broadcast_to(m_num(*p_grid)[:, 0, :], (model.n_hat, p_grid.shape[1]))
-    p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], p_grid.shape)
-    cond_i = float(np.abs(p_back - p_grid).max() / max(1.0, np.abs(p_grid).max()))
+    on = p_grid if cond_i_points is None else cond_i_points
+    m_back = np.broadcast_to(m_num(*on)[:, 0, :], (model.n_hat, on.shape[1]))
+    p_back = np.broadcast_to(p_num(*m_back)[:, 0, :], on.shape)
+    cond_i = float(np.abs(p_back - on).max() / max(1.0, np.abs(on).max()))
     cond_ii = _condition_ii_measure(model, p_num, m, x_y_samples(model, p_grid))
     if not cond_ii <= tol_ii:   # NaN (m not real at a sample) fails too
-        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary 1)")
+        what, expected = failure or ("", "x - p(m(x)) in Ker(h) (Corollary 1), or abstract.m written by hand (checked, not trusted)")
         raise DesignError("abstract", f"condition (ii) of Theorem 6 fails: |h(x - p(m(x)))| reaches {cond_ii:.3g} on X_y{what}", expected, check="condition_ii")
     art.values.update({"condition_i": cond_i, "condition_ii": cond_ii})
     art.checks["condition_i"] = Check(cond_i, cond_i <= tol_i, f"Theorem 6 (i): max |p(m(x)) - x| / max|x| on Im(p) (<= {tol_i:.3g})")
@@ -367,10 +370,13 @@ def _run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     branches = closed_form_branches(model, kappa, ys)
     residuals = branch_residuals(model, branches, ys, y_grid, grid)
     best, best_residual = (branches[int(np.argmin(residuals))], min(residuals)) if branches else (None, np.inf)
+    method, fit, cond_i_points = "closed form (sympy.solve of kappa(m) = y, several outputs)", None, None
     if best is None or best_residual > LEFT_INVERSE_TOL:
-        raise DesignError("abstract", f"no closed-form solution m(y) of kappa(m) = y is a left inverse of p on V (best residual {best_residual:.3g})",
-                          "a kappa sympy can invert on V (e.g. triangular), or an affine p", check="left_inverse")
-    m_of_y = tidy(sp.Matrix(best))
+        fit = kappa_inverse_on_Y(model, man, kap, ys, y_grid, best_residual)
+        best, best_residual, cond_i_points = fit["m_of_y"], fit["left_residual"], fit["p_points"]
+        method = (f"tensor Chebyshev series of kappa^-1 on Y, degree {fit['degree']} per axis, from Newton solutions of kappa(xi) = y at its nodes "
+                  "(no closed form)")
+    m_of_y = tidy(sp.Matrix(best)) if fit is None else sp.Matrix(best)
     m = m_of_y.xreplace(dict(zip(ys, model.h)))
     Y, V = model.Y, model.V
     y_box = domain_grid(Y, 4001)
@@ -379,11 +385,12 @@ def _run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     excursion = float(np.max(np.r_[V[:, :1] - m_on_Y, m_on_Y - V[:, 1:]])) if finite else np.inf
     covers = finite and excursion <= 1e-12
     if not finite:
-        raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y", "Y inside the outputs where kappa^-1 is defined", check="m_real_on_Y")
+        raise DesignError("concrete.output_set", "m(y) = kappa^-1(y) is not real and finite on all of Y",
+                          "Y inside the outputs where kappa^-1 is defined, or abstract.m written by hand (checked, not trusted)", check="m_real_on_Y")
     if not covers:
         raise DesignError("abstract.domain", f"kappa(V) does not cover Y (eq. (10)): kappa^-1(Y) leaves V by {excursion:.4g}",
                           "a larger domain V, or a smaller output_set", check="V_covers_Y")
-    art = Artefact(stage=NAME, meta={"method": "closed form (sympy.solve of kappa(m) = y, several outputs)", "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
+    art = Artefact(stage=NAME, meta={"method": method, "construction": KAPPA_INVERSE, "samples": SAMPLES, "sample_seed": 0,
                                       "left_inverse_tol": LEFT_INVERSE_TOL, "condition_ii_rtol": CONDITION_II_RTOL})
     art.exprs.update({"m": m, "m_of_y": m_of_y.xreplace({yk: sp.Symbol(f"y{k + 1}", real=True) for k, yk in enumerate(ys)}), "dm_dx": sparse_jacobian(m, model.x)})
     dkappa = np.moveaxis(np.broadcast_to(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*grid), (model.p, model.n_hat, grid.shape[1])), -1, 0)
@@ -396,11 +403,18 @@ def _run_multi(model: Model, man: Artefact, kap: Artefact) -> Artefact:
         "V": V, "Y": Y, "kappa_range": np.c_[y_grid.min(axis=1), y_grid.max(axis=1)], "m_real_interval": real,
         "radicands": radicands if radicands else ["none"], "left_inverse_residual": best_residual, "condition_ii_symbolic": False, "min_abs_dkappa": smin,
     })
-    art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    if fit is None:
+        art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on V (<= {LEFT_INVERSE_TOL:g}): p is injective on V")
+    else:
+        art.values.update({"m_fit_degree": fit["degree"], "m_fit_error": fit["error"], "m_fit_check_points": fit["check_points"]})
+        art.checks["left_inverse"] = Check(best_residual, True, f"max |m(p(xi)) - xi| on the points of V's grid with kappa(xi) in Y and on the Newton "
+                                                                f"solutions at a {fit['check_points']}-point grid of Y (<= {LEFT_INVERSE_TOL:g}): "
+                                                                "p is injective where m is used")
     art.checks["V_covers_Y"] = Check(excursion, covers, "eq. (10): largest excursion of kappa^-1(Y) outside V on a grid of Y (<= 0)")
     art.checks["m_real_on_Y"] = Check(0.0, finite, "m = kappa^-1 real and finite on a grid of Y")
-    _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)")
-    _checks_common(art, model, p_function(man, model), m, p_grid)
+    _certify(art, model, Y, "Y", "Y: m = kappa^-1 is checked real, finite and inside V on a grid of Y (kappa(V) is not a box of outputs)"
+             + ("; the series of kappa^-1 is fitted on Y only" if fit is not None else ""))
+    _checks_common(art, model, p_function(man, model), m, p_grid, cond_i_points=cond_i_points)
     proof = prove_multi_inverse(model, kappa, m_of_y, ys)
     art.meta["proof"] = proof["how"]
     mark_proved(art, proof)
@@ -577,7 +591,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         return _run_linear(model, man, kap)
     if model.n_hat != model.p:
         raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
-                          "a square kappa, or an affine p (m = P^+ (x - p0))")
+                          "a square kappa, an affine p (m = P^+ (x - p0)), or abstract.m written by hand (checked, not trusted)")
     if model.n_hat > 1:
         return _run_multi(model, man, kap)
     return _run_scalar(model, man, kap)
@@ -619,7 +633,8 @@ def _scalar_branch(model: Model, man: Artefact, kap: Artefact):
             branches, residuals = [numeric[0]], [numeric[1]]
             method = f"Chebyshev interpolant of kappa^-1 on kappa(V), {numeric[2]} (no closed form)"
     if not branches:
-        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V", "a kappa that is invertible on V", check="left_inverse")
+        raise DesignError("abstract", "kappa(m) = y has no closed-form solution m(y) and kappa is not strictly monotone on V",
+                          "a kappa that is invertible on V, or abstract.m written by hand (checked, not trusted)", check="left_inverse")
     best = int(np.argmin(residuals))
     left_residual = residuals[best]
     if left_residual > LEFT_INVERSE_TOL:
@@ -632,7 +647,7 @@ def _scalar_branch(model: Model, man: Artefact, kap: Artefact):
                               f"{left_residual:.3g} (kappa is too steep in places for polynomial pieces)",
                               "abstract.m written by hand (it is checked, not trusted), or a smaller abstract.domain", check="left_inverse")
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
-                          "a domain V on which kappa is strictly monotone", check="left_inverse")
+                          "a domain V on which kappa is strictly monotone, or abstract.m written by hand (checked, not trusted)", check="left_inverse")
     m_of_y = tidy(sp.Matrix([branches[best]]))[0]
     return m_of_y, y, method, len(branches), left_residual, y_grid
 
@@ -655,7 +670,7 @@ def _real_on_Y(model: Model, m_of_y: sp.Expr, y: sp.Symbol, y_grid: np.ndarray):
             what = f"m is not finite at y = {bad[0]:.6g} in Y = {format_box(Y)}; {reach}"
         raise DesignError("concrete.output_set", what,
                           f"an output_set inside {format_box(np.array([[max(real_lo, k_lo), min(real_hi, k_hi)]]))} "
-                          "(where m is real and kappa reaches), or a larger domain V if kappa(V) is the limit", check="m_real_on_Y")
+                          "(where m is real and kappa reaches), a larger domain V if kappa(V) is the limit, or abstract.m written by hand (checked, not trusted)", check="m_real_on_Y")
 
     return real_lo, real_hi, radicands
 
