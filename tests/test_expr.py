@@ -166,7 +166,7 @@ def test_a_function_as_a_name_and_a_name_as_a_function_are_explained():
         parse("exp + 1")
     with pytest.raises(SpecError, match=r"call of 'x' is not allowed \(x is a name, not a function: write x\*\(\.\.\.\) for a product\)"):
         parse("x(y + 1)")
-    with pytest.raises(SpecError, match=r"call of 'triangle' is not allowed here \(a time signal: only in simulate.m_relation.u\)"):
+    with pytest.raises(SpecError, match=r"call of 'triangle' is not allowed here \(a time signal: only in simulate.m_relation.u and simulate.tracking.reference\)"):
         parse("triangle(x)")
     t = sp.Symbol("t", real=True)
     with pytest.raises(SpecError, match="did you mean 'triangle'"):

@@ -13,7 +13,8 @@ from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import ArtefactError, DesignError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import Model
+from ashc_cli.problem.expr import parse_expression
+from ashc_cli.problem.model import TIME, Model
 
 
 def p_function(man: Artefact, model: Model):
@@ -149,7 +150,7 @@ def sample_box(model: Model, p_grid: np.ndarray) -> np.ndarray:
 # --- reference states: the least-norm xi in V with kappa(xi) = a level (simulate, tradeoff) -------------------
 
 
-def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: int, kappa: sp.Matrix) -> np.ndarray:
+def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: int, kappa: sp.Matrix, where: str | None = None) -> np.ndarray:
     """The least-norm xi in V with kappa(xi) = level.
 
     Affine kappa: the quadratic program min ||xi||^2 s.t. K xi + k0 = level, xi in V (cvxpy + Clarabel).
@@ -167,6 +168,8 @@ def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: 
         The level's position in ``simulate.tracking.reference_levels`` (for the error message).
     kappa : sympy Matrix (p, 1)
         kappa(xi), the kappa artefact's formula.
+    where : str, optional
+        The spec field an error names (default ``simulate.tracking.reference_levels[index]``).
 
     Returns
     -------
@@ -177,7 +180,7 @@ def reference_state(model: Model, plant: DesignTerms, level: np.ndarray, index: 
     DesignError
         If kappa does not reach the level on V.
     """
-    where = f"simulate.tracking.reference_levels[{index}]"
+    where = where or f"simulate.tracking.reference_levels[{index}]"
     if not any(e.free_symbols & set(model.xi) for e in kappa.jacobian(model.xi)):
         K = np.array(model.substitute(kappa.jacobian(model.xi)), dtype=float)
         k0 = np.array(model.substitute(kappa.xreplace({s: 0 for s in model.xi})), dtype=float).reshape(-1)
@@ -215,3 +218,83 @@ def _reference_state_nonlinear(model: Model, plant: DesignTerms, level: np.ndarr
     if not found:
         raise DesignError(where, f"level {level.tolist()} is not reached by kappa on V", "levels inside kappa(V)")
     return min(found, key=np.linalg.norm)
+
+
+def reference_signal(model: Model):
+    """The tracking scenario's reference signal r(t) for numpy (values (p, 1, N) for an array of t), parsed from
+    ``simulate.tracking.reference`` (expressions in t and the parameters; the time signals triangle, square, step).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems.
+
+    Returns
+    -------
+    callable
+
+    Raises
+    ------
+    SpecError
+        If an expression does not parse or names anything but t and the parameters.
+    """
+    names = {**model.params, "t": TIME}
+    texts = model.spec.simulate.tracking.reference_texts()
+    r = sp.Matrix([parse_expression(text, names, f"simulate.tracking.reference[{i}]", signal=True) for i, text in enumerate(texts)])
+    return model.numeric(r, [TIME])
+
+
+def reference_sample_times(tr) -> np.ndarray:
+    """The times k T at which a reference signal is sampled, one per held segment of the run.
+
+    Parameters
+    ----------
+    tr : Tracking
+        The spec's tracking scenario (T = ``tr.hold()``, and t_final).
+
+    Returns
+    -------
+    ndarray
+        0, T, 2 T, ... below t_final.
+    """
+    count = max(1, int(np.ceil(tr.t_final / tr.hold() - 1e-9)))
+    return tr.hold() * np.arange(count)
+
+
+def signal_levels(model: Model, plant: DesignTerms, kappa: sp.Matrix) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(levels, refs) of a reference signal: r(k T) and the reference state of each (:func:`reference_state`), held
+    from k T to (k + 1) T (a zero-order hold, as a digital controller applies a reference).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``simulate.tracking.reference``).
+    plant : DesignTerms
+        The design's compiled terms (kappa).
+    kappa : sympy Matrix (p, 1)
+        kappa(xi), the kappa artefact's formula.
+
+    Returns
+    -------
+    levels, refs : list of ndarray (p,), list of ndarray (n_hat,)
+
+    Raises
+    ------
+    DesignError
+        If r is not finite at a sample, or a sample is out of kappa's reach on V (naming its time).
+    """
+    tr = model.spec.simulate.tracking
+    times = reference_sample_times(tr)
+    values = np.broadcast_to(reference_signal(model)(times)[:, 0, :], (model.p, times.size))
+    if not np.all(np.isfinite(values)):
+        k = int(np.argmax(~np.all(np.isfinite(values), axis=0)))
+        raise DesignError("simulate.tracking.reference", f"r(t) is not finite at t = {times[k]:g} s", "a reference signal finite over the run")
+    solved: dict[tuple, np.ndarray] = {}
+    levels, refs = [], []
+    for k, level in enumerate(values.T):
+        key = tuple(level.tolist())
+        if key not in solved:
+            solved[key] = reference_state(model, plant, np.array(level), k, kappa, where=f"simulate.tracking.reference (at t = {times[k]:g} s)")
+        levels.append(np.array(level))
+        refs.append(solved[key])
+    return levels, refs

@@ -193,7 +193,7 @@ class _Builder:
         if not isinstance(node.func, ast.Name) or node.func.id not in self.functions:
             what, hint = f"call of '{_describe(node.func)}' is not allowed", ""
             if isinstance(node.func, ast.Name) and node.func.id in SIGNAL_FUNCTIONS:
-                what += " here (a time signal: only in simulate.m_relation.u)"
+                what += " here (a time signal: only in simulate.m_relation.u and simulate.tracking.reference)"
             elif isinstance(node.func, ast.Name) and (node.func.id in self.names or node.func.id == "pi"):
                 what += f" ({node.func.id} is a name, not a function: write {node.func.id}*(...) for a product)"
             elif isinstance(node.func, ast.Name):

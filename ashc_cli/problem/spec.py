@@ -211,18 +211,34 @@ class TimedLevel(_Strict):
 
 
 class Tracking(_Strict):
-    """The tracking scenario of Figs. 7, 8."""
+    """The tracking scenario of Figs. 7, 8: set-point levels held for ``dwell`` seconds each, or a reference signal
+    r(t) (``reference``, one expression in t per output) sampled every ``reference_period`` seconds and held."""
 
     t_final: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     xi0: list[FiniteFloat]
     x0: Literal["on_manifold"] | list[FiniteFloat] = "on_manifold"
-    reference_levels: list[FiniteFloat | list[FiniteFloat] | TimedLevel] = Field(min_length=1)
-    dwell: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    reference_levels: list[FiniteFloat | list[FiniteFloat] | TimedLevel] | None = Field(default=None, min_length=1)
+    dwell: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    reference: Expr | list[Expr] | None = None
+    reference_period: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     abstract_controller: AbstractController
 
     def level_values(self) -> list[float | list[float]]:
-        """The levels as numbers (one, or one list per level), deadlines dropped."""
-        return [r.level if isinstance(r, TimedLevel) else r for r in self.reference_levels]
+        """The levels as numbers (one, or one list per level), deadlines dropped (empty for a reference signal)."""
+        return [r.level if isinstance(r, TimedLevel) else r for r in self.reference_levels or []]
+
+    def reference_texts(self) -> list[str]:
+        """The reference signal's expressions, one per output (empty for set-point levels)."""
+        if self.reference is None:
+            return []
+        return list(self.reference) if isinstance(self.reference, list) else [self.reference]
+
+    def hold(self) -> float:
+        """How long each level is held (s): ``dwell``, or for a reference signal ``reference_period`` (default
+        t_final / ``REFERENCE_SAMPLES``)."""
+        if self.reference is None:
+            return float(self.dwell)
+        return float(self.reference_period) if self.reference_period is not None else self.t_final / REFERENCE_SAMPLES
 
     def segment(self, index: int) -> tuple[float, float] | None:
         """(start, end) in s of the dwell in which level ``index`` is held, None if the run ends before it.
@@ -234,6 +250,10 @@ class Tracking(_Strict):
             return None
         last = index == len(self.reference_levels) - 1
         return start, self.t_final if last else min(self.t_final, (index + 1) * self.dwell)
+
+
+#: A reference signal without ``reference_period`` is sampled this many times over the run (and held in between).
+REFERENCE_SAMPLES = 400
 
 
 class MRelation(_Strict):
@@ -274,8 +294,9 @@ class Spec(_Strict):
 def spec_sha256(spec: Spec) -> str:
     """SHA-256 of a spec's canonical JSON form (sorted keys, validated values).
 
-    Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` is
-    left out when absent, so specs without it hash as they did before the key existed.
+    Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` and the
+    tracking scenario's optional keys (``reference``, ``reference_period``) are left out when absent, so specs
+    without them hash as they did before the keys existed.
 
     Parameters
     ----------
@@ -290,6 +311,10 @@ def spec_sha256(spec: Spec) -> str:
     data = spec.model_dump(mode="json")
     if data["abstract"].get("m") is None:
         data["abstract"].pop("m", None)
+    tracking = (data.get("simulate") or {}).get("tracking") or {}
+    for key in ("reference", "reference_period", "reference_levels", "dwell"):   # keys added later, or left out: absent, not null
+        if key in tracking and tracking[key] is None:
+            tracking.pop(key)
     text = json.dumps(data, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -603,13 +628,40 @@ def _check_units(spec: Spec) -> None:
             raise SpecError(f"units.{key}", "is not a declared state or input, t, or an output name", f"one of {', '.join(sorted(allowed))}")
 
 
+def _check_reference(tr: Tracking, p: int) -> None:
+    """Exactly one of reference_levels (with dwell) and reference (with reference_period, optional)."""
+    if (tr.reference_levels is None) == (tr.reference is None):
+        which = "both" if tr.reference is not None else "neither"
+        raise SpecError("simulate.tracking", f"gives {which} of reference_levels and reference",
+                        "reference_levels (set points, with dwell) or reference (a signal r(t), one expression in t per output)")
+    if tr.reference_levels is not None:
+        if tr.dwell is None:
+            raise SpecError("simulate.tracking.dwell", "is missing", "how long each of reference_levels is held (s)")
+        if tr.reference_period is not None:
+            raise SpecError("simulate.tracking.reference_period", "is given with reference_levels", "reference_period only with reference (dwell holds levels)")
+        return
+    if tr.dwell is not None:
+        raise SpecError("simulate.tracking.dwell", "is given with a reference signal", "reference_period (how often r(t) is sampled and held), or reference_levels")
+    _check_len("simulate.tracking.reference", tr.reference_texts(), p, "one expression in t per output")
+    if tr.hold() > tr.t_final:
+        raise SpecError("simulate.tracking.reference_period", f"{tr.hold():g} s is longer than the run (t_final = {tr.t_final:g} s)", "a period below t_final")
+    if tr.t_final / tr.hold() > MAX_REFERENCE_SAMPLES:
+        raise SpecError("simulate.tracking.reference_period", f"{tr.hold():g} s samples r(t) {tr.t_final / tr.hold():.0f} times",
+                        f"at most {MAX_REFERENCE_SAMPLES} samples over the run (a period of at least {tr.t_final / MAX_REFERENCE_SAMPLES:.3g} s)")
+
+
+#: The most samples of a reference signal over one run (each is a reference state solved for, and a segment of the run).
+MAX_REFERENCE_SAMPLES = 20000
+
+
 def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:
     tr = spec.simulate.tracking
     if tr is not None:
         _check_len("simulate.tracking.xi0", tr.xi0, nh, "one per abstract state")
         if tr.x0 != "on_manifold":
             _check_len("simulate.tracking.x0", tr.x0, n, "one per concrete state")
-        for i, (entry, level) in enumerate(zip(tr.reference_levels, tr.level_values())):
+        _check_reference(tr, p)
+        for i, (entry, level) in enumerate(zip(tr.reference_levels or [], tr.level_values())):
             where = f"simulate.tracking.reference_levels[{i}]" + (".level" if isinstance(entry, TimedLevel) else "")
             size = len(level) if isinstance(level, list) else 1
             if size != p:

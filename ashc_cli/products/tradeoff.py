@@ -99,11 +99,14 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
     Raises
     ------
     DesignError
-        If the spec has no tracking scenario.
+        If the spec has no tracking scenario, or its reference is a signal.
     """
     tr = model.spec.simulate.tracking
     if tr is None:
         raise DesignError("simulate.tracking", "the spec has no tracking scenario", "simulate.tracking with reference_levels and a controller")
+    if tr.reference is not None:
+        raise DesignError("simulate.tracking.reference", "a reference signal has no levels to reach (the trade-off times reaching each level)",
+                          "simulate.tracking with reference_levels and dwell")
     ctl = tr.abstract_controller
     plant = DesignTerms(model, arts)
     xi0, x0, W0, levels, refs = sim.tracking_start(model, plant, arts)

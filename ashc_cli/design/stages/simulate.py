@@ -35,7 +35,7 @@ from ashc_cli.closedloop import compiled
 from ashc_cli.closedloop.plan import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
-from ashc_cli.design.upstream import reference_state
+from ashc_cli.design.upstream import reference_signal, reference_state, signal_levels
 from ashc_cli.numerics.proofs import SIMULATED
 from ashc_cli.errors import DesignError, NumericalError, ScenarioStopped
 from ashc_cli.problem.expr import parse_expression
@@ -118,8 +118,11 @@ def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
         raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
     x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
-    levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
-    refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
+    if tr.reference is not None:
+        levels, refs = signal_levels(model, plant, up["kappa"].expr("kappa"))
+    else:
+        levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
+        refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
     M = np.asarray(up["stabilise"].value("M"))
     e0 = plant.p_map(*xi0)[:, 0] - x0
     return xi0, x0, float(e0 @ M @ e0), levels, refs
@@ -378,7 +381,7 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     else:
         law = Law("setpoint", ctl.gain, ctl.v_max)
     z = np.r_[xi0, x0, W0]
-    segments = tracking_segments(tr.t_final, tr.dwell, len(levels))
+    segments = tracking_segments(tr.t_final, tr.hold(), len(levels))
     loop = tracking_loop_for(model, up, law)
     res = closed_loop_run(model, plant, up, law, z, segments, refs, loop)
     t, xi, x, w, idx, v, u, y = (res[k] for k in ("t", "xi", "x", "w", "reference_index", "v", "u", "y"))
@@ -412,7 +415,7 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
         "tracking/inside_certified_region": inside, "tracking/compiled": res["compiled"],
         "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
         "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
-        "tracking/reference_index": idx, "tracking/settle_errors": np.array(settle),
+        "tracking/reference_index": idx, **({"tracking/settle_errors": np.array(settle)} if tr.reference is None else {}),
         "tracking/max_abs_error": float(err.max()), "tracking/v_inf": v_inf, "tracking/u_min": float(u.min()),
         "tracking/u_max": float(u.max()), "tracking/uniform_bound": bound, "tracking/x0": x0,
         "tracking/W0": W0, "tracking/W": W, "tracking/theorem_bound": theorem_bound,
@@ -427,18 +430,33 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
                                              "max over the run of |psi - y| - (sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf) "
                                              "(<= 0: Theorem 2 holds, eq. (38) when W0 = 0); " + region_note),
         "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
-        "tracking_settled": Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)"),
         "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem 2 applies)"),
     }
+    if tr.reference is None:
+        checks["tracking_settled"] = Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)")
+    else:
+        values.update(_followed(model, t, psi))
     if model.state_box is not None:
-        box = model.state_box
-        excursion = float(max((box[:, 0:1] - x).max(), (x - box[:, 1:2]).max()))
-        checks["tracking_x_in_state_box"] = Check(excursion, excursion <= 0, "largest excursion of x outside concrete.state_box (<= 0: the Jacobian LMI and L_h hold along the run)")
+        checks["tracking_x_in_state_box"] = _in_state_box(model.state_box, x)
     if plan is not None:
         more_values, more_checks = _guaranteed_results(model, plant, up, tr, plan, z, res, levels, refs, psi, err, segments, settle)
         values.update(more_values)
         checks.update(more_checks)
     return values, checks
+
+
+def _in_state_box(box: np.ndarray, x: np.ndarray) -> Check:
+    """The check that the run's x stayed in ``concrete.state_box``, where the Jacobian LMI and L_h were certified."""
+    excursion = float(max((box[:, 0:1] - x).max(), (x - box[:, 1:2]).max()))
+    return Check(excursion, excursion <= 0, "largest excursion of x outside concrete.state_box (<= 0: the Jacobian LMI and L_h hold along the run)")
+
+
+def _followed(model: Model, t: np.ndarray, psi: np.ndarray) -> dict:
+    """How closely psi followed a reference signal (values ``tracking/reference_signal``, ``reference_period``,
+    ``max_reference_error``): reported, not judged, since it depends on the gain; a moving reference has no settling."""
+    r_t = np.broadcast_to(reference_signal(model)(t)[:, 0, :], psi.shape)
+    return {"tracking/reference_signal": r_t, "tracking/reference_period": model.spec.simulate.tracking.hold(),
+            "tracking/max_reference_error": float(np.abs(psi - r_t).max())}
 
 
 def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact], tr, plan: GuaranteedPlan, z0: np.ndarray, res: dict,
@@ -452,7 +470,7 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
     eps_proved = plan.guaranteed_tolerance
     w_level = eps_proved**2 * plan.alpha_h                     # |psi - y| <= sqrt(w / alpha_h) <= eps_proved while w stays below it
     reached = np.full(len(levels), np.nan)
-    for t0, _, _, i in segments:
+    for t0, _, _, i in segments if tr.reference is None else ():   # a moving reference has no level to reach
         mine = idx == i
         reached[i] = reach_time(t[mine], y[:, mine], levels[i], plan.tolerance, t0)
     v_text = (f"|v| <= {plan.budget_v_max:.4g}" if plan.mode == "budget" else
@@ -476,7 +494,7 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
         checks["tracking_w_below_level"] = Check(float(np.max(w) - w_level), w_ok,
                                                  f"max over the run of w(t) - {w_level:.6g} (<= 0: the governor keeps w <= W_max = {plan.governor_level:.6g}, "
                                                  f"{GOVERNOR_MARGIN:g} below, so |psi - y| <= sqrt(w / alpha_h) <= {eps_proved:.6g})")
-        if plan.budget_refusal is None:
+        if plan.budget_refusal is None and tr.reference is None:
             budget = plan.law("budget", ctl.gain, model.m_hat, np.inf, 0.0, 0.0)
             budget_times = reach_times(model, plant, up, budget, z0, levels, refs, plan.tolerance, tr.dwell,
                                        loop=tracking_loop_for(model, up, budget))
@@ -487,7 +505,7 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
                 speedup = np.where((reached > 0) & same_start, budget_times / reached, np.nan)
             values.update({"tracking/budget_reach_time": budget_times, "tracking/governor_reach_time": reached,
                            "tracking/governor_speedup": speedup})
-    timed = [(i, entry) for i, entry in enumerate(tr.reference_levels) if isinstance(entry, TimedLevel)]
+    timed = [(i, entry) for i, entry in enumerate(tr.reference_levels or []) if isinstance(entry, TimedLevel)]
     if timed:
         rows = []
         for i, entry in timed:
@@ -679,8 +697,12 @@ def summarise(art: Artefact) -> dict:
         if f"{scenario}/t" in art.values:
             out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
     if "tracking" in out:
-        out["tracking"]["settle_errors"] = np.asarray(art.values["tracking/settle_errors"]).tolist()
         v = art.values
+        if "tracking/max_reference_error" in v:    # a reference signal: followed, not settled on
+            out["tracking"]["reference_period"] = float(v["tracking/reference_period"])
+            out["tracking"]["max_reference_error"] = float(v["tracking/max_reference_error"])
+        else:
+            out["tracking"]["settle_errors"] = np.asarray(v["tracking/settle_errors"]).tolist()
         if "tracking/guaranteed_mode" in v:        # a guaranteed controller (docs/guaranteed.md)
             g = out["tracking"]
             g["guaranteed_mode"] = str(v["tracking/guaranteed_mode"])
