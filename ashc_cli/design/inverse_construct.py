@@ -379,7 +379,7 @@ def kappa_inverse_on_Y(model: Model, man: Artefact, kap: Artefact, ys: list, y_g
     """
     grid = np.asarray(man.value("xi_grid"))
     kappa_fn = kap.series["kappa"] if "kappa" in kap.series else model.numeric(kap.expr("kappa"), list(model.xi))
-    dkappa_fn = model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
+    dkappa_fn = kap.series["dkappa_dxi"] if "dkappa_dxi" in kap.series else model.numeric(kap.expr("dkappa_dxi"), list(model.xi))
     closed = f"sympy finds no closed form of m (best residual {closed_residual:.3g})"
     try:
         fit = inverse_on_box(kappa_fn, dkappa_fn, grid, y_grid, model.Y, model.V, ys)

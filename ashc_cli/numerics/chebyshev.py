@@ -132,9 +132,21 @@ def fit(values: np.ndarray, box: np.ndarray, z: np.ndarray, degree: int) -> np.n
     -------
     ndarray (rows, degree + 1, ..., degree + 1)
     """
+    d = len(box)
+    count = int(round(z.shape[1] ** (1.0 / d)))
+    if d > 1 and count ** d == z.shape[1] and np.array_equal(z, nodes(box, count)):
+        # On the tensor grid of nodes the least-squares problem separates: (V_1 x ... x V_d)^+ = V_1^+ x ... x V_d^+,
+        # one small pseudo-inverse per axis instead of a dense solve with (degree + 1)^d columns (at 65^2 nodes
+        # and degree 40 that was minutes per degree).
+        out = np.asarray(values, dtype=float).reshape((values.shape[0],) + (count,) * d)
+        for axis in range(d):
+            s = np.cos(np.pi * (np.arange(count) + 0.5) / count)[::-1]
+            pinv = np.linalg.pinv(cheb.chebvander(s, degree))                    # (degree + 1, count)
+            out = np.moveaxis(np.tensordot(pinv, out, axes=([1], [axis + 1])), 0, axis + 1)
+        return out
     V = _vander(box, z, degree)
     c, *_ = np.linalg.lstsq(V, values.T, rcond=None)
-    return c.T.reshape((values.shape[0],) + (degree + 1,) * len(box))
+    return c.T.reshape((values.shape[0],) + (degree + 1,) * d)
 
 
 def power_coefficients(coeffs: np.ndarray) -> np.ndarray:
