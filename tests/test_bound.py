@@ -403,3 +403,48 @@ interface: {q: least_squares, saturate: false}
         _design_text(text, tmp_path / "a")
     arts = _design_text(text.replace("saturate: false", "saturate: true"), tmp_path / "b")
     assert not np.isfinite(arts["bound"].values["w0_max_certified"])        # clipped: u stays in U, the bound is global
+
+
+# A disturbance input (x' = f + e(x) w): x' = -a x + u + e(x) w, y = x, abstracted by xi' = v with l = a xi, so p = xi,
+# dp/dxi delta = 1 and, for e = 1, ebar = dbar: G_w = G exactly.  e(x) = 1 + 0.5 sin(x) peaks at 1.5 (x = pi / 2 in the box).
+DISTURBED = """
+name: disturbed_lag
+parameters: {a: 2.0}
+concrete:
+  states: [x]
+  inputs: [u]
+  f_bar: ["-a*x"]
+  g: [["1"]]
+  h: ["x"]
+  input_bounds: [[-4, 4]]
+  output_set: [[-1, 1]]
+  disturbances: [w]
+  e: [["1"]]
+  disturbance_bounds: [[-0.2, 0.2]]
+stabilisability: {method: polytopic_lmi, decay_rate: 2.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["a*xi"]
+  domain: [[-1.5, 1.5]]
+"""
+
+
+@pytest.mark.parametrize("e, state_box, factor", [('[["1"]]', None, 1.0), ('[["1 + 0.5*sin(x)"]]', "[[-2, 2]]", 1.5)])
+def test_a_disturbance_adds_a_proved_term_G_w_to_the_bound(tmp_path, e, state_box, factor):
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.design.verdict import verdict
+    from ashc_cli.problem.spec import parse_spec_text
+    text = DISTURBED.replace('e: [["1"]]', f"e: {e}")
+    if state_box:
+        text = text.replace("  disturbances: [w]", f"  state_box: {state_box}\n  disturbances: [w]")
+    arts = run(parse_spec_text(text), tmp_path, DESIGN)
+    v, chk = arts["bound"].values, arts["bound"].checks["disturbance_term"]
+    sqrt_M = float(np.sqrt(np.asarray(v["M"]).reshape(1, 1)[0, 0]))
+    assert v["dbar"] == pytest.approx(sqrt_M, rel=1e-9)                 # dp/dxi delta = 1
+    assert factor * sqrt_M <= v["ebar"] <= factor * sqrt_M * (1 + 1e-6) and chk.evidence == "proved" and chk.passed
+    assert v["gain_w"] == pytest.approx(factor * v["gain"], rel=1e-6)   # the same Young step as eq. (38)
+    assert v["disturbance_term"] == pytest.approx(0.2 * v["gain_w"], rel=1e-12)
+    rows = {r.condition: r for r in verdict(arts).rows}
+    assert rows["disturbance term bounded"].status == "pass" and rows["disturbance term bounded"].evidence == "proved"

@@ -51,3 +51,58 @@ def test_cse_skipped_only_for_long_lists_of_small_expressions():
     assert _worth_cse(small + [sp.Add(*[sp.sin(s) ** 2 for s in x[:20]])])
     f = compile_flat(small, x)
     assert np.allclose(f(*np.arange(100.0)), [i - 2 * (i + 1) for i in range(99)])
+
+
+# A plant written whole as x' = f(x, u) (concrete.f): the input in tanh, not affine.
+TANH_INPUT = """
+name: tanh_input
+parameters: {a: 1.0}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]
+  h: [x1]
+  input_bounds: [[-0.8, 0.8]]
+  output_set: [[-0.4, 0.4]]
+  state_box: [[-2, 2], [-2, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.7, 0.7]]
+"""
+
+
+def test_a_plant_written_as_f_of_x_and_u_is_kept_whole_and_designed_with_q_zero():
+    spec = parse_spec_text(TANH_INPUT)
+    assert spec.interface.q == "zero"                      # the default for concrete.f: q = least_squares needs g
+    model = build_model(spec)
+    assert not model.affine and model.f_bar is None and model.g is None
+    x1, x2, u = model.x[0], model.x[1], model.u[0]
+    assert sp.simplify(model.f[1] - (-x2 - x2**3 / 3 + sp.tanh(u) + x1 / 5)) == 0
+    # f(p(xi), l(xi)) of eq. (14a), Remark 4
+    xi = model.xi[0]
+    assert sp.simplify(model.f_on(sp.Matrix([xi, xi]), model.l)[1] - (-xi - xi**3 / 3 + sp.tanh(xi) + xi / 5)) == 0
+
+
+def test_an_f_affine_in_u_is_split_into_f_bar_and_g():
+    model = build_model(parse_spec_text(TANH_INPUT.replace("tanh(u)", "(1 + x1**2)*u")))
+    x1, x2 = model.x
+    assert model.affine
+    assert sp.simplify(model.f_bar[1] - (-x2 - x2**3 / 3 + x1 / 5)) == 0 and model.f_bar[0] == -model.params["a"] * x1 + x2
+    assert list(model.g) == [0, 1 + x1**2]
+
+
+@pytest.mark.parametrize("edit, message", [
+    (('  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n', '  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n  g: [["1"], ["0"]]\n'),
+     r"concrete\.f: given with g; expected either f"),
+    (('  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n', '  f_bar: ["-a*x1", "-x2"]\n'), r"concrete\.g: is missing; expected f_bar and g"),
+    (('  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n', '  f: ["-a*x1 + x2"]\n'), r"concrete\.f: has 1 entries; expected 2"),
+    (("tanh(u)", "tanh(xi)"), r"concrete\.f\[1\]: uses xi"),
+    (("  domain: [[-0.7, 0.7]]\n", "  domain: [[-0.7, 0.7]]\ninterface: {q: least_squares}\n"), r"interface\.q: least_squares needs g\(x\)"),
+])
+def test_a_plant_written_as_f_is_refused_with_the_field_named(edit, message):
+    with pytest.raises(SpecError, match=message):
+        build_model(parse_spec_text(TANH_INPUT.replace(*edit)))

@@ -539,3 +539,164 @@ def test_the_shipped_reference_signal_spec_follows_its_sine(tmp_path):
     late = t > 3.0
     assert np.abs(psi - r)[late].max() < 1.0 and np.abs(psi - y)[late].max() < 1.0
     assert v["tracking/max_reference_error"] == pytest.approx(abs(psi[0] - r[0]), rel=1e-9)
+
+
+# A plant that is not input-affine (the paper's Remark 4), written fresh: the input enters through tanh.  On the manifold
+# x1 = x2 = s with 0.8 s + s^3 / 3 = tanh(xi), so kappa(xi) = s and m(x) = atanh(0.8 x1 + x1^3 / 3) exactly.
+TANH_INPUT = """
+name: tanh_input
+parameters: {a: 1.0}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]
+  h: [x1]
+  input_bounds: [[-0.8, 0.8]]
+  output_set: [[-0.4, 0.4]]
+  state_box: [[-2, 2], [-2, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.7, 0.7]]
+  pde_tolerance: 1.0e-10
+simulate:
+  tracking:
+    t_final: 16.0
+    xi0: [0.0]
+    x0: on_manifold
+    reference_levels: [0.2, -0.25]
+    dwell: 8.0
+    abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.15}
+  m_relation:
+    x0: [0.05, -0.1]
+    u: ["0.5*sin(t)"]
+    t_final: 8.0
+"""
+
+
+def _tanh_f(x, u):
+    return np.array([-x[0] + x[1], -x[1] - x[1] ** 3 / 3 + np.tanh(u) + 0.2 * x[0]])
+
+
+@pytest.fixture(scope="module")
+def tanh_input(tmp_path_factory):
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import parse_spec_text
+    return run(parse_spec_text(TANH_INPUT), tmp_path_factory.mktemp("tanh"), ("simulate",), numeric=True)
+
+
+def test_a_plant_not_input_affine_gets_p_kappa_m_of_its_equilibria(tanh_input):
+    from scipy.optimize import brentq
+
+    from ashc_cli.problem.model import build_model
+    from ashc_cli.problem.spec import parse_spec_text
+    model = build_model(parse_spec_text(TANH_INPUT))
+    xi = np.linspace(-0.7, 0.7, 57)
+    s = np.array([brentq(lambda q, z=z: 0.8 * q + q**3 / 3 - np.tanh(z), -2, 2, xtol=1e-15) for z in xi])
+    P = upstream.p_function(tanh_input["manifold"], model)(xi[None])[:, 0, :]
+    assert np.abs(P - s).max() < 1e-9                      # fitted to pde_tolerance 1e-10: 4.3e-11 measured
+    y = np.linspace(-0.4, 0.4, 41)
+    m = model.numeric(tanh_input["inverse"].expr("m"), list(model.x))(y, 0 * y)[0, 0]
+    assert np.abs(m - np.arctanh(0.8 * y + y**3 / 3)).max() < 1e-9
+    # Remark 4: condition (B) by Proposition 1 with q = 0; the m-relation link v = b(x, u) solves eq. (20) exactly.
+    assert tanh_input["bound"].checks["condition_B"].passed and tanh_input["bound"].values["dbar_ls"] == tanh_input["bound"].values["dbar_q0"]
+    assert tanh_input["delta"].checks["m_relation_link"].evidence == "proved"
+    assert tanh_input["delta"].meta["link_form"].startswith("v = b(x, u)") and list(tanh_input["delta"].exprs["c"]) == [0]
+
+
+def test_a_plant_not_input_affine_simulates_like_an_independent_integration(tanh_input):
+    from scipy.integrate import solve_ivp
+
+    v = tanh_input["simulate"].values
+    # m-relation: the plant open loop under u(t) = 0.5 sin t, integrated here; psi reproduces y (Theorem 3).
+    t, y = np.asarray(v["m_relation/t"]), np.asarray(v["m_relation/y"])[0]
+    here = solve_ivp(lambda s, x: _tanh_f(x, 0.5 * np.sin(s)), (0, t[-1]), [0.05, -0.1], t_eval=t, rtol=1e-11, atol=1e-12).y[0]
+    assert np.abs(y - here).max() < 1e-8
+    assert np.abs(np.asarray(v["m_relation/psi"])[0] - y).max() < 1e-8
+    # tracking: xi' = clip(2 (xi_ref - xi), +-0.15), u = l(xi) = xi (identity feedback, q = 0), x' = f(x, u).
+    t, idx = np.asarray(v["tracking/t"]), np.asarray(v["tracking/reference_index"])
+    xi_ref = [np.arctanh(0.8 * r + r**3 / 3) for r in (0.2, -0.25)]
+    assert np.allclose(np.asarray(v["tracking/xi_ref"])[0][[0, -1]], xi_ref, atol=1e-9)
+    z, xs = np.r_[0.0, 0.0, 0.0], []
+    for k, (t0, t1) in enumerate([(0.0, 8.0), (8.0, 16.0)]):
+        def rhs(s, q, r=xi_ref[k]):
+            return np.r_[np.clip(2.0 * (r - q[0]), -0.15, 0.15), _tanh_f(q[1:], np.clip(q[0], -0.8, 0.8))]
+        mine = idx == k
+        sol = solve_ivp(rhs, (t0, t1), z, t_eval=t[mine], rtol=1e-11, atol=1e-12, max_step=0.05)
+        xs.append(sol.y)
+        z = solve_ivp(rhs, (t0, t1), z, rtol=1e-11, atol=1e-12, max_step=0.05).y[:, -1]
+    here = np.concatenate(xs, axis=1)
+    assert np.abs(np.asarray(v["tracking/xi"])[0] - here[0]).max() < 1e-6
+    assert np.abs(np.asarray(v["tracking/x"]) - here[1:]).max() < 1e-6
+    assert np.allclose(np.asarray(v["tracking/u"])[0], np.clip(here[0], -0.8, 0.8), atol=1e-6)
+    assert tanh_input["simulate"].checks["tracking_error_within_bound"].passed
+
+
+def test_a_plant_not_input_affine_refuses_a_linear_gain(tmp_path):
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.errors import DesignError
+    from ashc_cli.problem.spec import parse_spec_text
+    text = TANH_INPUT.replace("decay_rate: maximise}", "decay_rate: maximise, feedback: linear_gain}")
+    with pytest.raises(DesignError, match=r"stabilisability\.feedback: linear_gain needs an input-affine plant"):
+        run(parse_spec_text(text), tmp_path, ("stabilise",))
+
+
+def test_an_abstract_input_signal_drives_the_abstraction_and_the_plant_follows(tmp_path):
+    # abstract_controller.kind signal: v(t) = 0.1 sin(0.5 t), so xi(t) = 0.2 (1 - cos(0.5 t)) exactly (phi_bar = 0,
+    # delta = 1); the plant under u = l(xi(t)) = xi(t) is integrated here.
+    from scipy.integrate import solve_ivp
+
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import parse_spec_text
+    text = TANH_INPUT.replace("    reference_levels: [0.2, -0.25]\n    dwell: 8.0\n", "").replace(
+        "abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.15}", 'abstract_controller: {kind: signal, v: "0.1*sin(0.5*t)"}')
+    text = text[:text.index("  m_relation:")]
+    art = run(parse_spec_text(text), tmp_path, ("simulate",), numeric=True)["simulate"]
+    v = art.values
+    t = np.asarray(v["tracking/t"])
+    assert np.abs(np.asarray(v["tracking/v"])[0] - 0.1 * np.sin(0.5 * t)).max() < 1e-12
+    assert np.abs(np.asarray(v["tracking/xi"])[0] - 0.2 * (1 - np.cos(0.5 * t))).max() < 1e-8
+    here = solve_ivp(lambda s, x: _tanh_f(x, 0.2 * (1 - np.cos(0.5 * s))), (0, 16.0), [0.0, 0.0], t_eval=t, rtol=1e-11, atol=1e-12).y
+    assert np.abs(np.asarray(v["tracking/x"]) - here).max() < 1e-7
+    assert "tracking_settled" not in art.checks and "tracking/reference_levels" not in v
+    assert v["tracking/v_inf"] == pytest.approx(0.1, rel=1e-6) and art.checks["tracking_error_within_bound"].passed
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.15}", 'abstract_controller: {kind: signal, v: "0.1*sin(t)"}'),
+     r"simulate\.tracking\.reference_levels: is given with abstract_controller\.kind: signal"),
+    (("    reference_levels: [0.2, -0.25]\n    dwell: 8.0\n    abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.15}",
+      '    abstract_controller: {kind: signal, v: ["sin(t)", "cos(t)"]}'), r"simulate\.tracking\.abstract_controller\.v: has 2 entries; expected 1"),
+])
+def test_an_abstract_input_signal_is_validated(edit, message):
+    from ashc_cli.errors import SpecError
+    from ashc_cli.problem.spec import parse_spec_text
+    with pytest.raises(SpecError, match=message):
+        parse_spec_text(TANH_INPUT.replace(*edit))
+
+
+def test_a_constant_disturbance_offsets_the_plant_by_its_steady_state_within_G_w(tmp_path):
+    # x' = -2 x + u + w with u = l(xi) = 2 xi and v = 0: xi stays 0 and x -> w0 / 2, so |psi - y| = 0.05 (1 - e^(-2 t))
+    # for w0 = 0.1, inside Theorem 2's bound with the disturbance term G_w |w0| (tests/test_bound.py: G_w = G here).
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.spec import parse_spec_text
+
+    from .test_bound import DISTURBED
+    text = DISTURBED + """simulate:
+  tracking:
+    t_final: 6.0
+    xi0: [0.0]
+    abstract_controller: {kind: signal, v: "0"}
+    disturbance: [0.1]
+"""
+    art = run(parse_spec_text(text), tmp_path, ("simulate",))["simulate"]
+    v = art.values
+    t, e = np.asarray(v["tracking/t"]), np.asarray(v["tracking/e_y"])[0]
+    assert np.abs(-e - 0.05 * (1 - np.exp(-2 * t))).max() < 1e-8
+    assert v["tracking/uniform_bound"] >= 0.05 and art.checks["tracking_error_within_bound"].passed
+    assert art.checks["tracking_error_within_posterior_bound"].passed        # the comparison system counts e w0
+    with pytest.raises(Exception, match=r"simulate\.tracking\.disturbance\[0\]: 0\.5 is outside disturbance_bounds"):
+        parse_spec_text(text.replace("disturbance: [0.1]", "disturbance: [0.5]"))

@@ -15,7 +15,7 @@ from ashc_cli.products.campaign import falsify_differs
 from ashc_cli.paper import cite
 from ashc_cli.outputs.query import number_text, summary
 from ashc_cli.design.verdict import verdict
-from ashc_cli.design.stages.bound import gain_text, region_text
+from ashc_cli.design.stages.bound import disturbance_text, gain_text, region_text
 from ashc_cli.cli.common import (
     ForceOpt, JsonOpt, NumericOpt, OutOpt, Progress, SHORT_HELP, STAGE_HELP, SpecArg, StageFrozenOpt, app, current_artefact, emit_json,
     exclusive, frozen_opt, guard, load, plain_text, run_targets,
@@ -66,7 +66,7 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
         b = arts["bound"].values
         result = verdict(arts)
         typer.echo(plain_text(f"design '{spec_obj.name}' in {folder.path}: {result.counts()}; "
-                              f"|psi - y| <= {gain_text(b)} ||v||_inf {region_text(b)}"))
+                              f"|psi - y| <= {gain_text(b)} ||v||_inf{disturbance_text(b)} {region_text(b)}"))
     if failed:
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
         raise typer.Exit(3)

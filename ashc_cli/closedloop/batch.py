@@ -7,6 +7,7 @@ function of xi and one of x (:class:`BatchPlant`) and the interface's terms that
 from __future__ import annotations
 
 import numpy as np
+import sympy as sp
 
 from ashc_cli.numerics.linalg import pinv
 from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
@@ -20,9 +21,12 @@ class BatchPlant:
         xi_terms = {"phi": model.phi_bar, "delta": arts["delta"].expr("delta"), "l": model.l,
                     "dpd": arts["bound"].expr("dp_delta"), "p": arts["manifold"].expr("p"), "kappa": arts["kappa"].expr("kappa"),
                     "dp": arts["manifold"].expr("dp_dxi")}
-        x_terms = {"f_bar": model.f_bar, "g": model.g, "h": model.h, "dh": sparse_jacobian(model.h, model.x)}
+        # A plant written as f(x, u): "f_bar" is f(x, u) and g = 0, compiled in x and u (at_x takes the inputs).
+        fb, g = (model.f_bar, model.g) if model.affine else (model.f, sp.zeros(model.n, model.m))
+        x_terms = {"f_bar": fb, "g": g, "h": model.h, "dh": sparse_jacobian(model.h, model.x)}
+        self.m = model.m
         self._xi = self._named(xi_terms, list(model.xi), model)
-        self._x = self._named(x_terms, list(model.x), model)
+        self._x = self._named(x_terms, list(model.x) + list(model.u), model)
         self.M = np.asarray(arts["stabilise"].value("M"), dtype=float)
         self.L = np.linalg.cholesky(self.M)
         self.K = np.asarray(arts["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
@@ -49,9 +53,11 @@ class BatchPlant:
         """phi, delta, l, dpd (dp/dxi delta), p, kappa, dp (dp/dxi) at the columns of xi (n_hat, N)."""
         return self._xi(xi)
 
-    def at_x(self, x: np.ndarray) -> dict[str, np.ndarray]:
-        """f_bar, g, h, dh (dh/dx) at the columns of x (n, N)."""
-        return self._x(x)
+    def at_x(self, x: np.ndarray, u: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """f_bar, g, h, dh (dh/dx) at the columns of x (n, N); for a plant written as f(x, u), f_bar is f(x, u) at the
+        columns of u (m, N; zero when not given: g, h and dh do not depend on it)."""
+        u = np.zeros((self.m, x.shape[1])) if u is None else u
+        return self._x(np.vstack([x, u]))
 
 
 def interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) -> dict:

@@ -4,6 +4,7 @@ interface), compiled into fused numpy functions on first use."""
 from __future__ import annotations
 
 import numpy as np
+import sympy as sp
 
 from ashc_cli.problem.model import Model, compile_terms
 
@@ -24,7 +25,9 @@ class DesignTerms:
         self._terms = {
             "xi": ([model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"),
                     up["manifold"].expr("p")], model.xi),
-            "x": ([model.f_bar, model.g, model.h, up["delta"].expr("b"), up["delta"].expr("c"), m_of_x], model.x),
+            # a plant written as f(x, u): f_bar is f(x, u), g = 0 and b is b(x, u) (at_x takes the input)
+            "x": ([model.f_bar if model.affine else model.f, model.g if model.affine else sp.zeros(model.n, model.m), model.h,
+                   up["delta"].expr("b"), up["delta"].expr("c"), m_of_x], list(model.x) + list(model.u)),
             "h_m": ([model.h, m_of_x], model.x),
         }
         self._values = model.values
@@ -45,9 +48,12 @@ class DesignTerms:
         """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1), p (n,1)] at xi."""
         return self._fused("xi")(xi)
 
-    def at_x(self, x: np.ndarray) -> list[np.ndarray]:
-        """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x."""
-        return self._fused("x")(x)
+    def at_x(self, x: np.ndarray, u: np.ndarray | None = None) -> list[np.ndarray]:
+        """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x (for a plant written as f(x, u):
+        f(x, u) and b(x, u) at the input u, zero when not given)."""
+        x = np.asarray(x, dtype=float)
+        u = np.zeros((self.m,) + x.shape[1:]) if u is None else np.asarray(u, dtype=float)
+        return self._fused("x")(np.concatenate([x, u]))
 
     def h_m(self, x: np.ndarray) -> list[np.ndarray]:
         """[h (p,1), m (n_hat,1)] at x: the m-relation's start and where it stops."""

@@ -13,26 +13,94 @@ from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
 I1 = types.int64[::1]
-#: eval_xi(xi, phi_bar, delta, l, dp/dxi delta, kappa, p) and eval_x(x, f_bar, g, h), filling their arrays.
+#: eval_xi(xi, phi_bar, delta, l, dp/dxi delta, kappa, p) and eval_x([x, u], f_bar, g, h), filling their arrays.
 XI_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1, F2, F1, F1))
 X_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
-#: eval_link(x, b, c, m) and eval_u([t], u): the m-relation's link and the spec's input signal.
+#: eval_link([x, u], b, c, m) and eval_u([t], u): the m-relation's link and the spec's input signal.
 LINK_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
 U_KERNEL = types.FunctionType(types.void(F1, F1))
 OPTIONS = dict(cache=True, error_model='numpy')
 
 
+@njit(inline="always", **OPTIONS)
+def x_terms_at(eval_x, N, M, x, u, s, fb, g, h):
+    """eval_x at (x, u) with the run's constant disturbance on (s = 1) or off (s = 0): the kernel's state is [x, u, s]
+    and its fb is f_bar(x) + s e(x) w0 (f(x, u) + s e(x) w0 for a plant written as f(x, u), with g = 0).
+
+    Parameters
+    ----------
+    eval_x : X_KERNEL
+    N, M : int
+        n and m.
+    x, u : 1-D float arrays (n,), (m,)
+    s : float
+        1.0 (disturbance on) or 0.0.
+    fb, g, h : float arrays (n,), (n, m), (p,)
+        Written.
+    """
+    xu = np.empty(N + M + 1)
+    for i in range(N):
+        xu[i] = x[i]
+    for j in range(M):
+        xu[N + j] = u[j]
+    xu[N + M] = s
+    eval_x(xu, fb, g, h)
+
+
+@njit(inline="always", **OPTIONS)
+def x_terms(eval_x, dims, x, u, fb, g, h):
+    """eval_x at (x, u), filling fb, g and h: the kernel reads the state [x, u, s] (f_bar(x), g(x), h(x) of an
+    input-affine plant do not read u; a plant written as f(x, u) gets fb = f(x, u) and g = 0; s = dims[6] switches
+    the tracking run's constant disturbance e(x) w0 on).
+
+    Parameters
+    ----------
+    eval_x : X_KERNEL
+    dims : 1-D int64 array
+        As :func:`design_at`.
+    x, u : 1-D float arrays (n,), (m,)
+    fb, g, h : float arrays (n,), (n, m), (p,)
+        Written.
+    """
+    x_terms_at(eval_x, dims[1], dims[2], x, u, 1.0 if dims.size > 6 and dims[6] == 1 else 0.0, fb, g, h)
+
+
+@njit(inline="always", **OPTIONS)
+def link_terms(eval_link, dims, x, u, b, c, mx):
+    """eval_link at (x, u), filling b, c and m(x): the link kernel reads the state [x, u] (b(x, u) of a plant
+    written as f(x, u), with c = 0).
+
+    Parameters
+    ----------
+    eval_link : LINK_KERNEL
+    dims : 1-D int64 array
+        As :func:`design_at`.
+    x, u : 1-D float arrays (n,), (m,)
+    b, c, mx : float arrays (m_hat,), (m_hat, m), (n_hat,)
+        Written.
+    """
+    N, M = dims[1], dims[2]
+    xu = np.empty(N + M)
+    for i in range(N):
+        xu[i] = x[i]
+    for j in range(M):
+        xu[N + j] = u[j]
+    eval_link(xu, b, c, mx)
+
+
 @njit(**OPTIONS)
 def design_at(eval_xi, eval_x, dims, z):
     """The kernels at z = [xi, x, ...], in fresh arrays: (phi_bar, delta, l, dp/dxi delta, kappa, p) of xi and
-    (f_bar, g, h) of x.
+    (f_bar, g, h) of x (for a plant written as f(x, u): fb = f(x, l(xi)), the loops evaluate it again at the input
+    they apply).
 
     Parameters
     ----------
     eval_xi, eval_x : XI_KERNEL, X_KERNEL
         The design's kernels (:mod:`ashc_cli.closedloop.compiled`).
     dims : 1-D int64 array
-        [n_hat, n, m, m_hat, p] (entries after these are not read).
+        [n_hat, n, m, m_hat, p, affine, disturbed] (affine: 1 for x' = f_bar + g u, 0 for f(x, u); disturbed: 1 when the
+        run applies its constant disturbance e(x) w0; entries after these are not read).
     z : 1-D float array
         xi = z[:n_hat], x = z[n_hat:n_hat + n] (the rest is not read).
 
@@ -54,7 +122,7 @@ def design_at(eval_xi, eval_x, dims, z):
     fb = np.empty(N)
     g = np.empty((N, M))
     h = np.empty(P)
-    eval_x(z[NH:NH + N].copy(), fb, g, h)
+    x_terms(eval_x, dims, z[NH:NH + N], l, fb, g, h)
     return phi, delta, l, dpd, kap, pm, fb, g, h
 
 
@@ -80,13 +148,15 @@ def store_sample(k, v, u, kap, h, V, Uo, PSI, Y):
 
 
 @njit(inline="always", **OPTIONS)
-def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
+def _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
     """:func:`closed_loop` given the design's values at z (``samples`` reuses them for psi and y)."""
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
-    setpoint(delta, phi, xi, xi_ref, gain, v_max, v)
+    if prm.size <= 4 or prm[4] == 0.0:
+        setpoint(delta, phi, xi, xi_ref, gain, v_max, v)
+    # (else v already holds the spec's abstract input v(t): abstract_controller.kind signal, prm[4] = 1)
     # feedback = K (x - p); u_nominal = l + feedback; correction = feedback (+ q v)
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
@@ -117,13 +187,37 @@ def _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls,
             correction[j] = feedback[j] + s
     saturate(l, 0, correction, 0, U, sat, u, M)          # u = SAT(l + correction)
     # dxi = phi_bar + delta v; dx = f_bar + g u; r = dp/dxi delta v - g (u - u_nominal)
+    # (a plant written as f(x, u): dx = f(x, u), r = dp/dxi delta v - (f(x, u) - f(x, u_nominal)))
+    shift = np.zeros(N)
+    if dims[5] == 0:
+        nominal = np.empty(M)
+        for j in range(M):
+            nominal[j] = l[j] + feedback[j]
+        g0 = np.empty((N, M))
+        h0 = np.empty(dims[4])
+        fb_nominal = np.empty(N)
+        x_terms(eval_x, dims, x, nominal, fb_nominal, g0, h0)
+        fb = np.empty(N)
+        x_terms(eval_x, dims, x, u, fb, g0, h0)
+        for i in range(N):
+            shift[i] = fb[i] - fb_nominal[i]
+    if dims.size > 6 and dims[6] == 1:
+        # the disturbance e(x) w0 enters dx and, with the opposite sign, r: r = ... - e w0
+        g1 = np.empty((N, M))
+        h1 = np.empty(dims[4])
+        fb_on = np.empty(N)
+        fb_off = np.empty(N)
+        x_terms_at(eval_x, N, M, x, u, 1.0, fb_on, g1, h1)
+        x_terms_at(eval_x, N, M, x, u, 0.0, fb_off, g1, h1)
+        for i in range(N):
+            shift[i] += fb_on[i] - fb_off[i]
     state_derivatives(phi, delta, v, fb, g, u, dz)
     r = np.empty(N)
     for i in range(N):
         s1 = 0.0
         for a in range(MH):
             s1 += dpd[i, a] * v[a]
-        s2 = 0.0
+        s2 = shift[i]
         for j in range(M):
             s2 += g[i, j] * (u[j] - (l[j] + feedback[j]))
         r[i] = s1 - s2
@@ -156,7 +250,7 @@ def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u,
         Written: the abstract input, the concrete input and [dxi, dx, dw].
     """
     phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-    _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz)
+    _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz)
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, types.float64, F1, F1, F1, F1), **OPTIONS)
@@ -183,10 +277,12 @@ def link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz):
     eval_u(tt, u)
     x = z[NH:NH + N].copy()
     phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+    if dims[5] == 0:
+        x_terms(eval_x, dims, x, u, fb, g, h)       # f(x, u) at the applied input
     b = np.empty(MH)
     c = np.empty((MH, M))
     mx = np.empty(NH)
-    eval_link(x, b, c, mx)
+    link_terms(eval_link, dims, x, u, b, c, mx)
     for a in range(MH):
         s = 0.0
         for j in range(M):
@@ -253,6 +349,28 @@ def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
+def signal_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
+    """closed_loop driven by the spec's abstract input: v = v(t) from eval_u (``kind: signal``; prm[4] = 1), eval_link unused.
+
+    Parameters
+    ----------
+    t : float
+    z, dz : 1-D float arrays (n_hat + n + 1,)
+        [xi, x, w]; written: [dxi, dx, dw].
+    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat, v, u
+        As :func:`closed_loop` (prm[4] = 1: the set-point law is not run).
+    eval_link, eval_u : LINK_KERNEL, U_KERNEL
+        eval_u([t], v) fills the abstract input.
+    ref : 1-D float array (n_hat,)
+        Not read.
+    """
+    tt = np.empty(1)
+    tt[0] = t
+    eval_u(tt, v)
+    closed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
+
+
+@njit(RHS_SIGNATURE, **OPTIONS)
 def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
     """link_loop behind the RHS signature (ref, prm, L, K, U, q_ls and sat unused).
 
@@ -278,7 +396,7 @@ def _leaves(eval_x, dims, z, edges):
     fb = np.empty(N)
     g = np.empty((N, M))
     h = np.empty(P)
-    eval_x(x, fb, g, h)
+    x_terms(eval_x, dims, x, np.zeros(M), fb, g, h)      # h(x) only
     below = h[0] - edges[0] - edges[1]
     above = edges[2] - edges[3] - h[0]
     return above if above < below else below
@@ -400,7 +518,39 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
     for k in range(Z.shape[0]):
         z = Z[k]
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-        _loop_at(phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
+        _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
+        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
+
+
+@njit(types.void(XI_KERNEL, X_KERNEL, U_KERNEL, I1, F1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), nogil=True, **OPTIONS)
+def signal_samples(eval_xi, eval_x, eval_u, dims, t, Z, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y):
+    """At every row of Z (time t[k]): v = v(t) (eval_u), u (the interface), psi = kappa(xi) and y = h(x).
+
+    Parameters
+    ----------
+    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat
+        As :func:`signal_rhs`.
+    eval_u : U_KERNEL
+        The abstract input v(t).
+    t : 1-D float array (N,)
+        The sample times.
+    Z : 2-D float array (N, n_hat + n + 1)
+        The samples [xi, x, w] (integrate's out).
+    V, Uo, PSI, Y : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p)
+        Written: v, u, psi and y, row k at Z[k].
+    """
+    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
+    dz = np.empty(NH + N + 1)
+    v = np.empty(MH)
+    u = np.empty(M)
+    tt = np.empty(1)
+    ref = np.zeros(NH)
+    for k in range(Z.shape[0]):
+        z = Z[k]
+        tt[0] = t[k]
+        eval_u(tt, v)
+        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+        _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
         store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
 
 
@@ -431,7 +581,7 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
         link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t[k], z, v, u, dz)
         phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
         x = z[NH:NH + N].copy()
-        eval_link(x, b, c, mx)
+        link_terms(eval_link, dims, x, u, b, c, mx)
         store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
         for i in range(NH):
             MX[k, i] = mx[i]

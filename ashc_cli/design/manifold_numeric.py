@@ -21,7 +21,8 @@ __all__ = ["ManifoldPlant", "manifold_field", "solve_collocation", "field_terms"
 
 
 def manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
-    """F(x, xi) = f_bar(x) + g(x) l(xi): the right side of eq. (14a) before x = p(xi).
+    """F(x, xi) = f_bar(x) + g(x) l(xi), or f(x, l(xi)) for a plant that is not input-affine (Remark 4): the right
+    side of eq. (14a) before x = p(xi).
 
     Parameters
     ----------
@@ -33,6 +34,8 @@ def manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
     -------
     sympy Matrix (n, 1)
     """
+    if not model.affine:
+        return model.f_on(model.x, model.valued["l"] if valued else model.l, valued=valued)
     if valued:
         return model.valued["f_bar"] + model.valued["g"] * model.valued["l"]
     return model.f_bar + model.g * model.l
@@ -46,17 +49,29 @@ def _residual_function(model: Model, jacobian: bool = False):
 
 
 class ManifoldPlant:
-    """f_bar(x), g(x) and l(xi) compiled once for numpy (broadcasting), for the residuals of fits and of p."""
+    """f_bar(x), g(x) and l(xi) compiled once for numpy (broadcasting), for the residuals of fits and of p; f(x, u)
+    and l(xi) for a plant that is not input-affine."""
 
     def __init__(self, model: Model):
         x, xi = list(model.x), list(model.xi)
-        self.fbar = model.numeric(model.valued["f_bar"], x)
-        self.g = model.numeric(model.valued["g"], x)
+        self.affine = model.affine
+        if self.affine:
+            self.fbar = model.numeric(model.valued["f_bar"], x)
+            self.g = model.numeric(model.valued["g"], x)
+        else:
+            self.f = model.numeric(model.valued["f"], x + list(model.u))
         self.l = model.numeric(model.valued["l"], xi)
 
     def sides(self, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """f_bar(P) and g(P) l(z) at the points P (n, N) and z (n_hat, N), each (n, N)."""
-        return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), self.l(*z)[:, 0, :])
+        """f_bar(P) and g(P) l(z) at the points P (n, N) and z (n_hat, N), each (n, N); f(P, l(z)) and zeros for a
+        plant that is not input-affine."""
+        return self.sides_at(P, self.l(*z)[:, 0, :])
+
+    def sides_at(self, P: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`sides` with the inputs L (m, N) = l(z) already evaluated."""
+        if not self.affine:
+            return self.f(*P, *L)[:, 0, :], np.zeros_like(P)
+        return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), L)
 
 
 def _residual_terms(p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray) -> tuple[np.ndarray, float]:

@@ -67,6 +67,12 @@ ROWS = (
 )
 
 
+#: Rows that exist only for some plants: the disturbance's term of the bound (``concrete.disturbances``).
+OPTIONAL_ROWS = (
+    ("disturbance term bounded", "Proposition 1", "simulation function", "bound", "disturbance_term"),
+)
+
+
 @dataclass(frozen=True)
 class Verdict:
     """Problem 1's verdict: ``kind`` is ``proved``, ``sampled`` or ``fails``, with the rows it rests on."""
@@ -129,7 +135,8 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
         samples, ``fails`` otherwise; and the rows.
     """
     rows = []
-    for condition, label, requirement, stage, check in ROWS:
+    optional = tuple(r for r in OPTIONAL_ROWS if r[3] in arts and r[4] in arts[r[3]].checks)
+    for condition, label, requirement, stage, check in ROWS + optional:
         reference = cite(label)   # as the published paper numbers it (the labels are in docs/theory.md)
         if stage in arts and check in arts[stage].checks:
             chk = arts[stage].checks[check]

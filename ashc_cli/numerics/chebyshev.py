@@ -242,7 +242,9 @@ class Series:
     shape: tuple[int, int]
 
     def __post_init__(self):
-        object.__setattr__(self, "coeffs", np.asarray(self.coeffs, dtype=float))
+        # C-contiguous always: numpy's matmul rounds by memory layout (2.4), and a series read back from an artefact
+        # must evaluate bit for bit like the one fitted
+        object.__setattr__(self, "coeffs", np.ascontiguousarray(self.coeffs, dtype=float))
         object.__setattr__(self, "box", np.asarray(self.box, dtype=float).reshape(-1, 2))
         object.__setattr__(self, "shape", (int(self.shape[0]), int(self.shape[1])))
         if self.coeffs.shape[0] != self.shape[0] * self.shape[1] or self.coeffs.ndim != len(self.box) + 1:

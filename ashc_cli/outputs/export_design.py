@@ -175,7 +175,7 @@ def gather(spec: Spec, arts: Mapping[str, Artefact]) -> Design:
         abstract_states=list(spec.abstract.states), abstract_inputs=list(spec.abstract.inputs), n_outputs=model.p,
         parameters={k: float(v) for k, v in spec.parameters.items()},
         phi_bar=model.phi_bar, l=model.l, delta=arts["delta"].expr("delta"), p=arts["manifold"].expr("p"),
-        kappa=arts["kappa"].expr("kappa"), dp_delta=arts["bound"].expr("dp_delta"), g=model.g,
+        kappa=arts["kappa"].expr("kappa"), dp_delta=arts["bound"].expr("dp_delta"), g=arts["bound"].expr("g"),
         h=inverse.expr("h"), m=inverse.expr("m"),
         U=np.asarray(model.U, dtype=float), V=np.asarray(V, dtype=float).reshape(model.n_hat, 2), m_domain=box, m_domain_set=set_name,
         K=K if np.any(K != 0) else None, L=np.asarray(arts["bound"].value("L"), dtype=float).reshape(model.n, model.n),

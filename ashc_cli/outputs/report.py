@@ -174,7 +174,8 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
                   else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.6g} and ||v||_inf &lt;= {b['v_max_certified']:.6g} ({html.escape(b.get('region_limits', ''))})")
         ev = b.get("evidence", {})
         sampled = "" if b.get("bound_evidence") == "proved" else f" <span class=\"sampled\">(sampled: {html.escape(str(b.get('bound_sampled', '')))})</span>"
-        parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf when W(xi0, x0) = 0</td></tr>"
+        dist = f" + {b['gain_w']:.6g} ||w||_inf (disturbance, ebar = {b['ebar']:.6g})" if "gain_w" in b else ""
+        parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf{dist} when W(xi0, x0) = 0</td></tr>"
                      f"<tr><th>how each number was established</th><td>{html.escape(', '.join(f'{k}: {v}' for k, v in ev.items()))}</td></tr>"
                      f"<tr><th>certified region</th><td>{region}</td></tr>"
                      f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.6g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"

@@ -142,7 +142,8 @@ def within_budget(fn, *args, seconds: float | None = None):
 
     sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
     sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
-    The result comes back pickled (sympy expressions pickle).  Where fork is not available the call runs inline.
+    The result comes back pickled (sympy expressions pickle).  Where fork is not available, or in a daemonic process (a
+    sweep's worker, which may not have children), the call runs inline.
 
     Parameters
     ----------
@@ -169,6 +170,8 @@ def within_budget(fn, *args, seconds: float | None = None):
     import pickle
 
     seconds = SYMBOLIC_BUDGET if seconds is None else seconds
+    if mp.current_process().daemon:      # a sweep's worker may not have children: inline, without the budget
+        return fn(*args)
     try:
         ctx = mp.get_context("fork")
     except ValueError:
@@ -400,7 +403,8 @@ class Model:
     x, u, xi, v : sympy Matrix
         Column vectors of the concrete state and input and the abstract state and input.
     f_bar, g, h : sympy Matrix
-        The concrete drift (n x 1), input matrix (n x m) and output map (p x 1).
+        The concrete drift (n x 1), input matrix (n x m) and output map (p x 1).  f_bar and g are None for a plant
+        that is not input-affine (``concrete.f`` not affine in u): its right-hand side is :attr:`f`.
     phi_bar, l : sympy Matrix
         The abstract drift (n_hat x 1) and the concrete input on the manifold l(xi) (m x 1).
     delta : sympy Matrix or None
@@ -420,8 +424,8 @@ class Model:
     u: sp.Matrix
     xi: sp.Matrix
     v: sp.Matrix
-    f_bar: sp.Matrix
-    g: sp.Matrix
+    f_bar: sp.Matrix | None
+    g: sp.Matrix | None
     h: sp.Matrix
     phi_bar: sp.Matrix
     l: sp.Matrix
@@ -437,6 +441,12 @@ class Model:
     m_given: sp.Matrix | None = None
     #: The manifold p(xi) the spec gives (``abstract.p``, n x 1 in the abstract states), or None.
     p_given: sp.Matrix | None = None
+    #: f(x, u) of a plant that is not input-affine (``concrete.f``), or None (then f = f_bar + g u).
+    f_general: sp.Matrix | None = None
+    #: The disturbances w (d x 1; 0 x 1 without), their input matrix e(x) (n x d, or None) and their box W (d x 2, or None).
+    w: sp.Matrix = field(default_factory=lambda: sp.zeros(0, 1))
+    e: sp.Matrix | None = None
+    W: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -463,10 +473,52 @@ class Model:
         """Whether stages take their numeric fast paths: forced by ``--numeric``, else for n > NUMERIC_THRESHOLD."""
         return self.numeric_paths if self.numeric_paths is not None else self.n > NUMERIC_THRESHOLD
 
+    @property
+    def affine(self) -> bool:
+        """Whether the plant is input-affine (eq. (13)): f_bar and g exist."""
+        return self.f_general is None
+
     @cached_property
     def f(self) -> sp.Matrix:
-        """f(x, u) = f_bar(x) + g(x) u (eq. (13))."""
-        return self.f_bar + self.g * self.u
+        """f(x, u): f_bar(x) + g(x) u (eq. (13)), or the spec's ``concrete.f`` for a plant that is not input-affine."""
+        return self.f_general if self.f_general is not None else self.f_bar + self.g * self.u
+
+    def f_on(self, x_values: sp.MatrixBase, u_values: sp.MatrixBase, valued: bool = False) -> sp.Matrix:
+        """f(x, u) with x and u replaced: e.g. f(p(xi), l(xi)), the right side of eq. (14a) (Remark 4 for a plant
+        that is not input-affine).
+
+        Parameters
+        ----------
+        x_values, u_values : sympy Matrix (n, 1), (m, 1)
+            What x and u become.
+        valued : bool
+            Whether the parameter values are put in first.
+
+        Returns
+        -------
+        sympy Matrix (n, 1)
+        """
+        f = self.valued["f"] if valued else self.f
+        return f.xreplace({**dict(zip(self.x, x_values)), **dict(zip(self.u, u_values))})
+
+    def require_affine(self, what: str) -> None:
+        """Refuse a plant that is not input-affine where ``what`` needs g(x).
+
+        Parameters
+        ----------
+        what : str
+            What needs it, e.g. ``"falsify"``.
+
+        Raises
+        ------
+        DesignError
+            Naming ``concrete.f``.
+        """
+        if not self.affine:
+            from ashc_cli.errors import DesignError
+
+            raise DesignError("concrete.f", f"is not affine in the inputs, and {what} needs x' = f_bar(x) + g(x) u (eq. (13))",
+                              "an input-affine plant (f_bar and g), or the stages that take f(x, u): design and simulate")
 
     @cached_property
     def C(self) -> np.ndarray | None:
@@ -480,7 +532,11 @@ class Model:
     def valued(self) -> dict[str, sp.Matrix]:
         """f_bar, g, h, phi_bar and l with the parameter values put in, once (:meth:`substitute`): numbers for the
         stages to differentiate and compile repeatedly (substituting took 1 s per compile at n = 512)."""
-        return {name: self.substitute(getattr(self, name)) for name in ("f_bar", "g", "h", "phi_bar", "l")}
+        out = {name: self.substitute(getattr(self, name)) for name in ("h", "phi_bar", "l")}
+        out["f"] = self.substitute(self.f)
+        if self.affine:
+            out.update({name: self.substitute(getattr(self, name)) for name in ("f_bar", "g")})
+        return out
 
     def numeric(self, exprs, args: Sequence[sp.Symbol]) -> Callable[..., np.ndarray]:
         """:func:`lambdify` with this model's parameter values."""
@@ -605,11 +661,15 @@ def build_model(spec: Spec) -> Model:
     n, m, nh, mh = len(x), len(u), len(xi), len(v)
 
     pset = set(params.values())
-    f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1))
-    g = _matrix(c.g, names, "concrete.g", (n, m))
     h = _matrix(c.h, names, "concrete.h", (len(c.h), 1))
-    for mat, fname in ((f_bar, "concrete.f_bar"), (g, "concrete.g"), (h, "concrete.h")):
-        _check_free(mat, pset | set(x), fname, "the concrete states")
+    _check_free(h, pset | set(x), "concrete.h", "the concrete states")
+    f_bar, g, f_general = _dynamics(spec, names, pset, x, u)
+    w, e, W = sp.zeros(0, 1), None, None
+    if c.disturbances:
+        w = sp.Matrix([state_symbol(s) for s in c.disturbances])
+        e = _matrix(c.e, names, "concrete.e", (n, len(w)))
+        _check_free(e, pset | set(x), "concrete.e", "the concrete states and parameters")
+        W = np.array(c.disturbance_bounds, dtype=float)
     phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1))
     l = _matrix(a.l, names, "abstract.l", (m, 1))
     for mat, fname in ((phi_bar, "abstract.phi_bar"), (l, "abstract.l")):
@@ -636,4 +696,30 @@ def build_model(spec: Spec) -> Model:
         phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),
         Y=np.array(c.output_set, dtype=float), V=V, names=names,
         state_box=None if c.state_box is None else np.array(c.state_box, dtype=float), m_given=m_given, p_given=p_given,
+        f_general=f_general, w=w, e=e, W=W,
     )
+
+
+def _dynamics(spec: Spec, names: dict, pset: set, x: sp.Matrix, u: sp.Matrix) -> tuple[sp.Matrix | None, sp.Matrix | None, sp.Matrix | None]:
+    """(f_bar, g, None) of an input-affine plant, or (None, None, f) of one that is not (``concrete.f``).
+
+    An f given whole that is affine in u (df/du free of u) is split into f_bar = f(x, 0) and g = df/du, so every
+    stage, the least-squares q included, applies to it.
+    """
+    c = spec.concrete
+    n, m = len(x), len(u)
+    if c.f is None:
+        f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1))
+        g = _matrix(c.g, names, "concrete.g", (n, m))
+        for mat, fname in ((f_bar, "concrete.f_bar"), (g, "concrete.g")):
+            _check_free(mat, pset | set(x), fname, "the concrete states")
+        return f_bar, g, None
+    f = _matrix(c.f, names, "concrete.f", (n, 1))
+    _check_free(f, pset | set(x) | set(u), "concrete.f", "the concrete states and inputs")
+    g = sparse_jacobian(f, list(u)).as_mutable() if n * m <= SPARSE_JACOBIAN_ENTRIES else None
+    if g is not None and not any(sp.expand(e).free_symbols & set(u) for e in g):
+        return f.xreplace({s: sp.S.Zero for s in u}), sp.Matrix(g), None
+    if spec.interface.q == "least_squares":
+        raise SpecError("interface.q", "least_squares needs g(x) of an input-affine plant, and concrete.f is not affine in the inputs",
+                        "zero (the default for a plant written as f(x, u): condition (B) by Proposition 1)")
+    return None, None, f

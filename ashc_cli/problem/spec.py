@@ -86,12 +86,19 @@ def _bounds_by_name(value: Any, names: Any, what: str) -> Any:
 
 
 class Concrete(_Strict):
-    """The concrete system x' = f_bar(x) + g(x) u, y = h(x) (eqs. (1), (13))."""
+    """The concrete system x' = f_bar(x) + g(x) u (eq. (13)), or x' = f(x, u) (eq. (1)); y = h(x).
+
+    Either ``f_bar`` and ``g`` (input-affine), or ``f`` alone: n expressions in the states and the inputs.  An ``f``
+    that is affine in u is split into f_bar = f(x, 0) and g = df/du by the model; one that is not is designed by the
+    paper's Remark 4 (the invariance PDE with f(p(xi), l(xi)) on its right, condition (B) by Proposition 1).
+    """
 
     states: list[Name] = Field(min_length=1)
     inputs: list[Name] = Field(min_length=1)
-    f_bar: list[Expr]
-    g: list[list[Expr]]
+    f_bar: list[Expr] | None = None
+    g: list[list[Expr]] | None = None
+    #: The right-hand side x' = f(x, u) of a plant written as a whole (instead of f_bar and g).
+    f: list[Expr] | None = None
     h: list[Expr] = Field(min_length=1)
     #: One [lo, hi] pair per input, as a list in input order or a map keyed by the input names.
     input_bounds: list[Bounds]
@@ -100,6 +107,17 @@ class Concrete(_Strict):
     #: The box of states the design is certified on, where the plant is not globally simple: needed when f
     #: is not affine in x (the Jacobian LMI is imposed over it) or h is not linear (L_h is computed over it).
     state_box: list[Bounds] | None = None
+    #: Disturbance inputs w (names), entering as x' = f + e(x) w with w in ``disturbance_bounds`` (gAAS-style term).
+    disturbances: list[Name] | None = None
+    #: The disturbance's input matrix e(x): n rows of d expressions in the states and parameters.
+    e: list[list[Expr]] | None = None
+    #: One [lo, hi] pair per disturbance, as a list or a map keyed by the disturbance names.
+    disturbance_bounds: list[Bounds] | None = None
+
+    @field_validator("disturbance_bounds", mode="before")
+    @classmethod
+    def _disturbance_bounds_map(cls, value: Any, info: ValidationInfo) -> Any:
+        return _bounds_by_name(value, info.data.get("disturbances"), "disturbance")
 
     @field_validator("input_bounds", mode="before")
     @classmethod
@@ -195,10 +213,22 @@ class GuaranteedController(_Strict):
     mode: Literal["auto", "budget", "governor"] = "auto"
 
 
+class SignalController(_Strict):
+    """A user-supplied abstract input v(t) (one expression in t and the parameters per abstract input): the abstraction
+    is driven open loop, xi' = phi_bar(xi) + delta(xi) v(t), and the interface makes the plant follow it."""
+
+    kind: Literal["signal"]
+    v: Expr | list[Expr]
+
+    def texts(self) -> list[str]:
+        """The expressions, one per abstract input."""
+        return list(self.v) if isinstance(self.v, list) else [self.v]
+
+
 #: The abstract controllers, told apart by ``kind``.
-AbstractController = Annotated[SetpointController | GuaranteedController, Field(discriminator="kind")]
+AbstractController = Annotated[SetpointController | GuaranteedController | SignalController, Field(discriminator="kind")]
 #: The tags of the discriminated unions: pydantic puts them in an error's location, the messages leave them out.
-_UNION_TAGS = {"setpoint", "guaranteed", "TimedLevel"}
+_UNION_TAGS = {"setpoint", "guaranteed", "signal", "TimedLevel"}
 
 
 class TimedLevel(_Strict):
@@ -222,6 +252,8 @@ class Tracking(_Strict):
     reference: Expr | list[Expr] | None = None
     reference_period: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     abstract_controller: AbstractController
+    #: A constant disturbance w applied to the plant over the whole run (one value per ``concrete.disturbances``).
+    disturbance: list[FiniteFloat] | None = None
 
     def level_values(self) -> list[float | list[float]]:
         """The levels as numbers (one, or one list per level), deadlines dropped (empty for a reference signal)."""
@@ -235,7 +267,9 @@ class Tracking(_Strict):
 
     def hold(self) -> float:
         """How long each level is held (s): ``dwell``, or for a reference signal ``reference_period`` (default
-        t_final / ``REFERENCE_SAMPLES``)."""
+        t_final / ``REFERENCE_SAMPLES``); the whole run for an abstract input v(t) (``kind: signal``)."""
+        if self.abstract_controller.kind == "signal":
+            return float(self.t_final)
         if self.reference is None:
             return float(self.dwell)
         return float(self.reference_period) if self.reference_period is not None else self.t_final / REFERENCE_SAMPLES
@@ -311,8 +345,11 @@ def spec_sha256(spec: Spec) -> str:
     data = spec.model_dump(mode="json")
     if data["abstract"].get("m") is None:
         data["abstract"].pop("m", None)
+    for key in ("f", "disturbances", "e", "disturbance_bounds"):     # added later: absent, not null
+        if data["concrete"].get(key) is None:
+            data["concrete"].pop(key, None)
     tracking = (data.get("simulate") or {}).get("tracking") or {}
-    for key in ("reference", "reference_period", "reference_levels", "dwell"):   # keys added later, or left out: absent, not null
+    for key in ("reference", "reference_period", "reference_levels", "dwell", "disturbance"):   # keys added later, or left out: absent, not null
         if key in tracking and tracking[key] is None:
             tracking.pop(key)
     text = json.dumps(data, sort_keys=True, separators=(",", ":"))
@@ -535,156 +572,6 @@ def _expected_for(kind: str, err: dict) -> str:
 # --- shapes across fields ---------------------------------------------------------------------------------
 
 
-def _check_pair(where: str, pair: list[float]) -> None:
-    lo, hi = pair
-    if lo > hi:
-        raise SpecError(where, f"lo = {lo} > hi = {hi}", "a pair [lo, hi] with lo <= hi")
-
-
-def _check_len(where: str, items: list, n: int, what: str) -> None:
-    if len(items) != n:
-        raise SpecError(where, f"has {len(items)} entries", f"{n} ({what})")
-
-
-def _check_shapes(spec: Spec) -> None:
-    """Check the dimensions that tie fields together (n, m, p, n_hat, m_hat) and name clashes.
-
-    Raises
-    ------
-    SpecError
-        Naming the first field whose length or contents do not fit.
-    """
-    c, a = spec.concrete, spec.abstract
-    n, m, p = len(c.states), len(c.inputs), len(c.h)
-    nh, mh = len(a.states), len(a.inputs)
-    _check_len("concrete.f_bar", c.f_bar, n, "one per state")
-    _check_len("concrete.g", c.g, n, "one row per state")
-    for i, row in enumerate(c.g):
-        _check_len(f"concrete.g[{i}]", row, m, "one column per input")
-    _check_len("concrete.input_bounds", c.input_bounds, m, "one pair per input")
-    _check_len("concrete.output_set", c.output_set, p, "one pair per output of h")
-    for key, pairs in (("concrete.input_bounds", c.input_bounds), ("concrete.output_set", c.output_set)):
-        for i, pair in enumerate(pairs):
-            _check_pair(f"{key}[{i}]", pair)
-    if c.state_box is not None:
-        _check_len("concrete.state_box", c.state_box, n, "one pair per state")
-        for i, pair in enumerate(c.state_box):
-            _check_pair(f"concrete.state_box[{i}]", pair)
-    if a.manifold_guess is not None:
-        _check_len("abstract.manifold_guess", a.manifold_guess, n, "one number per concrete state")
-    if a.m is not None:
-        _check_len("abstract.m", a.m, nh, "one expression in the concrete states per abstract state")
-    if a.p is not None:
-        _check_len("abstract.p", a.p, n, "one expression in the abstract states per concrete state")
-    _check_len("abstract.phi_bar", a.phi_bar, nh, "one per abstract state")
-    _check_len("abstract.l", a.l, m, "one per concrete input")
-    if a.domain != "auto":
-        _check_len("abstract.domain", a.domain, nh, "one pair per abstract state")
-        for i, pair in enumerate(a.domain):
-            _check_pair(f"abstract.domain[{i}]", pair)
-    if isinstance(a.delta, list):
-        _check_len("abstract.delta", a.delta, nh, "one row per abstract state")
-        for i, row in enumerate(a.delta):
-            _check_len(f"abstract.delta[{i}]", row, mh, "one column per abstract input")
-    elif a.delta == "identity" and nh != mh:
-        raise SpecError("abstract.delta", f"'identity' needs as many abstract inputs as states, got {mh} and {nh}", "an n_hat x m_hat matrix of expressions")
-    elif a.delta not in ("identity", "flatten") and (nh, mh) != (1, 1):
-        raise SpecError("abstract.delta", "a single expression needs one abstract state and one input", f"a {nh} x {mh} matrix of expressions")
-    st = spec.stabilisability
-    if st.method == "given":
-        if st.M is None:
-            raise SpecError("stabilisability.M", "missing for method 'given'", f"a symmetric {n} x {n} matrix")
-        _check_len("stabilisability.M", st.M, n, "one row per state")
-        for i, row in enumerate(st.M):
-            _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")
-    elif st.M is not None:
-        raise SpecError("stabilisability.M", "given with method 'polytopic_lmi'", "method: given, or no M")
-    _check_names(spec)
-    _check_units(spec)
-    _check_simulate(spec, n, m, p, nh)
-
-
-def _check_names(spec: Spec) -> None:
-    seen: dict[str, str] = {}
-    groups = [
-        ("parameters", list(spec.parameters)),
-        ("concrete.states", spec.concrete.states),
-        ("concrete.inputs", spec.concrete.inputs),
-        ("abstract.states", spec.abstract.states),
-        ("abstract.inputs", spec.abstract.inputs),
-    ]
-    for where, names in groups:
-        for name in names:
-            if name in seen:
-                raise SpecError(where, f"name '{name}' is already used in {seen[name]}", "names unique across parameters, states and inputs")
-            seen[name] = where
-
-
-def _check_units(spec: Spec) -> None:
-    c, a = spec.concrete, spec.abstract
-    allowed = {*c.states, *c.inputs, *a.states, *a.inputs, "t", "y", *(f"y{k + 1}" for k in range(len(c.h)))}
-    for key in spec.units:
-        if key not in allowed:
-            raise SpecError(f"units.{key}", "is not a declared state or input, t, or an output name", f"one of {', '.join(sorted(allowed))}")
-
-
-def _check_reference(tr: Tracking, p: int) -> None:
-    """Exactly one of reference_levels (with dwell) and reference (with reference_period, optional)."""
-    if (tr.reference_levels is None) == (tr.reference is None):
-        which = "both" if tr.reference is not None else "neither"
-        raise SpecError("simulate.tracking", f"gives {which} of reference_levels and reference",
-                        "reference_levels (set points, with dwell) or reference (a signal r(t), one expression in t per output)")
-    if tr.reference_levels is not None:
-        if tr.dwell is None:
-            raise SpecError("simulate.tracking.dwell", "is missing", "how long each of reference_levels is held (s)")
-        if tr.reference_period is not None:
-            raise SpecError("simulate.tracking.reference_period", "is given with reference_levels", "reference_period only with reference (dwell holds levels)")
-        return
-    if tr.dwell is not None:
-        raise SpecError("simulate.tracking.dwell", "is given with a reference signal", "reference_period (how often r(t) is sampled and held), or reference_levels")
-    _check_len("simulate.tracking.reference", tr.reference_texts(), p, "one expression in t per output")
-    if tr.hold() > tr.t_final:
-        raise SpecError("simulate.tracking.reference_period", f"{tr.hold():g} s is longer than the run (t_final = {tr.t_final:g} s)", "a period below t_final")
-    if tr.t_final / tr.hold() > MAX_REFERENCE_SAMPLES:
-        raise SpecError("simulate.tracking.reference_period", f"{tr.hold():g} s samples r(t) {tr.t_final / tr.hold():.0f} times",
-                        f"at most {MAX_REFERENCE_SAMPLES} samples over the run (a period of at least {tr.t_final / MAX_REFERENCE_SAMPLES:.3g} s)")
-
-
-#: The most samples of a reference signal over one run (each is a reference state solved for, and a segment of the run).
-MAX_REFERENCE_SAMPLES = 20000
-
-
-def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int) -> None:
-    tr = spec.simulate.tracking
-    if tr is not None:
-        _check_len("simulate.tracking.xi0", tr.xi0, nh, "one per abstract state")
-        if tr.x0 != "on_manifold":
-            _check_len("simulate.tracking.x0", tr.x0, n, "one per concrete state")
-        _check_reference(tr, p)
-        for i, (entry, level) in enumerate(zip(tr.reference_levels or [], tr.level_values())):
-            where = f"simulate.tracking.reference_levels[{i}]" + (".level" if isinstance(entry, TimedLevel) else "")
-            size = len(level) if isinstance(level, list) else 1
-            if size != p:
-                raise SpecError(where, f"has {size} values", f"{p} (one per output)")
-            if isinstance(entry, TimedLevel):
-                if tr.abstract_controller.kind != "guaranteed":
-                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline (by, hold) but the controller is '{tr.abstract_controller.kind}', which guarantees no tolerance",
-                                    "abstract_controller.kind: guaranteed, or a plain level")
-                seg = tr.segment(i)
-                held = None if seg is None else seg[1] - seg[0]
-                if held is None:
-                    raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline but the run ends (t_final = {tr.t_final:g} s) before level {i} is asked for",
-                                    "a t_final that reaches every level with a deadline")
-                if entry.by + entry.hold > held * (1 + 1e-12):
-                    raise SpecError(f"simulate.tracking.reference_levels[{i}].hold", f"by + hold = {entry.by + entry.hold:g} s runs past the {held:g} s this level is held",
-                                    "by + hold within the level's dwell (the last level: up to t_final)")
-    mr = spec.simulate.m_relation
-    if mr is not None:
-        _check_len("simulate.m_relation.x0", mr.x0, n, "one per concrete state")
-        us = mr.u if isinstance(mr.u, list) else [mr.u]
-        _check_len("simulate.m_relation.u", us, m, "one expression in t per concrete input")
-
-
 # --- entry points ---------------------------------------------------------------------------------------
 
 
@@ -714,7 +601,13 @@ def parse_spec_text(text: str, source: str = "spec") -> Spec:
         spec = Spec.model_validate(data)
     except ValidationError as exc:
         raise _validation_to_spec_error(exc) from None
-    _check_shapes(spec)
+    from ashc_cli.problem.spec_checks import check_shapes   # (it reads this module's classes)
+
+    check_shapes(spec)
+    if spec.concrete.f is not None and "q" not in spec.interface.model_fields_set:
+        # q = least_squares needs g(x); a plant written as f(x, u) is designed with q = 0 (Proposition 1) unless
+        # the spec asks for it (the model then refuses it, or allows it when f is affine in u after all).
+        spec = spec.model_copy(update={"interface": spec.interface.model_copy(update={"q": "zero"})})
     return spec
 
 

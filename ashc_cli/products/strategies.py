@@ -279,8 +279,8 @@ def linearise(st: Setup, xi_grid: np.ndarray) -> dict:
         X[2 * j, :, j] += step[:, j]
         X[2 * j + 1, :, j] -= step[:, j]
     Xf = X.reshape(-1, n)
-    bx = plant.at_x(Xf.T)
     u = np.tile(l, (2 * n, 1)) + (Xf - np.tile(p, (2 * n, 1))) @ plant.K.T
+    bx = plant.at_x(Xf.T, u.T)
     F = (bx["f_bar"][:, :, 0] + np.einsum("Nij,Nj->Ni", bx["g"], u)).reshape(2 * n, Ng, n)
     J = np.stack([(F[2 * j] - F[2 * j + 1]) / (2 * step[:, j:j + 1]) for j in range(n)], axis=2)   # (Ng, n, n)
     b0 = plant.at_x(p.T)

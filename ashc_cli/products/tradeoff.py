@@ -108,6 +108,9 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         raise DesignError("simulate.tracking.reference", "a reference signal has no levels to reach (the trade-off times reaching each level)",
                           "simulate.tracking with reference_levels and dwell")
     ctl = tr.abstract_controller
+    if ctl.kind == "signal":
+        raise DesignError("simulate.tracking.abstract_controller.kind", "signal: an abstract input v(t) reaches no levels (the trade-off times reaching each level)",
+                          "kind setpoint or guaranteed, with reference_levels and dwell")
     plant = DesignTerms(model, arts)
     xi0, x0, W0, levels, refs = sim.tracking_start(model, plant, arts)
     z0 = np.r_[xi0, x0, W0]

@@ -43,15 +43,18 @@ def refuse_jumps(model: Model) -> None:
     Parameters
     ----------
     model : Model
-        Its f_bar and g are checked over state_box x U (``concrete.state_box`` must be given).
+        Its f_bar and g (or f) are checked over state_box x U (``concrete.state_box`` must be given).
 
     Raises
     ------
     DesignError
         Naming the field, the function and where its argument crosses the jump.
     """
-    fields = [(f"concrete.f_bar[{i}]", e) for i, e in enumerate(model.f_bar)]
-    fields += [(f"concrete.g[{i}][{j}]", e) for (i, j), e in model.g.todok().items() if e != 0]
+    if model.affine:
+        fields = [(f"concrete.f_bar[{i}]", e) for i, e in enumerate(model.f_bar)]
+        fields += [(f"concrete.g[{i}][{j}]", e) for (i, j), e in model.g.todok().items() if e != 0]
+    else:
+        fields = [(f"concrete.f[{i}]", e) for i, e in enumerate(model.f)]
     proofs.refuse_jumps(model, fields, list(model.x) + list(model.u), np.r_[model.state_box, model.U],
                         "f is not Lipschitz on state_box x U, so no Jacobian LMI (eq. (28)) can certify it",
                         "a smooth approximation of the jump", check="lmi_margin")

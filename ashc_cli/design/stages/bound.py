@@ -43,10 +43,11 @@ import sympy as sp
 
 from ashc_cli.numerics import proofs
 from ashc_cli.design.artefacts import Artefact, Check
+from ashc_cli.design.bound_proofs import jacobian_norm_expr, prove_alpha_h, prove_sup_norm  # noqa: F401 (jacobian_norm_expr: bound's API)
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import Model, sparse_jacobian
+from ashc_cli.problem.model import Model
 from ashc_cli.design.upstream import dp_function, p_function
 from ashc_cli.numerics.linalg import sqrt_M_times
 
@@ -138,10 +139,16 @@ def _sup_on_interval(fun, grid: np.ndarray, values: np.ndarray) -> tuple[float, 
 
 
 def _constant_g(model: Model) -> np.ndarray | None:
-    """g as a number matrix (n, m) when it does not depend on x, else None."""
-    if model.g.free_symbols & set(model.x):
+    """g as a number matrix (n, m) when it does not depend on x, else None (also for a plant that is not input-affine)."""
+    if not model.affine or model.g.free_symbols & set(model.x):
         return None
     return np.asarray(model.numeric(model.g, list(model.x))(*np.zeros(model.n)), dtype=float).reshape(model.n, model.m)
+
+
+def _input_matrix(model: Model) -> sp.Matrix:
+    """g(x); zero for a plant that is not input-affine, whose interface has q = 0 (Proposition 1, Remark 4), so the
+    least-squares q of eq. (43) is 0 and dbar_ls is dbar_q0."""
+    return model.g if model.affine else sp.zeros(model.n, model.m)
 
 
 def _least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
@@ -398,122 +405,6 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
     return c, v_c, reasons
 
 
-def prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float) -> tuple[float, float, str] | None:
-    """alpha_h and L_h proved (eq. (6), Assumption 1), and how, or None where no proof is found.
-
-    Linear h = C x: alpha' = alpha_h (1 - 1e-9) with M - alpha' C^T C >= 0 proved by an arb Cholesky (C
-    formed in ball arithmetic); when M is diagonal and every output reads one state (C^T C diagonal), the
-    matrix is diagonal and its entries are checked one by one, at any n (the Cholesky is skipped above
-    ``proofs.MAX_PROOF_STATES`` states).  Nonlinear h (any number of outputs): L_h = a proved upper bound of
-    sup ||dh/dx||_2 over ``concrete.state_box`` (:func:`jacobian_norm_expr`) and alpha' = (proved lower bound of
-    lambda_min(M)) / L_h^2.
-
-    Parameters
-    ----------
-    model, M : Model, ndarray (n, n)
-        The spec's systems (h, C, ``concrete.state_box``) and the matrix of W.
-    alpha_h : float
-        The numpy value, proved less 1e-9 relative for a linear h (not used for a nonlinear h).
-
-    Returns
-    -------
-    (alpha_h, L_h, how) : (float, float, str) or None
-        The proved alpha_h and L_h (linear h: ||C||_2 in floating point) and how; None without a proof.
-    """
-    diagonal = model.C is not None and not np.any(M - np.diag(np.diag(M))) and np.all(np.count_nonzero(model.C, axis=1) <= 1)
-    if model.n > proofs.MAX_PROOF_STATES and not diagonal:
-        return None
-    jac = sparse_jacobian(model.h, list(model.x))
-    try:
-        proof = _prove_alpha_h_diagonal(model, M, alpha_h, jac) if diagonal else None
-        if proof is None and model.n <= proofs.MAX_PROOF_STATES:
-            proof = _prove_alpha_h(model, M, alpha_h, jac)
-        return proof
-    except proofs.interval.UnsupportedExpression:
-        return None
-
-
-def _prove_alpha_h_diagonal(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) -> tuple[float, float, str] | None:
-    """M - alpha' C^T C >= 0 for a diagonal M and a C with at most one non-zero per row (both exactly, C in ball
-    arithmetic): C^T C is then diagonal, so is the matrix, and it is PSD iff each diagonal entry is >= 0."""
-    f = proofs.BoxFunction(model, {"C": jac}, list(model.x))
-    Cb = f([proofs.arb(0)] * model.n)["C"]
-    if any(sum(not c.is_zero() for c in row) > 1 for row in Cb):
-        return None
-    a = proofs.arb(alpha_h * (1.0 - 1e-9))
-    for i in range(model.n):
-        column = sum((row[i] ** 2 for row in Cb), proofs.arb(0))
-        if not proofs.arb(float(M[i, i])) - a * column >= 0:
-            return None
-    return alpha_h * (1.0 - 1e-9), float(np.linalg.norm(model.C, 2)), "M diagonal and C^T C diagonal: each diagonal entry of M - alpha_h C^T C >= 0 in ball arithmetic"
-
-
-def _prove_alpha_h(model: Model, M: np.ndarray, alpha_h: float, jac: sp.Matrix) -> tuple[float, float, str] | None:
-    if model.C is not None:
-        f = proofs.BoxFunction(model, {"C": jac}, list(model.x))
-        a = alpha_h * (1.0 - 1e-9)
-        Cb = f([proofs.arb(0)] * model.n)["C"]
-        CtC = proofs.quadratic_form_terms(np.eye(len(Cb)), Cb)
-        Mb = proofs.matrix_balls(M)
-        S = [[Mb[i][j] - proofs.arb(a) * CtC[i][j] for j in range(model.n)] for i in range(model.n)]
-        return (a, float(np.linalg.norm(model.C, 2)), "M - alpha_h C^T C >= 0 proved by an arb Cholesky") if proofs.psd_lower_bound_balls(S) >= 0 else None
-    if model.state_box is None:
-        return None
-    norm, how = jacobian_norm_expr(jac)
-    lip, ok, _ = proofs.sup_on_box(proofs.compile_claims(model, [norm], list(model.x)), model.state_box)
-    m_low = proofs.lambda_min_lower(M)
-    if not ok or not m_low > 0:
-        return None
-    return float(m_low / lip**2), float(lip), f"lambda_min(M) and L_h = sup ||dh/dx||_2 ({how}) bounded by ball arithmetic"
-
-
-def jacobian_norm_expr(jac: sp.Matrix) -> tuple[sp.Expr, str]:
-    """An expression >= ||dh/dx||_2 everywhere, for any number of outputs, and what it is.
-
-    One output: the gradient's Euclidean norm (exact).  Two outputs or two states: sqrt of the largest
-    eigenvalue of the 2 x 2 Gram matrix in closed form (exact).  Otherwise the Frobenius norm, an upper bound
-    within a factor sqrt(min(p, n)).
-
-    Parameters
-    ----------
-    jac : sympy Matrix (p, n)
-        dh/dx.
-
-    Returns
-    -------
-    expr, how : sympy Expr, str
-        The bound (in x) and which bound it is.
-    """
-    p, n = jac.shape
-    if p == 1:
-        return sp.sqrt(sum(e**2 for e in jac)), "the gradient's norm"
-    if min(p, n) <= 2:
-        w = jac.T if p <= 2 else jac           # two columns: ||w||_2 = ||dh/dx||_2
-        return proofs.norm_expr(np.eye(w.shape[0]), w), "closed-form 2 x 2 Gram eigenvalue"
-    return sp.sqrt(sum(e**2 for e in jac)), "Frobenius norm, >= the 2-norm"
-
-
-def _prove_dbar(model: Model, M: np.ndarray, dp_delta: sp.Matrix, V: np.ndarray, seed: np.ndarray) -> float:
-    """A proved upper bound of sup over V of ||sqrt(M) dp/dxi delta|| (dbar with q = 0, eq. (37)), inf if none.
-
-    Branch and bound over V in ball arithmetic, seeded with the grid maximum; ||sqrt(M) w||_2 is the square
-    root of the largest eigenvalue of the Gram matrix w^T M w, in closed form for one or two abstract inputs,
-    bounded through Gershgorin's discs for more.
-    """
-    if model.n > proofs.MAX_PROOF_STATES:
-        return np.inf
-    try:
-        if dp_delta.shape[1] <= 2:
-            fun = proofs.compile_claims(model, [proofs.norm_expr(M, dp_delta)], list(model.xi))
-        else:
-            f = proofs.BoxFunction(model, {"w": dp_delta}, list(model.xi))
-            fun = lambda b: [proofs.norm_sqrt_M(M, f(b)["w"])]   # noqa: E731 (Gershgorin on the Gram matrix)
-        upper_bound, ok, _ = proofs.sup_on_box(fun, V, seeds=seed.reshape(1, -1))
-    except proofs.interval.UnsupportedExpression:
-        return np.inf
-    return upper_bound if ok else np.inf
-
-
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. (38).
 
@@ -547,7 +438,44 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     db = _dbar(model, M, L, th)
     gain = error_bound_gain(alpha["alpha_h"], lam, eps, db["dbar"])
     region = _region(model, upstream, M, L, lam, eps, db, th)
-    return _artefact(model, upstream, M, L, lam, eps, gain, alpha, th, db, region)
+    art = _artefact(model, upstream, M, L, lam, eps, gain, alpha, th, db, region)
+    if model.e is not None:
+        _disturbance(model, art, M, L)
+        art.values["bound_sampled"] = ", ".join(bound_sampled({**upstream, NAME: art})) or "none"
+        art.values["bound_evidence"] = PROVED if art.values["bound_sampled"] == "none" else SAMPLED
+    return art
+
+
+def _disturbance(model: Model, art: Artefact, M: np.ndarray, L: np.ndarray) -> None:
+    """The disturbance's term of the bound, x' = f + e(x) w: |L^T (theta v - e w)| <= dbar |v| + ebar |w| with
+    ebar = sup over concrete.state_box of ||sqrt(M) e(x)||, so |psi - y| <= G ||v||_inf + G_w ||w||_inf with
+    G_w = error_bound_gain(..., ebar) (the same Young step as eq. (38)), and the region's ||v||_inf limit shrinks by
+    ebar w_max / dbar (the sublevel set of W stays invariant).  ebar is proved in ball arithmetic where it can be."""
+    v = art.values
+    lam, eps, alpha_h, dbar = (float(v[k]) for k in ("lambda", "epsilon", "alpha_h", "dbar"))
+    varying = bool(model.e.free_symbols & set(model.x))
+    if varying and model.state_box is None:
+        raise SpecError("concrete.state_box", "missing: e(x) depends on the states, so its sup ||sqrt(M) e(x)|| is taken over a box of states",
+                        "one pair [lo, hi] per state")
+    box = model.state_box if model.state_box is not None else np.zeros((model.n, 2))
+    grid = domain_grid(box, 20000) if varying else box[:, :1]
+    e_grid = model.numeric(model.e, list(model.x))(*grid)
+    norms = np.linalg.norm(np.einsum("ji,jkN->Nik", L, e_grid.reshape(model.n, -1, grid.shape[1])), ord=2, axis=(1, 2))
+    k = int(np.argmax(norms))
+    ebar_sampled = float(norms[k])
+    proved = prove_sup_norm(model, M, model.e, box, grid[:, k], args=list(model.x))
+    ebar = max(ebar_sampled, proved) if np.isfinite(proved) else ebar_sampled
+    evidence = PROVED if np.isfinite(proved) else SAMPLED
+    w_max = float(np.linalg.norm(np.abs(model.W).max(axis=1)))
+    gain_w = error_bound_gain(alpha_h, lam, eps, ebar)
+    v_max = float(v["v_max_certified"])
+    v_max_w = v_max - ebar * w_max / dbar if np.isfinite(v_max) and dbar > 0 else v_max
+    v.update({"ebar": ebar, "ebar_sampled": ebar_sampled, "ebar_proved": proved, "gain_w": gain_w, "w_max": w_max,
+              "disturbance_term": gain_w * w_max, "v_max_certified_with_w": v_max_w, "evidence_ebar": evidence})
+    region = "the region's ||v||_inf limit is global" if not np.isfinite(v_max) else f"the region's ||v||_inf limit {v_max:.6g} becomes {v_max_w:.6g} for w in disturbance_bounds (> 0)"
+    art.checks["disturbance_term"] = Check(ebar, bool(np.isfinite(ebar) and (not np.isfinite(v_max) or v_max_w > 0)),
+                                           f"ebar = sup over concrete.state_box of ||sqrt(M) e(x)|| ({'proved upper bound, ball arithmetic' if evidence == PROVED else 'grid'}): "
+                                           f"|psi - y| gains G_w ||w||_inf, G_w = {gain_w:.6g}; {region}", evidence)
 
 
 def _alpha_h(model: Model, M: np.ndarray) -> dict:
@@ -583,7 +511,7 @@ def _theta_on_V(model: Model, man: Artefact, dl: Artefact, L: np.ndarray) -> dic
         th["dp_delta"] = man.expr("dp_dxi") * delta
         th["dpd_num"] = model.numeric(th["dp_delta"], xi_args)
     th["dp_num"], th["p_num"] = dp_function(man, model), p_function(man, model)
-    th["g_num"] = model.numeric(model.g, list(model.x))
+    th["g_num"] = model.numeric(_input_matrix(model), list(model.x))
     grid = th["grid"] = domain_grid(model.V, GRID_POINTS)
     th["dpd_grid"], th["p_grid"] = th["dpd_num"](*grid), th["p_num"](*grid)          # evaluated once, used by every sup below
     th["norm_q0"] = theta_norms(L, th["dpd_grid"], None)
@@ -612,7 +540,7 @@ def _dbar(model: Model, M: np.ndarray, L: np.ndarray, th: dict) -> dict:
     dp_delta = th["dp_delta"] if th["dp_delta"] is not None else th["dpd_series"].to_sympy(list(model.xi))
     db = {"dbar_q0_sampled": dbar_q0, "dbar_q0_proved": np.inf, "dbar_id": dbar_id, "dbar_ls": dbar_ls, "at": at}
     if model.n <= proofs.MAX_PROOF_STATES:   # the proof works on the formula (the one readers get)
-        db["dbar_q0_proved"] = _prove_dbar(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
+        db["dbar_q0_proved"] = prove_sup_norm(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
     if np.isfinite(db["dbar_q0_proved"]):
         dbar_q0 = max(dbar_q0, db["dbar_q0_proved"])
     # The interface's saturation (several inputs clipped separately) and feedback (local) enter here.
@@ -667,7 +595,7 @@ def _artefact(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.
         art.set_series("dp_delta", th["dpd_series"], model.xi)
     else:
         art.exprs["dp_delta"] = th["dp_delta"]
-    art.exprs["g"] = model.g
+    art.exprs["g"] = _input_matrix(model)
     alpha_h, dbar, dbar_how, w0_max, v_max, limits = alpha["alpha_h"], db["dbar"], db["dbar_how"], region["w0_max"], region["v_max"], region["limits"]
     art.values.update({
         "M": M, "L": L, "lambda": lam, "alpha_h": alpha_h, "epsilon": eps, "C": C if C is not None else np.zeros((0, model.n)),
@@ -723,7 +651,8 @@ def bound_sampled(arts: dict[str, Artefact]) -> list[str]:
     list of str
     """
     out = []
-    for stage, name in BOUND_CHECKS:
+    extra = (("bound", "disturbance_term"),) if "bound" in arts and "disturbance_term" in arts["bound"].checks else ()
+    for stage, name in BOUND_CHECKS + extra:
         chk = arts[stage].checks.get(name) if stage in arts else None
         if chk is None or chk.evidence != PROVED:
             out.append(f"{stage}.{name}")
@@ -762,6 +691,7 @@ def summarise(art: Artefact) -> dict:
         "dbar": float(v.get("dbar", v["dbar_q0"])), "dbar_how": v.get("dbar_how", ""),
         "w0_max_certified": float(v.get("w0_max_certified", np.inf)), "v_max_certified": float(v.get("v_max_certified", np.inf)),
         "region_limits": v.get("region_limits", ""),
+        **{k: float(v[k]) for k in ("ebar", "gain_w", "w_max", "disturbance_term", "v_max_certified_with_w") if k in v},
         "bound_evidence": str(v.get("bound_evidence", SAMPLED)), "bound_sampled": str(v.get("bound_sampled", "")),
         "evidence": {k: str(v.get(f"evidence_{k}", SAMPLED)) for k in ("lambda", "alpha_h", "dbar", "region")},
         "dbar_argmax": {"q0": np.asarray(v["dbar_argmax"])[0].tolist(), "q0_identity": np.asarray(v["dbar_argmax"])[1].tolist(),
@@ -778,7 +708,23 @@ def headline(art: Artefact) -> str:
         The bound stage's artefact.
     """
     v = art.values
-    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf {region_text(v)})"
+    w = f" + G_w ||w||_inf, G_w = {float(v['gain_w']):.5g}" if "gain_w" in v else ""
+    return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf{w} {region_text(v)})"
+
+
+def disturbance_text(v: dict) -> str:
+    """The disturbance's term of the published bound, `` + G_w ||w||_inf`` with its number, or empty without one.
+
+    Parameters
+    ----------
+    v : dict
+        The bound artefact's values (``gain_w`` when the plant has disturbances).
+
+    Returns
+    -------
+    str
+    """
+    return f" + {float(v['gain_w']):.5g} ||w||_inf" if "gain_w" in v else ""
 
 
 def region_text(v: dict) -> str:

@@ -8,7 +8,9 @@ dbar for that scale (ERRATA item 11: delta only rescales v).  Theorem 5 needs de
 
     b(x) = delta^+(m(x)) (dm/dx f_bar(x) - phi_bar(m(x))),    c(x) = delta^+(m(x)) dm/dx g(x)
 
-solve eqs. (21a), (21b), which the stage re-checks numerically on samples of X_y.
+solve eqs. (21a), (21b), which the stage re-checks numerically on samples of X_y.  For a plant x' = f(x, u) that is
+not input-affine, b(x, u) = delta^+(m(x)) (dm/dx f(x, u) - phi_bar(m(x))) and c = 0: v = b(x, u) solves eq. (20) of
+Definition 2 for every u (delta has full row rank), the m-relation without Theorem 5.
 For the converter b is eq. (40) (with chi read as a square root, ERRATA item 3) and c = 0.
 """
 
@@ -164,15 +166,23 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     xi_to_m = dict(zip(model.xi, m))
     delta_at_m = delta.xreplace(xi_to_m)
     pinv = _right_inverse(delta_at_m)
-    b = tidy(pinv * (dm * model.f_bar - model.phi_bar.xreplace(xi_to_m)))
-    c = tidy(pinv * dm * model.g)
+    # A plant that is not input-affine: v = b(x, u) = delta^+(m) (dm/dx f(x, u) - phi_bar(m)) solves eq. (20) of
+    # Definition 2 directly (delta(m) delta^+(m) = I), for every u; c = 0 and f_bar, g below stand for f and 0.
+    f_bar = model.f_bar if model.affine else model.f
+    g = model.g if model.affine else sp.zeros(model.n, model.m)
+    b = tidy(pinv * (dm * f_bar - model.phi_bar.xreplace(xi_to_m)))
+    c = tidy(pinv * dm * g)
 
-    # Re-check eqs. (21a), (21b) on samples of X_y.
+    # Re-check eqs. (21a), (21b) on samples of X_y (for f(x, u): on samples of X_y x U).
     p_grid = np.asarray(man.value("p_grid"))
     samples = sample_states_with_output(model.numeric(model.h, list(model.x)), model.C, model.Y, sample_box(model, p_grid), SAMPLES, seed=1)
     xs = list(model.x)
-    dm_f = model.numeric(dm * model.f_bar, xs)(*samples)[:, 0, :]
-    dm_g = model.numeric(dm * model.g, xs)(*samples)
+    if not model.affine:
+        xs = xs + list(model.u)
+        inputs = np.random.default_rng(2).uniform(model.U[:, 0, None], model.U[:, 1, None], (model.m, samples.shape[1]))
+        samples = np.vstack([samples, inputs])
+    dm_f = model.numeric(dm * f_bar, xs)(*samples)[:, 0, :]
+    dm_g = model.numeric(dm * g, xs)(*samples)
     phi_m = model.numeric(model.phi_bar.xreplace(xi_to_m), xs)(*samples)[:, 0, :]
     d_m = model.numeric(delta_at_m, xs)(*samples)
     b_s = model.numeric(b, xs)(*samples)[:, 0, :]
@@ -185,7 +195,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise NumericalError(NAME, f"b, c solve eqs. (21a), (21b) only to {link_residual:.3g} (relative)", f"below {LINK_RTOL:g}")
 
     art = Artefact(stage=NAME, meta={"delta_source": model.spec.abstract.delta if isinstance(model.spec.abstract.delta, str) else "matrix",
-                                      "samples": SAMPLES, "sample_seed": 1, "rank_rtol": RANK_RTOL, "link_rtol": LINK_RTOL})
+                                      "samples": SAMPLES, "sample_seed": 1, "rank_rtol": RANK_RTOL, "link_rtol": LINK_RTOL,
+                                      "link_form": "v = b(x) + c(x) u (eq. (22))" if model.affine else "v = b(x, u) (eq. (20), f not input-affine)"})
     art.exprs.update({"delta": delta, "b": b, "c": c})
     art.values.update({"min_singular_value": smin, "max_singular_value": smax, "min_singular_value_at": at,
                        "link_residual": link_residual, "c_is_zero": bool(all(e == 0 for e in c))})
@@ -197,10 +208,11 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
                                          proofs.PROVED)
     else:
         art.checks["rank_delta"] = Check(smin, True, f"smallest singular value of delta on a grid of V (> {RANK_RTOL:g} max(1, largest): full row rank)")
-    link = list(dm * model.f_bar - model.phi_bar.xreplace(xi_to_m) - delta_at_m * b) + list(dm * model.g - delta_at_m * c)
+    link = list(dm * f_bar - model.phi_bar.xreplace(xi_to_m) - delta_at_m * b) + list(dm * g - delta_at_m * c)
     if proofs.symbolic_zero(link):
-        art.checks["m_relation_link"] = Check(0.0, True, "dm/dx f_bar - phi_bar(m) - delta(m) b and dm/dx g - delta(m) c simplify to 0 (sympy): "
-                                                         "b, c solve eqs. (21a), (21b) wherever delta(m(x)) has full row rank", proofs.PROVED)
+        what = ("dm/dx f_bar - phi_bar(m) - delta(m) b and dm/dx g - delta(m) c simplify to 0 (sympy): b, c solve eqs. (21a), (21b)" if model.affine else
+                "dm/dx f(x, u) - phi_bar(m) - delta(m) b(x, u) simplifies to 0 (sympy): v = b(x, u) solves eq. (20) for every u")
+        art.checks["m_relation_link"] = Check(0.0, True, f"{what} wherever delta(m(x)) has full row rank", proofs.PROVED)
     else:
         art.checks["m_relation_link"] = Check(link_residual, True, "max residual of eqs. (21a), (21b) on samples of X_y, relative")
     return art

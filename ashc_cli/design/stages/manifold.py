@@ -34,7 +34,7 @@ from ashc_cli.numerics import proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import Model
+from ashc_cli.problem.model import SYMBOLIC_BUDGET, Model, within_budget
 from ashc_cli.design.manifold_numeric import ManifoldPlant, equilibrium_error, manifold_field, solve_collocation, solve_numeric_equilibria
 
 NAME = "manifold"
@@ -66,9 +66,14 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
     # can run for minutes, depending on the hash seed, before giving up; those go to Newton continuation.
     rational = all(sp.sympify(e).is_rational_function(*P) for e in equations)
     try:
-        solutions = sp.solve(list(equations), list(P), dict=True) if rational else []
-    except NotImplementedError:
+        # under a budget: a cubic with a tanh(xi) coefficient kept sympy's gcd busy for minutes
+        solutions = within_budget(_solve_all, list(equations), list(P)) if rational else []
+    except TimeoutError:
+        timed_out, solutions = True, []
+    except (NotImplementedError, ValueError):
         solutions = []
+    else:
+        timed_out = False
     # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
     grid = domain_grid(model.V if model.V is not None else _auto_search_box(model), 201)
     best, best_score = None, 0.0
@@ -84,9 +89,15 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
             best, best_score = p, score
     if best is not None:
         return best, len(solutions)
-    what = "is not rational in x (sympy not tried)" if not rational else f"has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)"
+    what = ("is not rational in x (sympy not tried)" if not rational else f"was not solved by sympy within {SYMBOLIC_BUDGET:g} s" if timed_out
+            else f"has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)")
     raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 {what}",
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
+
+
+def _solve_all(equations: list, unknowns: list) -> list[dict]:
+    """sympy.solve of the equations for the unknowns, every solution as a dict (:func:`within_budget` runs it)."""
+    return sp.solve(equations, unknowns, dict=True)
 
 
 def _affine_parts(exprs: sp.Matrix, args: sp.Matrix, model: Model) -> tuple[np.ndarray, np.ndarray] | None:
@@ -110,6 +121,8 @@ def _solve_sylvester(model: Model) -> sp.Matrix | None:
     DesignError
         If A and S share an eigenvalue (no unique solution) or A is singular where an offset is needed.
     """
+    if not model.affine:
+        return None
     parts = [_affine_parts(model.f_bar, model.x, model), _affine_parts(model.phi_bar, model.xi, model), _affine_parts(model.l, model.xi, model)]
     if any(part is None for part in parts) or any(e.free_symbols & set(model.x) for e in model.g):
         return None
@@ -527,14 +540,15 @@ def _l_in_U(model: Model, V: np.ndarray, l_grid: np.ndarray):
 
 def _grid_residual(plant: ManifoldPlant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
     """max |dp/dxi phi_bar - f_bar(p) - g(p) l| over a grid, and the size of its terms max(1, |f_bar(p)|, |g(p) l|)."""
-    fbar = plant.fbar(*p_grid)[:, 0, :]
-    gl = np.einsum("ijk,jk->ik", plant.g(*p_grid), l_grid)
+    fbar, gl = plant.sides_at(p_grid, l_grid)
     residual = float(np.abs(np.einsum("ijk,jk->ik", dp_grid, phi_grid) - (fbar + gl)).max())
     return residual, float(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
 
 
 def _pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
     """dp/dxi phi_bar - f_bar(p) - g(p) l(xi), symbolically (eq. (14a) as a residual)."""
+    if not model.affine:
+        return p.jacobian(model.xi) * model.phi_bar - model.f_on(p, model.l)
     on_p = dict(zip(model.x, p))
     return p.jacobian(model.xi) * model.phi_bar - model.f_bar.xreplace(on_p) - model.g.xreplace(on_p) * model.l
 

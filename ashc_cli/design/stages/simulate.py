@@ -39,29 +39,22 @@ from ashc_cli.design.upstream import reference_signal, reference_state, signal_l
 from ashc_cli.numerics.proofs import SIMULATED
 from ashc_cli.errors import DesignError, NumericalError, ScenarioStopped
 from ashc_cli.problem.expr import parse_expression
-from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
 from ashc_cli.problem.model import TIME, Model
 from ashc_cli.problem.spec import TimedLevel
+from ashc_cli.design.simulate_m_relation import EDGE_MARGIN, M_RELATION_TOL, M_RELATION_TOL_ABS, SAMPLE_DT, MAX_RUN_SAMPLES, run_m_relation, sample_dt  # noqa: F401
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
 
 TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
-M_RELATION_TOL = {"method": "DOP853", "rtol": 1e-11, "atol": 1e-11}
-SAMPLE_DT = 1e-3
 #: The measured error may exceed the a-posteriori bound by this fraction of the output span (integration error).
 POSTERIOR_FLOOR_RTOL = 1e-7
 #: psi must end each dwell within this fraction of the output span of its level.
 SETTLE_RTOL = 1e-4
-#: m-relation: outputs must match to this (V), Theorem 3.
-M_RELATION_TOL_ABS = 1e-6
 #: Reach-time runs (``reach_times``): a level is held in chunks of the spec's dwell until it is reached, at most
 #: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
 REACH_HORIZON_DWELLS = 1000
 REACH_SAMPLE_DWELLS = 5e-4
-#: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
-#: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
-EDGE_MARGIN = 1e-3
 
 
 # --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
@@ -118,7 +111,9 @@ def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
         raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
     x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
-    if tr.reference is not None:
+    if tr.abstract_controller.kind == "signal":
+        levels, refs = [np.ravel(plant.kappa(*xi0))], [xi0]      # v(t) drives xi: nothing is tracked (one segment)
+    elif tr.reference is not None:
         levels, refs = signal_levels(model, plant, up["kappa"].expr("kappa"))
     else:
         levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
@@ -184,6 +179,28 @@ def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
         raise NumericalError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
 
 
+def abstract_input(model: Model) -> sp.Matrix:
+    """The tracking scenario's abstract input v(t) (``abstract_controller.kind: signal``), parsed: one expression in t
+    and the parameters per abstract input (the time signals triangle, square, step allowed).
+
+    Parameters
+    ----------
+    model : Model
+
+    Returns
+    -------
+    sympy Matrix (m_hat, 1)
+
+    Raises
+    ------
+    SpecError
+        Naming ``simulate.tracking.abstract_controller.v[i]``.
+    """
+    names = {**model.params, "t": TIME}
+    texts = model.spec.simulate.tracking.abstract_controller.texts()
+    return sp.Matrix([parse_expression(s, names, f"simulate.tracking.abstract_controller.v[{i}]", signal=True) for i, s in enumerate(texts)])
+
+
 def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray,
                     segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop) -> dict:
     """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0], with
@@ -212,8 +229,14 @@ def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], l
         (the margin of its invariance condition) at the samples.
     """
     governor = (law.w_level, law.rate, GOVERNOR_GRID, GOVERNOR_BISECTIONS, GOVERNOR_BACKOFF) if law.kind == "governor" else None
+    more = {}
+    if law.kind == "signal":
+        try:
+            more["signal"] = compiled.abstract_signal(model, abstract_input(model))
+        except compiled.Unsupported as exc:
+            raise NumericalError("simulate", str(exc), "an abstract input v(t) the compiled closed loop can run") from exc
     res = loop.run(np.asarray(z0, dtype=float), segments, refs, gain=law.gain, v_max=law.v_max, q_kind=model.spec.interface.q,
-                   saturate=model.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor)
+                   saturate=model.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor, **more)
     out: dict = {"compiled": getattr(loop, "compiled", True)}
     if governor is not None:
         out.update(scale=res.scale, slack=res.slack)
@@ -374,14 +397,10 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     M = np.asarray(up["stabilise"].value("M"))
     w0_max = float(up["bound"].values.get("w0_max_certified", np.inf))
     v_cert = float(up["bound"].values.get("v_max_certified", np.inf))
-    plan = None
-    if ctl.kind == "guaranteed":
-        plan = guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
-        law = plan.law(plan.mode, ctl.gain, model.m_hat, v_cert, lam, eps)
-    else:
-        law = Law("setpoint", ctl.gain, ctl.v_max)
+    law, plan = _law(ctl, model, up, W0, v_cert, lam, eps)
+    held = tr.reference is None and ctl.kind != "signal"          # set points, each held for a dwell (settling judged)
     z = np.r_[xi0, x0, W0]
-    segments = tracking_segments(tr.t_final, tr.hold(), len(levels))
+    segments = tracking_segments(tr.t_final, tr.hold(), len(levels), sample_dt(tr.t_final))
     loop = tracking_loop_for(model, up, law)
     res = closed_loop_run(model, plant, up, law, z, segments, refs, loop)
     t, xi, x, w, idx, v, u, y = (res[k] for k in ("t", "xi", "x", "w", "reference_index", "v", "u", "y"))
@@ -392,7 +411,9 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     err = np.linalg.norm(e, axis=0)
     v_inf = float(np.linalg.norm(v, axis=0).max())   # sup over t of |v(t)| (2-norm: theta v is bounded by ||theta|| |v|)
     gain = float(up["bound"].value("gain"))
-    bound = gain * v_inf
+    # a constant disturbance w0 (simulate.tracking.disturbance) adds G_w |w0| (the bound stage's disturbance term)
+    w_inf, v_cert = _disturbance_of(tr, up, v_cert)
+    bound = gain * v_inf + (float(up["bound"].value("gain_w")) * w_inf if w_inf > 0 else 0.0)
     # Theorem 2's whole bound: the decaying W0 term (eq. (8)) plus the uniform one, G ||v||_inf.
     theorem_bound = np.sqrt(max(W0, 0.0) * np.exp(-(lam - eps) * (t - t[0])) / alpha_h) + bound
     span = float(np.ptp(model.Y, axis=1).max())
@@ -414,8 +435,9 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     values = {
         "tracking/inside_certified_region": inside, "tracking/compiled": res["compiled"],
         "tracking/t": t, "tracking/xi": xi, "tracking/x": x, "tracking/v": v, "tracking/u": u, "tracking/psi": psi,
-        "tracking/y": y, "tracking/e_y": e, "tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels),
-        "tracking/reference_index": idx, **({"tracking/settle_errors": np.array(settle)} if tr.reference is None else {}),
+        "tracking/y": y, "tracking/e_y": e, "tracking/reference_index": idx, **({"tracking/settle_errors": np.array(settle)} if held else {}),
+        **({"tracking/xi_ref": xi_ref, "tracking/reference_levels": np.stack(levels)} if ctl.kind != "signal" else {}),
+        **({"tracking/disturbance": np.asarray(tr.disturbance, dtype=float), "tracking/w_inf": w_inf} if tr.disturbance is not None else {}),
         "tracking/max_abs_error": float(err.max()), "tracking/v_inf": v_inf, "tracking/u_min": float(u.min()),
         "tracking/u_max": float(u.max()), "tracking/uniform_bound": bound, "tracking/x0": x0,
         "tracking/W0": W0, "tracking/W": W, "tracking/theorem_bound": theorem_bound,
@@ -427,14 +449,15 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
         "tracking_error_within_posterior_bound": Check(float((err - posterior).max()), posterior_ok,
                                                        f"max over the run of |psi - y| - sqrt(w(t) / alpha_h) (<= {POSTERIOR_FLOOR_RTOL:g} x output span, the integrator's accuracy)"),
         "tracking_error_within_bound": Check(float((err - theorem_bound).max()), bool(np.all(err <= theorem_bound)),
-                                             "max over the run of |psi - y| - (sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf) "
+                                             "max over the run of |psi - y| - (sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G ||v||_inf"
+                                             + (" + G_w ||w||_inf" if w_inf > 0 else "") + ") "
                                              "(<= 0: Theorem 2 holds, eq. (38) when W0 = 0); " + region_note),
         "tracking_u_in_U": Check(float(max(U[:, 0].max() - u.min(), u.max() - U[:, 1].min())), u_ok, "largest excursion of u outside U (<= 0)"),
         "tracking_xi_in_V": Check(float(max((model.V[:, 0:1] - xi).max(), (xi - model.V[:, 1:2]).max())), xi_ok, "largest excursion of xi outside V (<= 0: Theorem 2 applies)"),
     }
-    if tr.reference is None:
+    if held:
         checks["tracking_settled"] = Check(max(settle), settle_ok, f"largest |psi - level| at the end of a dwell (<= {SETTLE_RTOL:g} x output span)")
-    else:
+    elif tr.reference is not None:
         values.update(_followed(model, t, psi))
     if model.state_box is not None:
         checks["tracking_x_in_state_box"] = _in_state_box(model.state_box, x)
@@ -443,6 +466,21 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
         values.update(more_values)
         checks.update(more_checks)
     return values, checks
+
+
+def _law(ctl, model: Model, up: dict[str, Artefact], W0: float, v_cert: float, lam: float, eps: float) -> tuple[Law, GuaranteedPlan | None]:
+    """The tracking run's abstract controller: the set-point law, v(t) (``kind: signal``), or a guaranteed plan's law."""
+    if ctl.kind == "guaranteed":
+        plan = guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
+        return plan.law(plan.mode, ctl.gain, model.m_hat, v_cert, lam, eps), plan
+    return (Law("signal", 0.0, 0.0) if ctl.kind == "signal" else Law("setpoint", ctl.gain, ctl.v_max)), None
+
+
+def _disturbance_of(tr, up: dict[str, Artefact], v_cert: float) -> tuple[float, float]:
+    """(|w0|, the region's ||v||_inf limit) of a run with a constant disturbance w0; (0, v_cert) without one."""
+    if tr.disturbance is None:
+        return 0.0, v_cert
+    return float(np.linalg.norm(tr.disturbance)), float(up["bound"].values.get("v_max_certified_with_w", v_cert))
 
 
 def _in_state_box(box: np.ndarray, x: np.ndarray) -> Check:
@@ -522,104 +560,6 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
     return values, checks
 
 
-def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:
-    """The m-relation scenario; returns (values, checks) with keys under ``m_relation/``.
-
-    The closed loop is integrated by the compiled loop (:func:`ashc_cli.closedloop.compiled.m_relation_loop`, the same
-    right-hand side and event in numba, on the engine of :mod:`ashc_cli.closedloop.rk`).
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems (``simulate.m_relation``: u(t), x0, t_final).
-    plant : DesignTerms
-        The design's compiled terms (h and m at x0 and where the run stops).
-    up : dict of str to Artefact
-        The artefacts of stabilise .. bound, by stage (``inverse`` gives where m is certified).
-
-    Returns
-    -------
-    values : dict
-        Time series and metrics, by artefact key.
-    checks : dict of str to Check
-
-    Raises
-    ------
-    DesignError
-        If h(x0) is outside (or, one output, at the edge of) the set where m is certified, m(x0) is not real, or the run
-        leaves that set (:class:`~ashc_cli.errors.ScenarioStopped`).
-    NumericalError
-        If the loop cannot be compiled.
-    """
-    mr = model.spec.simulate.m_relation
-    names = {**model.params, "t": TIME}
-    texts = mr.u if isinstance(mr.u, list) else [mr.u]
-    u_expr = sp.Matrix([parse_expression(s, names, f"simulate.m_relation.u[{i}]", signal=True) for i, s in enumerate(texts)])
-    x0 = np.array(mr.x0, dtype=float)
-    # m (and b, c, built from it) is used only where it is certified: h(x) in inverse.m_domain.
-    box, set_name, _ = certified_set(up["inverse"])
-    h_x0, m_x0 = plant.h_m(x0)
-    y0 = h_x0[:, 0]
-    if outside_certified_set(box, y0):
-        shown = f"{y0[0]:.6g}" if y0.size == 1 else np.round(y0, 6).tolist()
-        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {shown} is outside the set where m is certified, y in {set_name} = {format_box(box)} (x0 = {x0.tolist()})",
-                          f"x0 with h(x0) in {format_box(box)} (inverse.m_domain)")
-    xi0 = m_x0[:, 0]
-    if not np.all(np.isfinite(xi0)):
-        raise DesignError("simulate.m_relation.x0", f"m(x0) is not real at x0 = {x0.tolist()}", "x0 where m is real (see inverse.m_real_interval)")
-    nh = model.n_hat
-
-    # One output: the run stops where y = h(x) leaves the certified interval. At an end where m stops being real,
-    # kappa turns and dm/dx (so b, c and xi') blows up like 1/sqrt(distance): there it stops a little inside,
-    # where the integrator still works. (Several outputs: m_domain is Y, checked at x0 only; the outputs must
-    # match along the run, m_relation_outputs_match.)
-    inv = up["inverse"]
-    d_lo, d_hi = box[0]
-    real_lo, real_hi = np.asarray(inv.value("m_real_interval"), dtype=float)
-    radical = [str(r) for r in np.atleast_1d(inv.values.get("radicands", ["none"]))] not in (["none"], [])
-    tol = DOMAIN_RTOL * max(1.0, d_hi - d_lo)
-    lo_edge, hi_edge = bool(radical and d_lo == real_lo), bool(radical and d_hi == real_hi)
-    lo_margin = EDGE_MARGIN * (d_hi - d_lo) if lo_edge else -tol
-    hi_margin = EDGE_MARGIN * (d_hi - d_lo) if hi_edge else -tol
-
-    bounded = model.p == 1
-    z0 = np.r_[xi0, x0]
-    # The run stops where y = h(x) leaves [d_lo + lo_margin, d_hi - hi_margin] (the compiled loop's event).
-    if bounded and min(y0[0] - d_lo - lo_margin, d_hi - hi_margin - y0[0]) <= 0:
-        raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {y0[0]:.6g} is within {EDGE_MARGIN:.1%} of the end of {set_name} = {format_box(box)} where m stops being real",
-                          f"x0 with h(x0) inside {format_box(box)} (inverse.m_domain)")
-
-    def stopped(t_out: float, z_out: np.ndarray):
-        """The ScenarioStopped of a run that left the certified set at t_out, in state z_out (the event's root)."""
-        y_out = plant.h_m(z_out[nh:])[0][0, 0]
-        at_lo = abs(y_out - d_lo) <= abs(y_out - d_hi)
-        edge = f" (stopped {EDGE_MARGIN:.1%} short of its end {d_lo if at_lo else d_hi:.6g}, where m stops being real)" if (lo_edge if at_lo else hi_edge) else ""
-        return ScenarioStopped("simulate.m_relation", f"at t = {t_out:.4g} s the output y = {y_out:.6g} leaves {set_name} = {format_box(box)}, where m is certified{edge}; "
-                           f"x = {np.round(z_out[nh:], 4).tolist()}", "a scenario whose output stays where m is certified (inverse.m_domain)")
-
-    t_eval = np.linspace(0.0, mr.t_final, int(round(mr.t_final / SAMPLE_DT)) + 1)
-    try:
-        loop = compiled.m_relation_loop(model, up, u_expr)
-    except compiled.Unsupported as exc:
-        raise NumericalError("simulate.m_relation", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
-    res = loop.run(z0, (0.0, mr.t_final), t_eval, edges=[d_lo, lo_margin, d_hi, hi_margin] if bounded else None,
-                   rtol=M_RELATION_TOL["rtol"], atol=M_RELATION_TOL["atol"])
-    if res.left is not None:
-        raise stopped(*res.left)
-    t, xi, x, u, v, psi, y, m_x = res.t, res.xi, res.x, res.u, res.v, res.psi, res.y, res.m
-    e = psi - y
-    err = float(np.linalg.norm(e, axis=0).max())
-    invariance = float(np.abs(m_x - xi).max())
-    values = {
-        "m_relation/t": t, "m_relation/xi": xi, "m_relation/x": x, "m_relation/u": u, "m_relation/v": v,
-        "m_relation/psi": psi, "m_relation/y": y, "m_relation/e_y": e, "m_relation/xi0": xi0,
-        "m_relation/max_abs_error": err, "m_relation/invariance_residual": invariance,
-        "m_relation/u_min": float(u.min()), "m_relation/u_max": float(u.max()), "m_relation/compiled": getattr(loop, "compiled", True),
-    }
-    checks = {"m_relation_outputs_match": Check(err, err < M_RELATION_TOL_ABS, f"max |psi - y| over the run (< {M_RELATION_TOL_ABS:g}: Theorem 3)")}
-    return values, checks
-
-
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Run the spec's tracking and m-relation scenarios.
 
@@ -650,7 +590,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         raise DesignError("simulate", "the spec has no scenario", "simulate.tracking and/or simulate.m_relation")
     plant = DesignTerms(model, upstream)
     art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL,
-                                      "sample_dt": SAMPLE_DT, "interface_q": model.spec.interface.q,
+                                      "sample_dt": max(sample_dt(getattr(sim, k).t_final) for k in ("tracking", "m_relation") if getattr(sim, k) is not None),
+                                      "interface_q": model.spec.interface.q,
                                       "saturate": model.spec.interface.saturate})
     scenarios = [(name, runner) for name, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)) if getattr(sim, name) is not None]
     for scenario, runner in scenarios:

@@ -196,6 +196,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     st = model.spec.stabilisability
     J = sparse_jacobian(model.f, model.x)
     candidates, A_sym, b_sym = polytopes(model, J)
+    if st.feedback == "linear_gain" and not model.affine:
+        raise DesignError("stabilisability.feedback", "linear_gain needs an input-affine plant with a constant g, and concrete.f is not affine in the inputs",
+                          "feedback identity (k(x, z, u) = u: the interface applies l(xi))", check="lmi_margin")
     if st.feedback == "linear_gain" and any(e.free_symbols & set(model.x) for e in model.g):
         raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g (the closed loop's g(z) K would vary with the state)",
                           "g independent of x, or feedback identity", check="lmi_margin")
