@@ -4,7 +4,7 @@ never each other's modules."""
 
 from __future__ import annotations
 
-import cvxpy as cp
+from ashc_cli.design.solvers import cp
 import numpy as np
 import scipy.optimize as sopt
 import sympy as sp

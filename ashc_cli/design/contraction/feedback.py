@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-import cvxpy as cp
+from ashc_cli.design.solvers import cp
 import numpy as np
 
 from ashc_cli.errors import NumericalError

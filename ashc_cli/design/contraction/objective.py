@@ -17,7 +17,7 @@ and 1209 on a 60-state chain.
 
 from __future__ import annotations
 
-import cvxpy as cp
+from ashc_cli.design.solvers import cp
 import numpy as np
 
 from ashc_cli.errors import NumericalError

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import itertools
 
-import cvxpy as cp
+from ashc_cli.design.solvers import cp
 import numpy as np
 import scipy.linalg as sla
 
