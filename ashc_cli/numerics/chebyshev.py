@@ -213,10 +213,9 @@ def to_sympy(coeffs: np.ndarray, box: np.ndarray, symbols) -> sp.Matrix:
     scaled = _scaled_symbols(box, symbols)
     rows = []
     for power in _chopped(power_coefficients(coeffs)):
-        expr = sp.Integer(0)
-        for index in itertools.product(range(degree + 1), repeat=d):
-            if power[index] != 0:
-                expr += sp.Float(power[index]) * sp.Mul(*[s**k for s, k in zip(scaled, index)])
+        # one Add of all the terms (adding them one by one re-sorted the sum each time: minutes for 2-D degree 20)
+        expr = sp.Add(*[sp.Float(power[index]) * sp.Mul(*[s**k for s, k in zip(scaled, index)])
+                        for index in itertools.product(range(degree + 1), repeat=d) if power[index] != 0])
         # Kept in the scaled variables at high degree (expanding about 0 would lose digits); expanded and
         # chopped at low degree, so an exact polynomial solution reads as one (p = [xi, xi**2]).
         rows.append(_chop(sp.expand(expr)) if degree <= EXPAND_MAX_DEGREE else expr)

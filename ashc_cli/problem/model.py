@@ -668,7 +668,7 @@ def build_model(spec: Spec) -> Model:
     if c.disturbances:
         w = sp.Matrix([state_symbol(s) for s in c.disturbances])
         e = _matrix(c.e, names, "concrete.e", (n, len(w)))
-        _check_free(e, pset | set(x), "concrete.e", "the concrete states and parameters")
+        _check_free(e, pset | set(x), "concrete.e", "the concrete states")
         W = np.array(c.disturbance_bounds, dtype=float)
     phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1))
     l = _matrix(a.l, names, "abstract.l", (m, 1))
