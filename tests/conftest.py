@@ -76,3 +76,39 @@ def cli_run(tmp_path_factory):
     design = ashc("design", str(CUK), "--out", str(out), check=True)
     simulate = ashc("simulate", str(CUK), "--out", str(out), check=True)
     return {"out": out, "design": design, "simulate": simulate}
+
+
+# A plant that is not input-affine (the paper's Remark 4), written fresh: the input enters through tanh.  On the manifold
+# x1 = x2 = s with 0.8 s + s^3 / 3 = tanh(xi), so kappa(xi) = s and m(x) = atanh(0.8 x1 + x1^3 / 3) exactly.
+TANH_INPUT = """
+name: tanh_input
+parameters: {a: 1.0}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]
+  h: [x1]
+  input_bounds: [[-0.8, 0.8]]
+  output_set: [[-0.4, 0.4]]
+  state_box: [[-2, 2], [-2, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.7, 0.7]]
+  pde_tolerance: 1.0e-10
+simulate:
+  tracking:
+    t_final: 16.0
+    xi0: [0.0]
+    x0: on_manifold
+    reference_levels: [0.2, -0.25]
+    dwell: 8.0
+    abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.15}
+  m_relation:
+    x0: [0.05, -0.1]
+    u: ["0.5*sin(t)"]
+    t_final: 8.0
+"""

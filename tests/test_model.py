@@ -8,7 +8,7 @@ from ashc_cli.errors import SpecError
 from ashc_cli.problem.model import build_model, lambdify
 from ashc_cli.problem.spec import load_spec, parse_spec_text
 
-from .conftest import CUK
+from .conftest import CUK, TANH_INPUT
 
 
 def test_cuk_model_shapes_and_C():
@@ -53,28 +53,6 @@ def test_cse_skipped_only_for_long_lists_of_small_expressions():
     assert np.allclose(f(*np.arange(100.0)), [i - 2 * (i + 1) for i in range(99)])
 
 
-# A plant written whole as x' = f(x, u) (concrete.f): the input in tanh, not affine.
-TANH_INPUT = """
-name: tanh_input
-parameters: {a: 1.0}
-concrete:
-  states: [x1, x2]
-  inputs: [u]
-  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]
-  h: [x1]
-  input_bounds: [[-0.8, 0.8]]
-  output_set: [[-0.4, 0.4]]
-  state_box: [[-2, 2], [-2, 2]]
-stabilisability: {method: polytopic_lmi, decay_rate: maximise}
-abstract:
-  states: [xi]
-  inputs: [v]
-  phi_bar: ["0"]
-  l: ["xi"]
-  domain: [[-0.7, 0.7]]
-"""
-
-
 def test_a_plant_written_as_f_of_x_and_u_is_kept_whole_and_designed_with_q_zero():
     spec = parse_spec_text(TANH_INPUT)
     assert spec.interface.q == "zero"                      # the default for concrete.f: q = least_squares needs g
@@ -101,7 +79,7 @@ def test_an_f_affine_in_u_is_split_into_f_bar_and_g():
     (('  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n', '  f_bar: ["-a*x1", "-x2"]\n'), r"concrete\.g: is missing; expected f_bar and g"),
     (('  f: ["-a*x1 + x2", "-x2 - x2**3/3 + tanh(u) + 0.2*x1"]\n', '  f: ["-a*x1 + x2"]\n'), r"concrete\.f: has 1 entries; expected 2"),
     (("tanh(u)", "tanh(xi)"), r"concrete\.f\[1\]: uses xi"),
-    (("  domain: [[-0.7, 0.7]]\n", "  domain: [[-0.7, 0.7]]\ninterface: {q: least_squares}\n"), r"interface\.q: least_squares needs g\(x\)"),
+    (("simulate:\n", "interface: {q: least_squares}\nsimulate:\n"), r"interface\.q: least_squares needs g\(x\)"),
 ])
 def test_a_plant_written_as_f_is_refused_with_the_field_named(edit, message):
     with pytest.raises(SpecError, match=message):

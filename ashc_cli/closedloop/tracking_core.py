@@ -23,6 +23,18 @@ OPTIONS = dict(cache=True, error_model='numpy')
 
 
 @njit(inline="always", **OPTIONS)
+def _joined(x, u, extra):
+    """[x, u] in a fresh array with ``extra`` entries after them (the kernels' state)."""
+    N, M = x.size, u.size
+    xu = np.empty(N + M + extra)
+    for i in range(N):
+        xu[i] = x[i]
+    for j in range(M):
+        xu[N + j] = u[j]
+    return xu
+
+
+@njit(inline="always", **OPTIONS)
 def x_terms_at(eval_x, N, M, x, u, s, fb, g, h):
     """eval_x at (x, u) with the run's constant disturbance on (s = 1) or off (s = 0): the kernel's state is [x, u, s]
     and its fb is f_bar(x) + s e(x) w0 (f(x, u) + s e(x) w0 for a plant written as f(x, u), with g = 0).
@@ -38,11 +50,7 @@ def x_terms_at(eval_x, N, M, x, u, s, fb, g, h):
     fb, g, h : float arrays (n,), (n, m), (p,)
         Written.
     """
-    xu = np.empty(N + M + 1)
-    for i in range(N):
-        xu[i] = x[i]
-    for j in range(M):
-        xu[N + j] = u[j]
+    xu = _joined(x, u, 1)
     xu[N + M] = s
     eval_x(xu, fb, g, h)
 
@@ -79,13 +87,7 @@ def link_terms(eval_link, dims, x, u, b, c, mx):
     b, c, mx : float arrays (m_hat,), (m_hat, m), (n_hat,)
         Written.
     """
-    N, M = dims[1], dims[2]
-    xu = np.empty(N + M)
-    for i in range(N):
-        xu[i] = x[i]
-    for j in range(M):
-        xu[N + j] = u[j]
-    eval_link(xu, b, c, mx)
+    eval_link(_joined(x, u, 0), b, c, mx)
 
 
 @njit(**OPTIONS)
