@@ -566,7 +566,9 @@ def test_a_plant_not_input_affine_gets_p_kappa_m_of_its_equilibria(tanh_input):
     m = model.numeric(tanh_input["inverse"].expr("m"), list(model.x))(y, 0 * y)[0, 0]
     assert np.abs(m - np.arctanh(0.8 * y + y**3 / 3)).max() < 1e-9
     # Remark 4: condition (B) by Proposition 1 with q = 0; the m-relation link v = b(x, u) solves eq. (20) exactly.
-    assert tanh_input["bound"].checks["condition_B"].passed and tanh_input["bound"].values["dbar_ls"] == tanh_input["bound"].values["dbar_q0"]
+    # q = 0 makes the least-squares sup the q = 0 sup on the same samples; dbar_q0 is the larger of that and its proved bound.
+    bound_values = tanh_input["bound"].values
+    assert tanh_input["bound"].checks["condition_B"].passed and bound_values["dbar_ls"] == bound_values["dbar_q0_sampled"] <= bound_values["dbar_q0"]
     assert tanh_input["delta"].checks["m_relation_link"].evidence == "proved"
     assert tanh_input["delta"].meta["link_form"].startswith("v = b(x, u)") and list(tanh_input["delta"].exprs["c"]) == [0]
 
