@@ -164,7 +164,7 @@ def numeric_inverse(kappa_fn, xs: np.ndarray, y_grid: np.ndarray, y: sp.Symbol, 
     m = chebyshev.fit_adaptive(sample, (float(y_grid.min()), float(y_grid.max())), accept, breaks=y_breaks)
     residual = float(np.abs(m.at(y_grid[None, :])[0, 0] - xs).max())
     how = f"{len(m.pieces)} pieces of degree <= {m.degree}" if isinstance(m, chebyshev.PiecewiseSeries) else f"degree {m.degree}"
-    formula = m.to_sympy([y])[0] if m.horner else chebyshev.to_sympy(m.coeffs, m.box, [y])[0]
+    formula = m.to_sympy([y])[0] if m.kept_numeric else chebyshev.to_sympy(m.coeffs, m.box, [y])[0]
     return formula, residual, how
 
 
@@ -302,7 +302,8 @@ def inverse_on_box(kappa_fn, dkappa_fn, xi_grid: np.ndarray, kappa_grid: np.ndar
     Returns
     -------
     dict
-        m_of_y (sympy Matrix (n_hat, 1)), degree, error (max deviation of the formula from the Newton solutions on
+        m_of_y (sympy Matrix (n_hat, 1)), series (the Chebyshev series it is the formula of), dm_dy (n_hat, p: the formula of the series' own derivative, so that a
+        clipped cosine form is never differentiated), degree, error (max deviation of the formula from the Newton solutions on
         the check grid), check_points, check_xi (the solutions there, (n_hat, k)) and excursion (largest distance
         of a solution outside V, <= 0 inside).
 
@@ -339,12 +340,14 @@ def inverse_on_box(kappa_fn, dkappa_fn, xi_grid: np.ndarray, kappa_grid: np.ndar
         if series_error > LEFT_INVERSE_TOL / 100:
             best = min(best, (series_error, degree), key=lambda b: b[0])
             continue
-        m_of_y = chebyshev.to_sympy(coeffs, Y, ys)
+        series = chebyshev.Series.column(coeffs, Y)
+        # The series' own formula: the cosine form at a high degree (a power basis lost the digits), expanded at a low one.
+        m_of_y = series.to_sympy(ys)
         formula = np.broadcast_to(lambdify(m_of_y, ys)(*check_y)[:, 0, :], check_xi.shape)
         error = float(np.abs(formula - check_xi).max())
         if error <= LEFT_INVERSE_TOL / 100:
-            return {"m_of_y": m_of_y, "degree": degree, "error": error, "check_points": check_y.shape[1], "check_xi": check_xi,
-                    "check_y": check_y, "excursion": excursion}
+            return {"m_of_y": m_of_y, "series": series, "dm_dy": series.jacobian().to_sympy(ys), "degree": degree, "error": error, "check_points": check_y.shape[1],
+                    "check_xi": check_xi, "check_y": check_y, "excursion": excursion}
         best = min(best, (error, degree), key=lambda b: b[0])
     raise FitError(tuple(map(tuple, Y.tolist())), best[0], f"degree {max_degree} per axis is not enough (best {best[0]:.3g} at degree {best[1]})")
 

@@ -41,7 +41,7 @@ import numpy as np
 import scipy.optimize as sopt
 import sympy as sp
 
-from ashc_cli.numerics import proofs
+from ashc_cli.numerics import chebyshev, proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.design.bound_proofs import jacobian_norm_expr, prove_alpha_h, prove_sup_norm  # noqa: F401 (jacobian_norm_expr: bound's API)
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
@@ -260,14 +260,16 @@ def _prove_pattern_dbar(model: Model, M: np.ndarray, g: np.ndarray, dp_delta: sp
 
 
 def _prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, dbar: float, eta_eps: float,
-                 p_expr: sp.Matrix | None, dp_delta: sp.Matrix | None) -> tuple[float, float] | None:
+                 p_expr: sp.Matrix | None, dp_delta: sp.Matrix | None, p_range: np.ndarray | None = None) -> tuple[float, float] | None:
     """Proved lower bounds of the certified region's c and v_c (:func:`certified_region`), or None where not proved.
 
     Each limit of :func:`certified_region` is bounded in ball arithmetic over V: the room of l_i in U_i by
     branch and bound (inf over V of l_i - lo_i and hi_i - l_i), K_i M^-1 K_i^T with M^-1 enclosed (arb), the
     least-squares q for a constant dp/dxi delta and g (or q = 0); the distance of p(xi) to the state box by
     branch and bound on p's formula, and (M^-1)_jj enclosed.  c is the smallest of those lower bounds and
-    v_c = sqrt(c eps (lambda - eps)) / dbar is rounded down.
+    v_c = sqrt(c eps (lambda - eps)) / dbar is rounded down.  ``p_range`` (n, 2), where given, is a proved
+    enclosure of p(V) used instead of that branch and bound (a series in several abstract states: from its
+    coefficients, where a box search on its cosine form took minutes).
     """
     if model.n > proofs.MAX_PROOF_STATES:
         return None
@@ -305,14 +307,17 @@ def _prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, db
                     bounds.append(proofs.arb(room) / proofs.arb(proofs.upper(denom)))
         box_used = "state_box" in stab.meta or model.C is None
         if box_used and model.state_box is not None:
-            if p_expr is None:
+            if p_expr is None and p_range is None:
                 return None
-            pf = proofs.compile_claims(model, _rooms(p_expr, model.state_box), list(model.xi))
+            pf = proofs.compile_claims(model, _rooms(p_expr, model.state_box), list(model.xi)) if p_range is None else None
             for j in range(model.n):
-                d_lo, ok_lo = proofs.inf_on_box(pf, model.V, index=2 * j)
-                d_hi, ok_hi = proofs.inf_on_box(pf, model.V, index=2 * j + 1)
-                if not (ok_lo and ok_hi):
-                    return None
+                if p_range is not None:   # outward-rounded ends: the distance is rounded down
+                    d_lo, d_hi = np.nextafter(p_range[j, 0] - model.state_box[j, 0], -np.inf), np.nextafter(model.state_box[j, 1] - p_range[j, 1], -np.inf)
+                else:
+                    d_lo, ok_lo = proofs.inf_on_box(pf, model.V, index=2 * j)
+                    d_hi, ok_hi = proofs.inf_on_box(pf, model.V, index=2 * j + 1)
+                    if not (ok_lo and ok_hi):
+                        return None
                 dist = max(0.0, min(d_lo, d_hi))
                 bounds.append(proofs.arb(dist) / Minv[j, j].sqrt())
     except proofs.interval.UnsupportedExpression:
@@ -577,7 +582,9 @@ def _region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, L: np.nd
     region = {"w0_max_sampled": w0_max, "v_max_sampled": v_max, "limits": limits,
               "evidence": db["evidence"] if not np.isfinite(w0_max) else SAMPLED}
     if np.isfinite(w0_max):
-        proved_region = _prove_region(model, upstream, M, db["dbar"], (lam - eps) * eps, th["p_expr"], th["dp_delta"])
+        series = upstream["manifold"].series.get("p")
+        p_range = series.range_bound() if isinstance(series, chebyshev.Series) and len(series.box) > 1 else None
+        proved_region = _prove_region(model, upstream, M, db["dbar"], (lam - eps) * eps, th["p_expr"], th["dp_delta"], p_range)
         if proved_region is not None and proved_region[0] > 0:
             w0_max, v_max = min(w0_max, proved_region[0]), min(v_max, proved_region[1])
             region["evidence"] = db["evidence"]

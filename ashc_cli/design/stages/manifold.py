@@ -425,7 +425,7 @@ def _solve(model: Model, plant: ManifoldPlant):
     found_V = model.V
     series = None
     if isinstance(p, (chebyshev.Series, chebyshev.PiecewiseSeries)):
-        if p.horner:
+        if p.kept_numeric:
             series = p
         else:   # a low degree: the expanded, chopped polynomial (an exact solution reads as one) is p
             p = p.to_sympy(list(model.xi))
