@@ -514,7 +514,8 @@ def _on_grid(model: Model, plant: ManifoldPlant, p, series, V: np.ndarray, toler
         formula_residual, formula_scale = _grid_residual(plant, p_formula, dp_series.formula_at(grid), phi_grid, l_grid)
         residual, scale = max(residual, formula_residual), max(scale, formula_scale)
     if not np.isfinite(residual) or residual > tolerance * scale:
-        raise NumericalError(NAME, f"residual of eq. (14a) on V is {residual:.3g} (scale {scale:.3g})", f"below {tolerance:g} relative")
+        raise NumericalError(NAME, f"residual of eq. (14a) on V is {residual:.3g} (scale {scale:.3g})",
+                             f"below {tolerance:g} relative: a smaller abstract.domain, a larger abstract.pde_tolerance, or abstract.p written by hand (checked, not trusted)")
     on.update(p_grid=p_grid, dp_grid=dp_grid, residual=residual, scale=scale)
     return on
 
