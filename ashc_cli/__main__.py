@@ -1,3 +1,5 @@
-from ashc_cli.cli import main
+"""``python -m ashc_cli``: the same as ``ashc``."""
+
+from ashc_cli.console import main
 
 main()

@@ -27,7 +27,11 @@ __all__ = [
     "FitError",
     "CoverError",
     "EXIT_CODES",
+    "INTERRUPTED",
 ]
+
+#: The line printed on Ctrl-C, by the console script (while the libraries load) and by the CLI's guard (exit 130).
+INTERRUPTED = "error: interrupted; artefacts written before the interruption are intact"
 
 
 class AshcError(Exception):

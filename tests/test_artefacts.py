@@ -122,3 +122,16 @@ def test_a_piecewise_series_is_stored_and_read_back_exactly(tmp_path):
     assert isinstance(back, chebyshev.PiecewiseSeries) and np.array_equal(back.breaks, s.breaks)
     z = np.linspace(-0.5, 3, 71)
     assert np.array_equal(back(z), s(z))
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_an_artefact_gets_the_mode_the_users_umask_gives(tmp_path, umask, mode):
+    import os
+    import stat
+
+    old = os.umask(umask)
+    try:
+        write(tmp_path / "a.h5", Artefact(stage="stabilise"))
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.h5").stat().st_mode) == mode   # not mkstemp's 0600

@@ -322,3 +322,28 @@ def test_a_reader_that_goes_away_is_no_internal_error(tmp_path):
     ashc("design", str(SPECS / "cuk_converter.yaml"), "--out", str(tmp_path), check=True)
     proc = subprocess.run(f"{sys.executable} -m ashc_cli.cli summary {tmp_path} | head -c 10", shell=True, capture_output=True, text=True, timeout=120)
     assert "internal" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_bare_ashc_prints_the_help_and_version_flags_print_the_version():
+    from ashc_cli import __version__
+
+    bare = ashc()
+    assert bare.returncode == 0 and bare.stdout.startswith("Usage: ashc") and "Commands:" in bare.stdout
+    for flag in ("--version", "-V"):
+        proc = ashc(flag)
+        assert proc.returncode == 0 and proc.stdout == f"ashc {__version__}\n"
+    assert "--install-completion" in ashc("--help").stdout    # typer's shell completion
+
+
+def test_ctrl_c_while_the_libraries_load_is_one_line_and_exit_130():
+    import signal
+    import time
+
+    exe = Path(sys.executable).with_name("ashc")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ashc_cli"]
+    # 0.1 s in: still importing sympy, scipy and the stages (the whole import takes over a second)
+    proc = subprocess.Popen(cmd + ["summary", "nowhere"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err == "error: interrupted; artefacts written before the interruption are intact\n" and out == ""

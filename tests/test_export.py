@@ -538,6 +538,10 @@ def test_cli_export_and_eval_u_w_agree(cli_run, tmp_path):
     assert proc.returncode == 0, proc.stderr
     files = json.loads(proc.stdout)["files"]
     assert [Path(f).name for f in files] == ["cuk.c", "cuk.h"]
+    # without --output the code goes beside the design's artefacts (not into the folder ashc was run from)
+    default = ashc("export", str(CUK), "--out", str(out), "--lang", "python", "--frozen", "--json")
+    assert default.returncode == 0, default.stderr
+    assert json.loads(default.stdout)["files"] == [str(out / "cuk_converter_design.py")] and (out / "cuk_converter_design.py").exists()
     lib = CDesign(Path(files[0]), (4, 1, 1, 1, 1))
     rng = np.random.default_rng(3)
     for _ in range(5):

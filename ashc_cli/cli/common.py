@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from ashc_cli.errors import AshcError, SpecError
+from ashc_cli.errors import INTERRUPTED, AshcError, SpecError
 from ashc_cli.products.falsify import NAME as FALSIFY, SEGMENTS
 from ashc_cli.design.pipeline import Folder, StageReport, artefact_path, default_out, run
 from ashc_cli.outputs.query import no_negative_zero, number_text
@@ -34,13 +34,29 @@ app = typer.Typer(
         "Exit codes: 0 done; 2 bad spec or argument; 3 a design condition fails; 4 numerical failure; "
         "5 artefact problem; 1 internal error. Add --debug anywhere for a traceback."
     ),
-    add_completion=False,
-    no_args_is_help=True,
+    add_completion=True,
     pretty_exceptions_enable=False,
     rich_markup_mode=None,
 )
 
 _DEBUG = False
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from ashc_cli import __version__
+
+        typer.echo(f"ashc {__version__}")
+        raise typer.Exit(0)
+
+
+@app.callback(invoke_without_command=True)
+def _root(ctx: typer.Context,
+          version: Annotated[bool, typer.Option("--version", "-V", help="Print the ashc version and exit.", callback=_print_version, is_eager=True)] = False) -> None:
+    """Bare ``ashc`` prints the help and exits 0."""
+    if ctx.invoked_subcommand is None:
+        typer.echo(ctx.get_help())
+        raise typer.Exit(0)
 
 SpecArg = Annotated[Path, typer.Argument(metavar="SPEC", help="The YAML spec (see docs/spec-format.md).", show_default=False)]
 OutOpt = Annotated[Path | None, typer.Option("--out", help="Artefact folder [default: outputs/<spec name>].", show_default=False)]
@@ -97,7 +113,7 @@ def guard(fn):
             typer.echo(f"error: {exc.line()}", err=True)
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
-            typer.echo("error: interrupted; artefacts written before the interruption are intact", err=True)
+            typer.echo(INTERRUPTED, err=True)
             raise typer.Exit(130) from None
         except BrokenPipeError:
             # The reader went away (`ashc summary out | head`): nothing more to say to it, and no error of ashc's.

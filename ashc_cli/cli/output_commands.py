@@ -84,7 +84,8 @@ def eval_command(
 @guard
 def export_command(
     spec: SpecArg,
-    output: Annotated[Path, typer.Option("--output", help="The file to write: FILE.c (its header FILE.h is written beside it) for --lang c, FILE.py for --lang python.", show_default=False)],
+    output: Annotated[Path | None, typer.Option("--output", help="The file to write: FILE.c (its header FILE.h is written beside it) for --lang c, FILE.py for --lang python "
+                                                  "[default: <spec name>_design.c or .py in the design's folder, beside its artefacts].", show_default=False)] = None,
     lang: Annotated[str, typer.Option("--lang", help="c: one self-contained C99 file and its header (math.h only, no allocation); python: one module needing only numpy.")] = "c",
     out: OutOpt = None,
     force: ForceOpt = False,
@@ -103,9 +104,12 @@ def export_command(
     from ashc_cli.outputs.export import check_target, write_export
 
     exclusive(force, frozen, "export")
-    lang, output = check_target(lang, output)   # before any stage runs
+    given = output is not None
+    lang, output = check_target(lang, output if given else Path("design.c" if lang.lower() == "c" else "design.py"))   # before any stage runs
     with Progress() as progress:
         spec_obj, folder, arts = run_targets(spec, out, DESIGN, force, progress, frozen=DESIGN if frozen else False)
+    if not given:   # beside the artefacts, not in whatever folder the command was run from
+        _, output = check_target(lang, folder.path / f"{spec_obj.name}_design{output.suffix}")
     paths = write_export(spec_obj, arts, lang, output)
     if as_json:
         emit_json({"spec": spec_obj.name, "lang": lang, "files": [str(p) for p in paths]})

@@ -230,6 +230,20 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def _user_mode() -> int:
+    """The mode a file created by the user gets: 0666 less their umask (read without changing it, from /proc where it
+    is there; os.umask must set it to read it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, parameters: dict[str, float],
                    upstream: dict[str, str], names: dict[str, list[str]] | None = None) -> str:
     """Write an artefact atomically and return the new file's SHA-256.
@@ -262,6 +276,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
                   "upstream": upstream, "names": names or {}, "packages": package_versions(), "created": datetime.now(UTC).isoformat(timespec="seconds"),
                   "ashc_version": __version__}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, _user_mode())   # mkstemp's 0600 would hide the artefact from the user's group
     os.close(fd)
     try:
         with h5py.File(tmp, "w") as fh:
