@@ -229,7 +229,7 @@ def test_frozen_on_every_command_that_runs_stages(cli_run, tmp_path):
         res = invoke(command, CUK, "--out", out, "--frozen")
         assert res.exit_code == 5, (command, res.stderr)
         assert res.stderr.splitlines()[-1] == ("error: delta.h5: is not up to date (no artefact yet); "
-                                               "expected rerun `ashc delta SPEC`, or drop --frozen"), command
+                                               "expected run `ashc design SPEC` first, or drop --frozen"), command
     assert not (out / "delta.h5").exists()  # nothing was recomputed
     assert invoke("kappa", CUK, "--out", out, "--frozen").exit_code == 0  # kappa does not need delta
 

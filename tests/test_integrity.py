@@ -53,7 +53,7 @@ def test_frozen_refuses_a_stale_upstream_and_names_it(paper_out, tmp_path):
     spec = load_spec(CUK_PAPER_M)
     run(spec, out, ["bound"], frozen=True)  # all up to date: fine
     (out / "manifold.h5").unlink()
-    with pytest.raises(ArtefactError, match=r"manifold.h5: is not up to date \(no artefact yet\); expected rerun `ashc manifold SPEC`"):
+    with pytest.raises(ArtefactError, match=r"manifold.h5: is not up to date \(no artefact yet\); expected run `ashc design SPEC` first"):
         run(spec, out, ["bound"], frozen=True)
     assert not (out / "manifold.h5").exists()
 

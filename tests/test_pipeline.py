@@ -87,7 +87,7 @@ def test_frozen_stages_and_force(paper_out, tmp_path):
     # A collection freezes exactly those stages, targets included: nothing is recomputed.
     run(spec, out, DESIGN, frozen=DESIGN)  # all up to date: fine
     (out / "delta.h5").unlink()
-    with pytest.raises(ArtefactError, match=r"delta.h5: is not up to date \(no artefact yet\); expected rerun `ashc delta SPEC`"):
+    with pytest.raises(ArtefactError, match=r"delta.h5: is not up to date \(no artefact yet\); expected run `ashc design SPEC` first"):
         run(spec, Folder(out), DESIGN, frozen=DESIGN)
     with pytest.raises(ArtefactError, match="delta.h5"):
         run_for_verdict(spec, Folder(out), frozen=True)

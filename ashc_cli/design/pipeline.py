@@ -375,7 +375,9 @@ def run(
         if name in fixed:
             reason = staleness(spec, folder, name)
             if reason is not None:
-                raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"rerun `ashc {name} SPEC`, or drop --frozen")
+                # a design stage is brought up to date with the rest of the design: `ashc design SPEC` is what a user runs
+                command = "design" if name in DESIGN else name
+                raise ArtefactError(f"{name}.h5", f"is not up to date ({reason})", f"run `ashc {command} SPEC` first, or drop --frozen")
         else:
             reason = "forced" if force and name not in folder.written else staleness(spec, folder, name)
         if reason is None:

@@ -165,7 +165,7 @@ class _Builder:
             raise self.fail(f"unknown name '{ident}' ({ident} is a function: call it as {ident}(...))",
                             f"one of the declared names ({known}) or pi")
         hint = _did_you_mean(ident, [*self.names, "pi"])
-        raise self.fail(f"unknown name '{ident}'", f"{hint}one of the declared names ({known}) or pi")
+        raise self.fail(f"unknown name '{ident}'{hint}", f"one of the declared names ({known}) or pi")
 
     def binop(self, op: ast.operator, left: sp.Expr, right: sp.Expr) -> sp.Expr:
         if isinstance(op, ast.Add):
@@ -191,14 +191,14 @@ class _Builder:
 
     def call(self, node: ast.Call, depth: int) -> sp.Expr:
         if not isinstance(node.func, ast.Name) or node.func.id not in self.functions:
-            what, hint = f"call of '{_describe(node.func)}' is not allowed", ""
+            what = f"call of '{_describe(node.func)}' is not allowed"
             if isinstance(node.func, ast.Name) and node.func.id in SIGNAL_FUNCTIONS:
                 what += " here (a time signal: only in simulate.m_relation.u and simulate.tracking.reference)"
             elif isinstance(node.func, ast.Name) and (node.func.id in self.names or node.func.id == "pi"):
                 what += f" ({node.func.id} is a name, not a function: write {node.func.id}*(...) for a product)"
             elif isinstance(node.func, ast.Name):
-                hint = _did_you_mean(node.func.id, self.functions)
-            raise self.fail(what, f"{hint}one of the functions " + ", ".join(self.functions))
+                what += _did_you_mean(node.func.id, self.functions)
+            raise self.fail(what, "one of the functions " + ", ".join(self.functions))
         if node.keywords:
             raise self.fail(f"keyword arguments in a call of {node.func.id} are not allowed", "positional arguments")
         func, arity = self.functions[node.func.id]
@@ -227,14 +227,14 @@ def _did_you_mean(word: str, candidates) -> str:
     Returns
     -------
     str
-        ``"did you mean 'x1'? "`` for the candidate equal to ``word`` but for case, else the closest one
+        ``" (did you mean 'x1'?)"``, to follow the unknown name, for the candidate equal to ``word`` but for case, else the closest one
         (:func:`difflib.get_close_matches`); ``""`` if none is close.
     """
     candidates = list(candidates)
     folded = [c for c in candidates if c.lower() == word.lower()]
     close = folded or difflib.get_close_matches(word, candidates, n=1) or difflib.get_close_matches(
         word.lower(), candidates, n=1)
-    return f"did you mean '{close[0]}'? " if close else ""
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def _natural(name: str) -> list:

@@ -533,8 +533,8 @@ def _validation_to_spec_error(exc: ValidationError) -> SpecError:
         model = _model_at(parent, branch)
         valid = sorted(model.model_fields) if model else []
         close = difflib.get_close_matches(key, valid, n=1)
-        hint = f"did you mean '{close[0]}'? valid keys: {', '.join(valid)}" if close else f"one of: {', '.join(valid)}"
-        return SpecError(_path(parent + (key,)), f"unknown key {_short(key)}", hint)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        return SpecError(_path(parent + (key,)), f"unknown key {_short(key)}{hint}", f"one of the keys {', '.join(valid)}")
     loc = tuple(p for p in err["loc"] if isinstance(p, int) or (_FIELD.match(p) and p not in _TAGS and p not in _UNION_TAGS))
     where = _path(loc)
     if kind == "missing":
