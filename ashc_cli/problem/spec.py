@@ -548,8 +548,20 @@ def _validation_to_spec_error(exc: ValidationError) -> SpecError:
         return SpecError(f"{where}.{key}" if kind == "union_tag_invalid" else where,
                          f"{shown} is not one of the kinds" if kind == "union_tag_invalid" else f"{shown} given (got {_short(value)})",
                          f"{key}: {' or '.join(t.strip() for t in tags.split(','))}" if tags else f"a {key}")
-    msg = err["msg"].replace("Value error, ", "")
-    return SpecError(where, f"{msg} (got {_short(value)})", _expected_for(kind, err))
+    return SpecError(where, f"{_plain_message(kind, err)} (got {_short(value)})", _expected_for(kind, err))
+
+
+def _plain_message(kind: str, err: dict) -> str:
+    """pydantic's message for an error, in the spec's words (no "after validation", no regular expressions)."""
+    ctx = err.get("ctx") or {}
+    if kind in ("too_short", "too_long") and "actual_length" in ctx:
+        count = ctx["actual_length"]
+        return f"has {count} item{'s' if count != 1 else ''}"
+    if kind == "string_pattern_mismatch":
+        return "is not a name of letters, digits, '_', '.' and '-' starting with a letter or digit"
+    if kind == "string_too_long":
+        return f"is longer than {ctx.get('max_length')} characters"
+    return err["msg"].replace("Value error, ", "")
 
 
 def _expected_for(kind: str, err: dict) -> str:
@@ -559,7 +571,14 @@ def _expected_for(kind: str, err: dict) -> str:
     if kind == BOUNDS_MAP_ERROR:
         return ctx["expected"]
     if kind in ("too_short", "too_long"):
-        return "a pair [lo, hi]" if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 else "the right number of items"
+        if ctx.get("field_type") == "List" and ctx.get("min_length") == 2 and ctx.get("max_length", 2) == 2:
+            return "a pair [lo, hi]"
+        least, most = ctx.get("min_length"), ctx.get("max_length")
+        return f"at least {least} item(s)" if kind == "too_short" and least is not None else f"at most {most} item(s)" if most is not None else "the right number of items"
+    if kind == "string_pattern_mismatch":
+        return "a name such as cuk_converter"
+    if kind == "string_too_long":
+        return f"at most {ctx.get('max_length')} characters"
     if kind.startswith("finite") or "nan" in kind:
         return "a finite number"
     if kind.startswith("greater_than_equal"):
