@@ -191,3 +191,17 @@ def test_readme_tour_shows_the_real_output(tmp_path):
     check = ashc("check", str(CUK), "--out", str(out), check=True).stdout
     assert check in blocks, "README's `ashc check` block differs from the real output"
     assert design.strip().replace(str(out), "outputs/cuk_converter") + "\n" in blocks, "README's `ashc design` line differs"
+
+
+def test_readme_states_the_suite_size_that_is_collected():
+    import subprocess
+    import sys
+
+    def collected(*extra: str) -> int:
+        proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", *extra],
+                              capture_output=True, text=True, cwd=ROOT, timeout=300)
+        return int(re.search(r"(\d+)(?:/\d+)? tests? (?:collected|selected)", proc.stdout).group(1))
+
+    text = (ROOT / "README.md").read_text()
+    assert int(re.search(r"the whole suite \((\d+) tests\)", text).group(1)) == collected()
+    assert int(re.search(r"leaves out the (\d+) tests marked", text).group(1)) == collected("-m", "slow")
