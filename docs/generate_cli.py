@@ -114,7 +114,8 @@ def _contract(group) -> list[str]:
         "```",
         "",
         "**Output streams.** Results go to stdout; errors go to stderr. Each stage prints one progress line, "
-        "`<stage> <status> <seconds> s  <headline>` with status `ran` or `up to date`. It goes to stderr for "
+        "`<stage> <status> <seconds> s  <headline>` with status `ran` or `up to date` (an `up to date` line once per "
+        "command, though `report` consults the design three times). It goes to stderr for "
         "every command (stdout carries only results: a summary line or table, JSON, file paths; a stage command "
         "prints its artefact's path); when stderr is a terminal a live display (spinner, or a bar with runs/s for "
         "`falsify`) shows while a step runs and is erased after. "

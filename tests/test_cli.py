@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.cli import Progress, app, plain_text
 
-from .conftest import CUK, CUK_PAPER_M, ROOT, ashc
+from .conftest import CUK, CUK_PAPER_M, ROOT, ashc, edited
 
 SUMMARY_KEYS = {
     "stabilise": ["lambda", "M", "lmi_margin"],
@@ -287,7 +287,7 @@ def test_negative_zero_prints_as_zero(cli_run):
     out = cli_run["out"]
     assert ashc("eval", str(out), "kappa", "--at", "xi=-0", check=True).stdout == "kappa(xi=0) = [0]\n"
     text = ashc("summary", str(out), check=True).stdout
-    assert "range_on_V = [[-126.1875" in text and not NEGATIVE_ZERO.search(text)
+    assert "range_on_V = [[-126.19, 0]]" in text and not NEGATIVE_ZERO.search(text)   # 5 significant digits for people
     data = ashc("summary", str(out), "--json", check=True).stdout
     assert not re.search(r"-0\.0(?!\d)", data)
     kappa_line = next(line for line in cli_run["design"].stderr.splitlines() if line.startswith("kappa"))
@@ -347,3 +347,65 @@ def test_ctrl_c_while_the_libraries_load_is_one_line_and_exit_130():
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err == "error: interrupted; artefacts written before the interruption are intact\n" and out == ""
+
+
+# --- the first hour: a quick command line, counts that agree, stale scenarios named, evidence kept ---------
+
+
+def test_the_command_line_loads_no_design_machinery_until_a_command_needs_it():
+    """`ashc --help`, `--version` and an error in the arguments must return at once: importing the command line
+    pulls in typer and numpy, never sympy, scipy, cvxpy, numba, h5py or matplotlib (about a second, 200 MB)."""
+    code = ("import sys, ashc_cli.cli; "
+            "print(sorted(m for m in ('sympy', 'scipy', 'cvxpy', 'numba', 'h5py', 'matplotlib', 'pydantic') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert proc.stdout.strip() == "[]", proc.stdout
+
+
+def test_the_light_names_of_the_command_line_are_the_pipelines():
+    from ashc_cli.cli import common
+    from ashc_cli.design.pipeline import STAGES
+    from ashc_cli.outputs.query import EVALUABLE
+    from ashc_cli.products import falsify
+
+    assert list(common.STAGE_HELP) == list(STAGES)
+    assert common.EVALUABLE_NAMES == tuple(EVALUABLE)
+    assert common.FALSIFY == falsify.NAME
+
+
+def test_check_names_a_simulate_artefact_of_an_earlier_design_stale(tmp_path):
+    out = tmp_path / "cuk"
+    ashc("design", str(CUK), "--out", str(out), check=True)
+    ashc("simulate", str(CUK), "--out", str(out), check=True)
+    lines = ashc("check", str(CUK), "--out", str(out), check=True).stdout.splitlines()
+    rows = [line for line in lines if line.startswith("  pass ")]
+    assert len(rows) == 15                                       # the 15 conditions of Problem 1, as design counts them
+    assert lines[-2] == (f"Simulated scenarios (`ashc simulate`; not part of the verdict): 6 of 6 checks pass "
+                         f"(`ashc summary {out}` lists them)")
+    ashc("bound", str(CUK), "--out", str(out), "--force", check=True)   # a new bound.h5: the runs were for the old one
+    lines = ashc("check", str(CUK), "--out", str(out), check=True).stdout.splitlines()
+    assert lines[-2] == (f"Simulated scenarios: {out / 'simulate.h5'} is stale (made for an earlier design (bound.h5 "
+                         "changed since)), not shown; rerun `ashc simulate SPEC`")
+    got = json.loads(ashc("check", str(CUK), "--out", str(out), "--json", check=True).stdout)
+    assert got["simulated"] == [] and got["simulated_stale"] == "made for an earlier design (bound.h5 changed since)"
+
+
+def test_report_keeps_a_larger_falsification_than_it_asks_for(tmp_path):
+    out = tmp_path / "cuk"
+    ashc("falsify", str(CUK), "--out", str(out), "--runs", "40", "--t-final", "2", check=True)
+    rep = ashc("report", str(CUK), "--out", str(out), "--runs", "8", "--t-final", "2", check=True)
+    assert "note: falsify.h5 kept: its 40 runs (seed 0, t_final 2 s) are more evidence than --runs 8" in rep.stderr
+    assert not any(line.startswith("falsify    ran") for line in rep.stderr.splitlines())
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "40 searched closed-loop runs in all" in page
+    # the headline leads with the runs started on the manifold, where the ratio tests G
+    first = ashc("falsify", str(CUK), "--out", str(out), "--runs", "40", "--t-final", "2", check=True).stdout.splitlines()[0]
+    assert first.startswith("falsify 'cuk_converter': 40 runs; started on the manifold (W0 = 0, where only G ||v||_inf counts): "
+                            "largest |psi - y| / bound = "), first
+
+
+def test_an_unknown_name_in_f_bar_is_offered_only_the_names_f_bar_may_use(tmp_path):
+    bad = edited(CUK, tmp_path, ('"x1/C_2"', '"x1/C_2 + x9"'))
+    err = ashc("check", str(bad), "--out", str(tmp_path / "o")).stderr.strip().splitlines()[-1]
+    assert err.startswith("error: concrete.f_bar[1]: unknown name 'x9'"), err
+    offered = err.split("declared names (")[1].split(")")[0].split(", ")
+    assert "x4" in offered and "E" in offered and not {"u", "v", "xi"} & set(offered), offered

@@ -205,3 +205,23 @@ def test_readme_states_the_suite_size_that_is_collected():
     text = (ROOT / "README.md").read_text()
     assert int(re.search(r"the whole suite \((\d+) tests\)", text).group(1)) == collected()
     assert int(re.search(r"leaves out the (\d+) tests marked", text).group(1)) == collected("-m", "slow")
+
+
+def test_what_users_read_cites_the_papers_numbers_not_its_labels():
+    """README, the docs (but theory.md, the one page that maps numbers to labels), the example specs, the bench
+    script and every --help (docs/cli.md is generated from them): no LaTeX label of the paper."""
+    from ashc_cli.paper import LABELS, cite
+
+    camel = re.compile(r"\b(" + "|".join(sorted((re.escape(k) for k in LABELS if re.search(r"[a-z][A-Z]", k) and ":" not in k),
+                                                key=len, reverse=True)) + r")\b")
+    read = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "outputs" / "README.md", *PAGES,
+            *sorted((ROOT / "specs").glob("*.yaml")), *sorted((ROOT / "bench").glob("*.py"))]
+    labelled = {}
+    for path in read:
+        if path.name == "theory.md":
+            continue
+        text = path.read_text(encoding="utf-8")
+        found = sorted(set(camel.findall(text)))
+        if found or cite(text) != text:
+            labelled[str(path.relative_to(ROOT))] = found
+    assert not labelled, f"LaTeX labels of the paper in {labelled}: write the paper's numbers (ashc_cli.paper.cite)"

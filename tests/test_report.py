@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -15,8 +16,9 @@ import numpy as np
 import pytest
 
 from ashc_cli.outputs import plots
+from ashc_cli.paper import LABELS
 from ashc_cli.design.pipeline import load_all
-from ashc_cli.outputs.query import summary
+from ashc_cli.outputs.query import readable, summary
 from ashc_cli.outputs.report import CSS, _figure_html, render
 from ashc_cli.problem.spec import load_spec
 from ashc_cli.design.verdict import verdict
@@ -53,18 +55,19 @@ def stored_lists(arts):
             if isinstance(v, list) and k not in ("checks", "provenance")}
 
 
-def test_every_formula_and_matrix_is_shown_in_full(cuk_page):
+def test_every_formula_in_full_and_every_number_to_five_digits(cuk_page):
     page, arts, _ = cuk_page
     assert "..." not in page and "\u2026" not in page                 # nothing cut short
     M = np.asarray(arts["stabilise"].value("M"), dtype=float)
-    for row in M.tolist():                                            # the 4 x 4 M: every row, every digit
-        assert html.escape(json.dumps(row)) in page
+    for row in M.tolist():                                            # the 4 x 4 M: every row, 5 digits each
+        assert html.escape(readable(row)) in page
+    assert "0.93585, 0.016732" in page and "0.935846241161949" not in page   # M[0, :2] for people, not 16 digits
     lists = stored_lists(arts)
     b = lists[("delta", "b")]
     assert len(b[0]) > 300                                            # the case that used to be cut at 300
     for (stage, key), value in lists.items():
         for item in value:
-            text = item if isinstance(item, str) else json.dumps(item)
+            text = item if isinstance(item, str) else readable(item)
             assert html.escape(text) in page, (stage, key)
     assert html.escape(arts["stabilise"].provenance["sha256"]) in page   # the artefact's whole hash too
 
@@ -74,7 +77,7 @@ def test_long_values_sit_in_scroll_boxes(cuk_page):
     b = stored_lists(arts)[("delta", "b")][0]
     boxes = re.findall(r'<pre class="box(?: matrix)?">(.*?)</pre>', page, flags=re.S)
     assert any(html.escape(b) in box for box in boxes)
-    assert any(html.escape(json.dumps(np.asarray(arts["stabilise"].value("M")).tolist()[0])) in box for box in boxes)
+    assert any(html.escape(readable(np.asarray(arts["stabilise"].value("M")).tolist()[0])) in box for box in boxes)
     rule = re.search(r"pre\.box \{([^}]*)\}", CSS).group(1)
     assert "overflow: auto" in rule and "max-height" in rule and "overflow-wrap: anywhere" in rule
 
@@ -103,7 +106,7 @@ def _chromium() -> str | None:
 
 #: Appended to a copy of the page (the report itself has no script): on load it writes what the browser
 #: measured into the DOM, which --dump-dom prints.
-PROBE = """<script>window.addEventListener('load', function () {
+PROBE = r"""<script>window.addEventListener('load', function () {
   var imgs = Array.prototype.slice.call(document.images);
   var root = document.documentElement;
   var r = {images: imgs.length,
@@ -111,7 +114,19 @@ PROBE = """<script>window.addEventListener('load', function () {
            scrollWidth: root.scrollWidth, clientWidth: root.clientWidth, innerWidth: window.innerWidth,
            rightmost: Math.max.apply(null, Array.prototype.map.call(document.querySelectorAll('body *'),
                                      function (e) { return e.getBoundingClientRect().right; })),
-           text: document.body.innerText};
+           text: document.body.innerText, narrow: []};
+  // every table cell (but the scroll boxes) at least as wide as its longest word: nothing broken mid-word
+  var ctx = document.createElement('canvas').getContext('2d');
+  Array.prototype.forEach.call(document.querySelectorAll('td, th'), function (c) {
+    if (c.querySelector('pre')) { return; }
+    var cs = getComputedStyle(c);
+    var inner = c.clientWidth - parseFloat(cs.paddingLeft) - parseFloat(cs.paddingRight);
+    ctx.font = (c.querySelector('b, strong, .pass, .fail') || cs.fontWeight >= 600 ? 'bold ' : '') + cs.fontSize + ' ' + cs.fontFamily;
+    c.innerText.split(/\s+/).forEach(function (w) {
+      var width = ctx.measureText(w).width;
+      if (w && width > inner + 0.5) { r.narrow.push(w + ' (' + Math.round(width) + ' px in ' + Math.round(inner) + ' px)'); }
+    });
+  });
   var p = document.createElement('pre'); p.id = 'ashc-probe'; p.textContent = JSON.stringify(r);
   document.body.appendChild(p);
 });</script>"""
@@ -119,6 +134,7 @@ PROBE = """<script>window.addEventListener('load', function () {
 
 def _browser(exe: str, tmp_path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--mute-audio",
+                           "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run",
                            f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000", *args],
                           capture_output=True, text=True, timeout=180)
 
@@ -127,6 +143,8 @@ def _browser(exe: str, tmp_path, *args: str) -> subprocess.CompletedProcess:
 def test_the_page_renders_in_chromium_without_broken_images_or_sideways_scrolling(which, request, tmp_path):
     exe = _chromium()
     if exe is None:
+        # .ci/run installs Chromium and sets ASHC_REQUIRE_BROWSER: on CI this check is never skipped.
+        assert not os.environ.get("ASHC_REQUIRE_BROWSER"), "ASHC_REQUIRE_BROWSER is set but no Chromium is on PATH"
         pytest.skip("Chromium is not installed (e.g. `apt-get install chromium`): the rendered-page check is skipped")
     path = request.getfixturevalue("cuk_page")[2] if which == "cuk" else request.getfixturevalue("two_input_page")
     page = path.read_text(encoding="utf-8")
@@ -142,6 +160,10 @@ def test_the_page_renders_in_chromium_without_broken_images_or_sideways_scrollin
     assert got["scrollWidth"] <= got["clientWidth"], got               # no horizontal scrolling at 1366 px
     assert got["rightmost"] <= got["clientWidth"] + 1, got["rightmost"]  # nothing drawn past the right edge
     assert "..." not in got["text"] and "Problem 1 solved: proved" in got["text"]
+    assert got["narrow"] == [], got["narrow"]                          # no column narrower than its longest word
+    raw = sorted(label for label in LABELS if ":" not in label and re.search(r"[a-z][A-Z]", label)
+                 and re.search(rf"\b{re.escape(label)}\b", got["text"]))
+    assert raw == [], raw                                              # the paper's numbers, never its LaTeX labels
     # and a screenshot, for a person to look at: the page's width, not blank
     shot = tmp_path / "page.png"
     proc = _browser(exe, tmp_path, f"--window-size={LAPTOP},2400", f"--screenshot={shot}", path.as_uri())

@@ -17,10 +17,30 @@ import numpy as np
 import typer
 
 from ashc_cli.errors import INTERRUPTED, AshcError, SpecError
-from ashc_cli.products.falsify import NAME as FALSIFY, SEGMENTS
-from ashc_cli.design.pipeline import Folder, StageReport, artefact_path, default_out, run
-from ashc_cli.outputs.query import no_negative_zero, number_text
-from ashc_cli.problem.spec import load_spec
+from ashc_cli.outputs.numbers import no_negative_zero, number_text
+
+# The design machinery (sympy, scipy, cvxpy, numba: about a second to import) is imported inside the commands
+# that use it, never here: `ashc --help`, `--version` and an error in the arguments return at once.
+
+#: The falsify product's name (``ashc_cli.products.falsify.NAME``; a test keeps the two equal).
+FALSIFY = "falsify"
+
+#: What `ashc eval` evaluates (the keys of ``ashc_cli.outputs.query.EVALUABLE``; a test keeps the two equal).
+EVALUABLE_NAMES = ("p", "kappa", "m", "delta", "b", "c", "theta")
+
+
+def engine():
+    """The design pipeline, imported on first use with the products registered on it (falsify, tradeoff).
+
+    Returns
+    -------
+    module
+        :mod:`ashc_cli.design.pipeline`.
+    """
+    import ashc_cli.products  # noqa: F401  (registers falsify and tradeoff with the pipeline)
+    from ashc_cli.design import pipeline
+
+    return pipeline
 
 app = typer.Typer(
     name="ashc",
@@ -175,6 +195,7 @@ class Progress:
         self.live = sys.stderr.isatty() if live is None else live
         self._display = None
         self._task = None
+        self._shown_up_to_date: set[str] = set()
 
     def __enter__(self) -> Progress:
         return self
@@ -242,11 +263,18 @@ class Progress:
 
     def on_start(self, stage: str, reason: str) -> None:
         """Called by :func:`ashc_cli.design.pipeline.run` before a stage is computed: show it while it runs."""
+        from ashc_cli.products.falsify import SEGMENTS
+
         self.start(f"{stage}: {reason}", total=SEGMENTS if stage == FALSIFY else None)
 
-    def on_stage(self, report: StageReport) -> None:
-        """Called after each stage: erase the display and print the stage line."""
+    def on_stage(self, report) -> None:
+        """Called after each stage: erase the display and print the stage line (an "up to date" line once per
+        command: ``report`` brings the design up to date for simulate, falsify and itself)."""
         self.stop()
+        if report.status == "up to date":
+            if report.stage in self._shown_up_to_date:
+                return
+            self._shown_up_to_date.add(report.stage)
         self.line(f"{report.stage:<10} {report.status:<10} {report.seconds:7.2f} s  {report.headline}")
 
 
@@ -265,8 +293,10 @@ def load(spec_path: Path, out: Path | None):
     spec : Spec
     folder : Path
     """
+    from ashc_cli.problem.spec import load_spec
+
     spec = load_spec(spec_path)
-    return spec, Path(out if out is not None else default_out(spec))
+    return spec, Path(out if out is not None else engine().default_out(spec))
 
 
 def run_targets(spec_path: Path, out: Path | None, targets, force: bool, progress: Progress, frozen=False, numeric: bool | None = None):
@@ -296,15 +326,16 @@ def run_targets(spec_path: Path, out: Path | None, targets, force: bool, progres
     arts : dict of str to Artefact
     """
     spec, path = load(spec_path, out)
-    folder = Folder(path)
+    pipeline = engine()
+    folder = pipeline.Folder(path)
     kept = []
 
-    def on_stage(report: StageReport) -> None:
+    def on_stage(report) -> None:
         if report.status != "ran":
             kept.append(report.stage)
         progress.on_stage(report)
 
-    arts = run(spec, folder, targets, force=force, frozen=frozen, on_stage=on_stage, on_start=progress.on_start, numeric=numeric)
+    arts = pipeline.run(spec, folder, targets, force=force, frozen=frozen, on_stage=on_stage, on_start=progress.on_start, numeric=numeric)
     if numeric is not None and kept:
         progress.line(f"note: {'--numeric' if numeric else '--symbolic'} did not apply to the stage(s) kept as they were "
                       f"({', '.join(kept)}); add --force to recompute them")
@@ -411,8 +442,9 @@ def positive_t_final(t_final: float | None) -> None:
         raise SpecError("--t-final", f"{number_text(t_final, 'g')} s", "a positive, finite length of run in seconds")
 
 
-def current_artefact(spec, folder: Folder, stage: str):
-    """The folder's artefact of ``stage`` if it was made from this spec, else None.
+def current_artefact(spec, folder, stage: str):
+    """The folder's artefact of ``stage`` if it was made from this spec and from the design stages now in the
+    folder, else None (see :func:`product_staleness`).
 
     Parameters
     ----------
@@ -425,11 +457,35 @@ def current_artefact(spec, folder: Folder, stage: str):
     -------
     Artefact or None
     """
-    if not artefact_path(folder.path, stage).exists():
-        return None
-    art = folder.read(stage)
-    return art if art.provenance.get("spec_sha256") == spec.sha256 else None
+    return None if product_staleness(spec, folder, stage) else folder.read(stage)
 
+
+def product_staleness(spec, folder, stage: str) -> str | None:
+    """Why the folder's artefact of ``stage`` does not belong to the design now in the folder, None if it does.
+
+    Parameters
+    ----------
+    spec : Spec
+    folder : Folder
+    stage : str
+        A stage or product name (``simulate``, ``falsify``).
+
+    Returns
+    -------
+    str or None
+        "no artefact yet", "made from another spec", "made for an earlier design (<stage>.h5 changed since)" (an upstream artefact it
+        recorded has been recomputed since), or None.
+    """
+    artefact_path = engine().artefact_path
+    if not artefact_path(folder.path, stage).exists():
+        return "no artefact yet"
+    art = folder.read(stage)
+    if art.provenance.get("spec_sha256") != spec.sha256:
+        return "made from another spec"
+    for up, sha in (art.provenance.get("upstream") or {}).items():
+        if artefact_path(folder.path, up).exists() and folder.read(up).provenance.get("sha256") != sha:
+            return f"made for an earlier design ({up}.h5 changed since)"
+    return None
 
 
 def main(argv: list[str] | None = None) -> None:

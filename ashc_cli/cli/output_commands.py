@@ -10,11 +10,10 @@ import typer
 
 from ashc_cli import __version__
 from ashc_cli.errors import SpecError
-from ashc_cli.design.pipeline import DESIGN, load_all
-from ashc_cli.outputs.query import EVALUABLE, evaluate, number_text, parse_point, summary
-from ashc_cli.problem.spec import load_spec
+from ashc_cli.outputs.numbers import number_text, readable
 from ashc_cli.cli.common import (
-    ForceOpt, JsonOpt, OutOpt, Progress, SHORT_HELP, SpecArg, app, emit_json, exclusive, frozen_opt, guard, run_targets,
+    EVALUABLE_NAMES, ForceOpt, JsonOpt, OutOpt, Progress, SHORT_HELP, SpecArg, app, emit_json, engine, exclusive, frozen_opt, guard,
+    run_targets,
 )
 
 
@@ -25,8 +24,14 @@ def summary_command(
     folder: Annotated[Path, typer.Argument(metavar="DIR", help="An artefact folder (e.g. outputs/cuk_converter).", show_default=False)],
     as_json: JsonOpt = False,
 ) -> None:
-    """Print each stage's headline numbers, formulas and checks from an artefact folder."""
-    data = summary(load_all(folder))
+    """Print each stage's headline numbers, formulas and checks from an artefact folder.
+
+    Numbers are shown to 5 significant digits and a long value is cut at 400 characters; `--json` has every
+    digit and every entry.
+    """
+    from ashc_cli.outputs.query import summary
+
+    data = summary(engine().load_all(folder))
     if as_json:
         emit_json(data)
         return
@@ -43,7 +48,7 @@ def summary_command(
 
 def _short(value, limit: int = 400) -> str:
     """A value as text, cut to `limit` characters for the terminal (a 500-vertex margin list reads badly)."""
-    text = str(value)
+    text = readable(value)
     if len(text) <= limit:
         return text
     count = f"{len(value)} entries, " if isinstance(value, (list, tuple)) else ""
@@ -54,7 +59,7 @@ def _short(value, limit: int = 400) -> str:
 @guard
 def eval_command(
     folder: Annotated[Path, typer.Argument(metavar="DIR", help="An artefact folder.", show_default=False)],
-    name: Annotated[str, typer.Argument(metavar="NAME", help=f"One of: {', '.join(EVALUABLE)}, u_w (the interface law, needs --spec).", show_default=False)],
+    name: Annotated[str, typer.Argument(metavar="NAME", help=f"One of: {', '.join(EVALUABLE_NAMES)}, u_w (the interface law, needs --spec).", show_default=False)],
     at: Annotated[str, typer.Option("--at", help="The point, in the spec's own names: --at xi=0.6156 or --at x1=1,x2=2,x3=3,x4=4 (theta takes both; u_w takes xi, x and v).", show_default=False)],
     spec: Annotated[Path | None, typer.Option("--spec", help="The spec the folder was designed from; needed by u_w only (l(xi), U and the interface are in no artefact).", show_default=False)] = None,
     as_json: JsonOpt = False,
@@ -64,12 +69,17 @@ def eval_command(
     Prints `NAME(a=1, b=2) = [v1, v2, ...]` (a scalar is a one-element list). u_w is the input the interface
     applies, u = SAT(l(xi) + K (x - p(xi)) + q v), to check exported code (`ashc export`) against the tool.
     """
+    from ashc_cli.outputs.query import evaluate, parse_point
+
+    load_all = engine().load_all
     point = parse_point(at)
     if name == "u_w":
         from ashc_cli.outputs.export import interface_value
 
         if spec is None:
             raise SpecError("--spec", "u_w needs the spec the folder was designed from (l(xi), U and the interface are stored in no artefact)", "--spec SPEC")
+        from ashc_cli.problem.spec import load_spec
+
         values = interface_value(load_spec(spec), load_all(folder), point)
     else:
         values = evaluate(load_all(folder), name, point)
@@ -107,7 +117,8 @@ def export_command(
     given = output is not None
     lang, output = check_target(lang, output if given else Path("design.c" if lang.lower() == "c" else "design.py"))   # before any stage runs
     with Progress() as progress:
-        spec_obj, folder, arts = run_targets(spec, out, DESIGN, force, progress, frozen=DESIGN if frozen else False)
+        stages = engine().DESIGN
+        spec_obj, folder, arts = run_targets(spec, out, stages, force, progress, frozen=stages if frozen else False)
     if not given:   # beside the artefacts, not in whatever folder the command was run from
         _, output = check_target(lang, folder.path / f"{spec_obj.name}_design{output.suffix}")
     paths = write_export(spec_obj, arts, lang, output)

@@ -10,14 +10,9 @@ import numpy as np
 import typer
 
 from ashc_cli.errors import ArtefactError, SpecError
-from ashc_cli.products.falsify import NAME as FALSIFY, headline as falsify_headline
-from ashc_cli.design.pipeline import Folder, StageReport, artefact_path, needed, run, run_for_verdict
-from ashc_cli.products.campaign import falsify_differs, falsify_t_final, run_falsify
-from ashc_cli.outputs.query import number_text, summary
-from ashc_cli.design.verdict import verdict
-from ashc_cli.design.stages.bound import gain_text
+from ashc_cli.outputs.numbers import number_text
 from ashc_cli.cli.common import (
-    ForceOpt, JsonOpt, OutOpt, Progress, REPORT_RUNS, REPORT_SEED, ReportRunsOpt, ReportSeedOpt, ReportTFinalOpt, RunsOpt, SHORT_HELP,
+    FALSIFY, engine, ForceOpt, JsonOpt, OutOpt, Progress, REPORT_RUNS, REPORT_SEED, ReportRunsOpt, ReportSeedOpt, ReportTFinalOpt, RunsOpt, SHORT_HELP,
     SeedOpt, SpecArg, TFinalOpt, app, current_artefact, emit_json, exclusive, frozen_opt, guard, load, positive_t_final,
 )
 
@@ -42,6 +37,9 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     counter-example is printed with its coordinates. Writes falsify.h5 either way; exit 3 if a ratio exceeds 1
     (a violation) or a counter-example is found.
     """
+    from ashc_cli.outputs.query import summary
+    from ashc_cli.products.campaign import run_falsify
+
     positive_t_final(t_final)
     spec_obj, folder = load(spec, out)
     with Progress() as progress:
@@ -57,10 +55,12 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     if as_json:
         emit_json(entry)
     else:
-        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs, largest |psi - y| / bound = {number_text(entry['max_ratio'], '.9g')} "
-                   f"(run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, t = {number_text(entry['worst_time'], '.4g')} s); "
-                   f"started on the manifold (W0 = 0): {number_text(entry.get('max_ratio_w0_zero', float('nan')), '.6g')} "
-                   f"({entry.get('strategy_of_worst_w0_zero', '-')}); {entry['runs_leaving_V']} left V")
+        typer.echo(f"falsify '{spec_obj.name}': {entry['runs']} runs; started on the manifold (W0 = 0, where only G ||v||_inf "
+                   f"counts): largest |psi - y| / bound = {number_text(entry.get('max_ratio_w0_zero', float('nan')), '.4g')} "
+                   f"(run {entry.get('worst_w0_zero_run', '-')}, strongest strategy {entry.get('strategy_of_worst_w0_zero', '-')}); "
+                   f"all runs: {number_text(entry['max_ratio'], '.4g')} (run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, "
+                   f"t = {number_text(entry['worst_time'], '.4g')} s; off the manifold the W0 term is tight at t = 0); "
+                   f"{entry['runs_leaving_V']} left V")
     for text in entry.get("counterexamples", []):
         typer.echo(f"counter-example to a sampled row: {text}")
     if entry["max_ratio"] > 1.0:
@@ -73,12 +73,13 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
         raise typer.Exit(3)
 
 
-def _falsify_for_report(spec, folder: Folder, arts: dict, runs: int | None, seed: int | None, t_final: float | None,
+def _falsify_for_report(spec, folder, arts: dict, runs: int | None, seed: int | None, t_final: float | None,
                         force: bool, frozen: bool, progress: Progress):
     """The falsify artefact a report shows: the stored one if it answers the options given, else a new run.
 
     A stored falsify.h5 is reused when it was made from this spec and design and with every one of --runs,
-    --seed and --t-final that was given; otherwise falsify runs again (saying why on stderr), with the options
+    --seed and --t-final that was given, or when it holds more runs than --runs asks for (more evidence is
+    never replaced by less without --force); otherwise falsify runs again (saying why on stderr), with the options
     given and, for those not given, the stored run's settings (else :data:`REPORT_RUNS`, :data:`REPORT_SEED` and
     the spec's t_final).  With ``frozen`` a report that would need a new run is refused instead (exit 5).
 
@@ -92,9 +93,20 @@ def _falsify_for_report(spec, folder: Folder, arts: dict, runs: int | None, seed
     ArtefactError
         With ``frozen``, if falsify.h5 is missing or does not answer the options.
     """
+    from ashc_cli.design.pipeline import StageReport
+    from ashc_cli.products.campaign import falsify_differs, falsify_t_final, run_falsify
+    from ashc_cli.products.falsify import headline as falsify_headline
+
+
     stored = current_artefact(spec, folder, FALSIFY)
     why = "--force" if force else ("missing (none made from this spec)" if stored is None else
                                    falsify_differs(spec, arts, stored, runs, seed, t_final, t_final_given=t_final is not None))
+    if why is not None and why.startswith("made with") and runs is not None and int(stored.meta["runs"]) > runs:
+        # More runs of this very design are more evidence: never replaced by a smaller search without --force.
+        progress.line(f"note: falsify.h5 kept: its {int(stored.meta['runs'])} runs (seed {int(stored.meta['seed'])}, "
+                      f"t_final {float(stored.values['t_final']):g} s) are more evidence than --runs {runs}; "
+                      f"--force replaces them with {runs}")
+        why = None
     if why is None:
         progress.on_stage(StageReport(FALSIFY, "up to date", 0.0, falsify_headline(stored)))
         return stored
@@ -133,8 +145,10 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
     <out>/plots/tradeoff.png, the speed/accuracy frontier. Both modes run as compiled closed loops (five
     tolerances on the Cuk converter take about 17 s on two cores).
     """
+    from ashc_cli.design.stages.bound import gain_text
     from ashc_cli.products import tradeoff as tradeoff_mod
 
+    artefact_path = engine().artefact_path
     values = tradeoff_mod.parse_tolerances(tolerances)
     spec_obj, folder = load(spec, out)
     with Progress() as progress:
@@ -146,7 +160,7 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
     if as_json:
         emit_json({**tradeoff_mod.summarise(art), "bound_evidence": "sampled" if sampled else "proved", "artefact": str(stored), "figure": str(figure)})
     else:
-        for row in tradeoff_mod.table(art):
+        for row in tradeoff_mod.table(art, unit=tradeoff_mod.output_unit(spec_obj)):
             typer.echo(row)
         if sampled:
             typer.echo(f"note: the tolerances are guaranteed only on samples: G = {gain_text(bound_values)} rests on "
@@ -165,16 +179,20 @@ def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: 
     It holds the spec, the Problem 1 verdict, every stage's numbers and checks, the uniform and a-posteriori
     bounds, the falsification result and the figures of `ashc plot`, embedded. The falsification stored by
     `ashc falsify` is used if it was made for this design with every one of --runs, --seed and --t-final
-    given; otherwise falsify runs (stderr says why). Prints the page's path. Exit 0 when written, also for a
+    given, or if it holds more runs than --runs asks for (a larger search is kept; --force replaces it);
+    otherwise falsify runs (stderr says why). Prints the page's path. Exit 0 when written, also for a
     design that fails (the page says why); exit 3 if the falsification finds a violation.
     """
+    from ashc_cli.design.verdict import verdict
     from ashc_cli.outputs import plots
     from ashc_cli.outputs.report import render
 
     exclusive(force, frozen, "report")
     positive_t_final(t_final)
     spec_obj, path = load(spec, out)
-    seen = Folder(path)  # one view of the folder for the design, simulate and falsify runs below
+    pipeline = engine()
+    needed, run, run_for_verdict = pipeline.needed, pipeline.run, pipeline.run_for_verdict
+    seen = pipeline.Folder(path)  # one view of the folder for the design, simulate and falsify runs below
     with Progress() as progress:
         arts, stopped = run_for_verdict(spec_obj, seen, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
         result = verdict(arts, stopped)

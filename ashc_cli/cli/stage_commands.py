@@ -4,21 +4,16 @@ from __future__ import annotations
 
 
 from enum import Enum
+from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
-from ashc_cli.products.falsify import NAME as FALSIFY
-from ashc_cli.design.pipeline import DESIGN, STAGES, Folder, artefact_path, needed, run_for_verdict
-from ashc_cli.products.campaign import falsify_differs
 from ashc_cli.paper import cite
-from ashc_cli.outputs.query import number_text, summary
-from ashc_cli.design.verdict import verdict
-from ashc_cli.design.stages.bound import disturbance_text, gain_text, region_text
+from ashc_cli.outputs.numbers import number_text
 from ashc_cli.cli.common import (
-    ForceOpt, JsonOpt, NumericOpt, OutOpt, Progress, SHORT_HELP, STAGE_HELP, SpecArg, StageFrozenOpt, app, current_artefact, emit_json,
-    exclusive, frozen_opt, guard, load, plain_text, run_targets,
+    FALSIFY, ForceOpt, JsonOpt, NumericOpt, OutOpt, Progress, SHORT_HELP, STAGE_HELP, SpecArg, StageFrozenOpt, app, current_artefact,
+    emit_json, engine, exclusive, frozen_opt, guard, load, plain_text, product_staleness, run_targets,
 )
 
 
@@ -26,12 +21,14 @@ from ashc_cli.cli.common import (
 def _make_stage_command(stage: str):
     def command(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: JsonOpt = False, frozen: StageFrozenOpt = False,
                 numeric: NumericOpt = None) -> None:
+        from ashc_cli.outputs.query import summary
+
         with Progress() as progress:
             _, folder, arts = run_targets(spec, out, [stage], force, progress, frozen=frozen, numeric=numeric)
         if as_json:
             emit_json(summary({stage: arts[stage]})[stage])
         else:
-            typer.echo(str(artefact_path(folder.path, stage)))
+            typer.echo(str(engine().artefact_path(folder.path, stage)))
 
     command.__name__ = f"{stage}_command"
     command.__doc__ = (cite(STAGE_HELP[stage]) + " Runs any stale upstream stage first (unless --frozen).\n\n"
@@ -39,7 +36,7 @@ def _make_stage_command(stage: str):
     app.command(name=stage, help=command.__doc__, short_help=SHORT_HELP[stage])(guard(command))
 
 
-for _stage in STAGES:
+for _stage in STAGE_HELP:   # the pipeline's STAGES, in flow-chart order (a test keeps the two equal)
     _make_stage_command(_stage)
 
 
@@ -55,13 +52,18 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
     artefacts; --force redoes all. Prints one line per stage with its time and headline number (stderr),
     then the design's summary line (stdout).
     """
+    from ashc_cli.design.stages.bound import disturbance_text, gain_text, region_text
+    from ashc_cli.design.verdict import verdict
+    from ashc_cli.outputs.query import summary
+
     exclusive(force, frozen, "design")
+    stages = engine().DESIGN
     with Progress() as progress:
-        spec_obj, folder, arts = run_targets(spec, out, DESIGN, force, progress, frozen=DESIGN if frozen else False, numeric=numeric)
-    checks = [c for name in DESIGN for c in arts[name].checks.values()]
+        spec_obj, folder, arts = run_targets(spec, out, stages, force, progress, frozen=stages if frozen else False, numeric=numeric)
+    checks = [c for name in stages for c in arts[name].checks.values()]
     failed = [c.description for c in checks if not c.passed]
     if as_json:
-        emit_json(summary({name: arts[name] for name in DESIGN}))
+        emit_json(summary({name: arts[name] for name in stages}))
     else:
         b = arts["bound"].values
         result = verdict(arts)
@@ -98,18 +100,25 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     naming the rows that were only sampled, or "Problem 1 solved: no".
     Exit status 0 for proved and for samples only (3 for samples only with --require proved), 3 for no.
     """
+    import numpy as np
+
+    from ashc_cli.design.verdict import verdict
+
     exclusive(force, frozen, "check")
     spec_obj, path = load(spec, out)
-    folder = Folder(path)
+    pipeline = engine()
+    folder = pipeline.Folder(path)
     with Progress() as progress:
-        arts, stopped = run_for_verdict(spec_obj, folder, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
+        arts, stopped = pipeline.run_for_verdict(spec_obj, folder, force=force, frozen=frozen, on_stage=progress.on_stage, on_start=progress.on_start)
     result = verdict(arts, stopped)
-    sim = None if force else current_artefact(spec_obj, folder, "simulate")
+    stale = None if force else product_staleness(spec_obj, folder, "simulate")
+    sim = None if force or stale else folder.read("simulate")
     simulated = [] if sim is None else [{"check": name, "status": "pass" if c.passed else "fail", "value": c.value if np.isfinite(c.value) else None,
                                          "detail": c.description, "evidence": c.evidence} for name, c in sim.checks.items()]
     if as_json:
         emit_json({"spec": spec_obj.name, "solved": result.solved, "verdict": result.kind, "sampled": result.sampled_rows,
-                    "rows": [r.as_dict() for r in result.rows], "simulated": simulated})
+                    "rows": [r.as_dict() for r in result.rows], "simulated": simulated,
+                    "simulated_stale": stale if stale not in (None, "no artefact yet") else None})
     else:
         typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
         for r in result.rows:
@@ -117,19 +126,31 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
             typer.echo(f"  {r.status:<11} {r.evidence:<9} {r.condition:<42} {value:>11}   {r.reference}")
             if r.status == "fail":
                 typer.echo(plain_text(f"              {r.detail}"))
-        if simulated:
-            typer.echo("Simulated scenarios (`ashc simulate`; evidence: simulated; not part of the verdict):")
-            for r in simulated:
-                value = "" if r["value"] is None else number_text(r["value"], ".4g")
-                typer.echo(f"  {r['status']:<11} {r['evidence']:<9} {r['check']:<42} {value:>11}")
-                if r["status"] == "fail":
-                    typer.echo(plain_text(f"              {r['detail']}"))
+        _echo_simulated(simulated, stale, path)
         typer.echo(result.line())
     if not result.solved:
         raise typer.Exit(3)
     if require == Require.proved and not result.proved:
         typer.echo("error: check: --require proved: the verdict holds on samples only (" + ", ".join(result.sampled_rows) + ")", err=True)
         raise typer.Exit(3)
+
+def _echo_simulated(simulated: list[dict], stale: str | None, path: Path) -> None:
+    """One line on the scenario checks of `ashc simulate` (simulated, not part of the verdict); a failed one in full;
+    a simulate.h5 of an earlier design named as stale, its checks not shown."""
+    if stale not in (None, "no artefact yet"):
+        typer.echo(f"Simulated scenarios: {path / 'simulate.h5'} is stale ({stale}), not shown; rerun `ashc simulate SPEC`")
+        return
+    if not simulated:
+        return
+    passed = sum(r["status"] == "pass" for r in simulated)
+    typer.echo(f"Simulated scenarios (`ashc simulate`; not part of the verdict): {passed} of {len(simulated)} checks pass"
+               f" (`ashc summary {path}` lists them)")
+    for r in simulated:
+        if r["status"] == "fail":
+            value = "" if r["value"] is None else number_text(r["value"], ".4g")
+            typer.echo(f"  fail        simulated {r['check']:<42} {value:>11}")
+            typer.echo(plain_text(f"              {r['detail']}"))
+
 
 class FigureFormat(str, Enum):
     png = "png"
@@ -155,8 +176,10 @@ def plot(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: Js
     stale stages (simulate included) first. Prints the paths of the figures.
     """
     from ashc_cli.outputs import plots  # matplotlib only for the commands that draw (cold start of the others)
+    from ashc_cli.products.campaign import falsify_differs
 
     exclusive(force, frozen, "plot")
+    needed = engine().needed
     with Progress() as progress:
         spec_obj, folder, arts = run_targets(spec, out, ["simulate"], force, progress, frozen=needed(["simulate"]) if frozen else False)
         stored = current_artefact(spec_obj, folder, FALSIFY)

@@ -283,9 +283,14 @@ def delta_figure(spec: Spec, arts: dict[str, Artefact]):
     else:
         ax.plot(x, ident_y, color="C0", linestyle=(0, (4, 2)), label=rf"$\delta = I$ ($\bar d = {dbar_i:.4g}$)")
         ax.plot(x, design_y, color="C1", label=rf"{_delta_label(spec)} ($\bar d = {dbar_d:.4g}$)")
-    ax.set_yscale("log")
+    drawn = np.concatenate([design_y, [] if spec.abstract.delta == "identity" else ident_y])
+    drawn = drawn[np.isfinite(drawn)]
+    if drawn.size and drawn.min() > 0 and drawn.max() / drawn.min() >= 10:   # a log axis only where it spans a decade
+        ax.set_yscale("log")
+        plain_log_ticks(ax)
+    else:
+        ax.set_ylim(bottom=0)
     ax.set_ylabel(r"$\|\theta(\xi, \cdot)\|$, $q = 0$")
-    plain_log_ticks(ax)
     legend_above(ax, ncol=1)
     return fig
 
@@ -328,7 +333,7 @@ def _inputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str):
     for ax, names in ((ax_v, spec.abstract.inputs), (ax_u, spec.concrete.inputs)):
         label = ", ".join(math_name(n) for n in names)
         ax.set_ylabel(_label(spec, label, names[0]))
-        if len(ax.get_legend_handles_labels()[0]) > 1:  # one signal alone: the axis label names it
+        if ax.get_legend_handles_labels()[0]:   # every panel names what it draws, as its neighbours do
             legend_above(ax, ncol=4)
     ax_u.set_xlabel(_label(spec, "t"))
     return fig
@@ -346,7 +351,7 @@ def _envelope(ax, t, err, *, log: bool, bins: int = 350, color: str = "k", label
     hi = np.maximum.reduceat(err, edges[:-1])
     mid = 0.5 * (t[edges[:-1]] + t[edges[1:] - 1])
     if not log:
-        ax.fill_between(mid, lo, hi, color=color, alpha=0.2, linewidth=0)
+        ax.fill_between(mid, lo, hi, color=color, alpha=0.2, linewidth=0, label="min to max per time bin")
     ax.plot(mid, hi, color=color, linewidth=0.7, label=label + (" (envelope)" if log else ""))
 
 
@@ -373,9 +378,17 @@ def _outputs_figure(spec: Spec, arts: dict[str, Artefact], scenario: str, log_er
     ax_e = axes[-1]
     err = np.linalg.norm(np.atleast_2d(s[f"{scenario}/e_y"]), axis=0)
     body = r"\|\psi - y\|" if several else r"|\psi - y|"
-    _envelope(ax_e, t, err, log=log_error, label=f"${body}$")
     unit = None if several else (_unit(spec, "y1") or _unit(spec, "y"))
+    scale = 1.0
+    if not log_error:   # a power of ten in the axis label, not matplotlib's offset text above the axis
+        top = float(np.nanmax(err)) if err.size and np.isfinite(err).any() else 0.0
+        exponent = int(np.floor(np.log10(top))) if top > 0 else 0
+        scale = 10.0 ** exponent if abs(exponent) >= 3 else 1.0
+        unit = (f"$10^{{{exponent}}}$" + (f" {unit}" if unit else "")) if scale != 1.0 else unit
+    _envelope(ax_e, t, err / scale, log=log_error, label=f"${body}$")
     ax_e.set_ylabel(f"${body}$" + (f" ({unit})" if unit else ""))
+    if not log_error:
+        legend_above(ax_e)
     ax_e.set_xlabel(_label(spec, "t"))
     if log_error:
         ax_e.set_yscale("log", nonpositive="clip")
@@ -423,12 +436,17 @@ def tracking_outputs_figure(spec: Spec, arts: dict[str, Artefact]):
         ax_e.plot(t, post, color="C2", linewidth=1.0, label="a-posteriori bound")
         tops.append(float(np.nanmax(post)))
     uniform = float(s["tracking/uniform_bound"])
-    ax_e.axhline(uniform, color="C3", linestyle=":", linewidth=1.0, label=r"uniform bound $G\,\|v\|_\infty$")
+    certified = bool(s.get("tracking/inside_certified_region", True))
+    ax_e.axhline(uniform, color="C3" if certified else "0.5", linestyle=":", linewidth=1.0,
+                 label=r"uniform bound $G\,\|v\|_\infty$" + ("" if certified else " (not certified for this run)"))
     tops.append(uniform)
     positive = err[err > 0]
     top = max(v for v in tops if np.isfinite(v)) if any(np.isfinite(v) for v in tops) else 1.0
-    floor = max(float(positive.min()) if positive.size else top * 1e-6, top * 1e-8)
-    ax_e.set_ylim(floor / 2, top * 3)
+    # The floor a decade below the envelope's smallest values (its lowest 1 %, so that a lone zero-crossing does
+    # not stretch the axis), never more than 12 decades below the top; a decade of room above the top line.
+    low = float(np.percentile(positive, 1)) if positive.size else top * 1e-6
+    floor = 10.0 ** np.floor(np.log10(max(low, top * 1e-12)))
+    ax_e.set_ylim(floor, top * 10)
     legend_above(ax_e)
     return fig
 
@@ -473,16 +491,18 @@ STRATEGY_NAMES = {"off_manifold": "off-manifold"}
 
 def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
     """Largest measured error / guaranteed bound of each falsification run (all must be <= 1), one column of
-    points per search strategy on a log scale; each strategy's largest ratio marked, the run closest to
-    violating the bound (the search's best) highlighted and named.  A ratio of exactly 0 is drawn at the
-    bottom edge.
+    points per search strategy on a log scale; each strategy's largest ratio marked.  Runs started on the
+    manifold (W0 = 0, where only G ||v||_inf counts) are filled, runs started off it hollow (there the W0 term of
+    the bound is tight at t = 0 by construction); the worst run on the manifold is starred and named, the worst
+    overall crossed.  A ratio of exactly 0 is drawn at the bottom edge.
 
     Parameters
     ----------
     spec : Spec
         The design's spec (not read; the signature of every figure).
     arts : dict of str to Artefact
-        Artefacts by stage; ``falsify`` is read (``run_ratio``, and if present ``strategy`` and ``worst_run``).
+        Artefacts by stage; ``falsify`` is read (``run_ratio``, and if present ``W0``, ``strategy``, ``worst_run``
+        and ``worst_w0_zero_run``).
 
     Returns
     -------
@@ -491,23 +511,32 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
     v = arts["falsify"].values
     ratios = np.asarray(v["run_ratio"], dtype=float)
     strategies = np.asarray(v["strategy"]).astype(str) if "strategy" in v else np.full(ratios.size, "random")
+    on_manifold = np.asarray(v["W0"], dtype=float) == 0 if "W0" in v else np.ones(ratios.size, dtype=bool)
     names = list(dict.fromkeys(strategies))          # the order falsify ran them in
     fig, (ax,) = _figure(height=2.6)
     positive = ratios[ratios > 0]
     floor = float(positive.min()) / 2 if positive.size else 1e-12
     shown = np.maximum(ratios, floor)
     rng = np.random.default_rng(0)  # the same jitter every time
+    x = np.zeros(ratios.size)
     for i, name in enumerate(names):
         sel = strategies == name
-        ax.scatter(i + rng.uniform(-0.25, 0.25, sel.sum()), shown[sel], s=6, color="C0", alpha=0.6, linewidths=0,
-                   label="one run" if i == 0 else None, zorder=2)
+        x[sel] = i + rng.uniform(-0.25, 0.25, sel.sum())
         ax.hlines(shown[sel].max(), i - 0.35, i + 0.35, color="k", linewidth=1.0,
                   label="strategy's largest" if i == 0 else None, zorder=3)
+    ax.scatter(x[on_manifold], shown[on_manifold], s=7, color="C0", alpha=0.7, linewidths=0, zorder=2,
+               label=r"run with $W_0 = 0$")
+    if (~on_manifold).any():
+        ax.scatter(x[~on_manifold], shown[~on_manifold], s=9, facecolors="none", edgecolors="0.45", linewidths=0.6,
+                   zorder=2, label=r"run with $W_0 > 0$")
+    if on_manifold.any():
+        lead = int(v["worst_w0_zero_run"]) if "worst_w0_zero_run" in v else int(np.flatnonzero(on_manifold)[np.argmax(ratios[on_manifold])])
+        ax.scatter([x[lead]], [shown[lead]], marker="*", s=70, color="C3", edgecolors="k", linewidths=0.4, zorder=4,
+                   label=rf"worst, $W_0 = 0$: run {lead}, {ratios[lead]:.4g}")
     worst = int(v["worst_run"]) if "worst_run" in v else int(np.argmax(ratios))
-    xi_w = names.index(strategies[worst])
-    best = ratios[worst]
-    ax.scatter([xi_w], [shown[worst]], marker="*", s=70, color="C3", edgecolors="k", linewidths=0.4, zorder=4,
-               label=f"best: run {worst}, {best:{'.10g' if abs(best - 1) < 1e-4 else '.4g'}}")
+    if not on_manifold[worst]:
+        ax.scatter([x[worst]], [shown[worst]], marker="x", s=30, color="k", linewidths=1.0, zorder=4,
+                   label=f"worst of all: run {worst}, {ratios[worst]:.4g}")
     ax.axhline(1.0, color="C3", linestyle=":", linewidth=1.0, label="bound")
     ax.set_yscale("log")
     ax.set_xticks(range(len(names)), [STRATEGY_NAMES.get(n, n).replace("_", " ") for n in names], rotation=25,

@@ -17,8 +17,9 @@ from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import ArtefactError, DesignError, SpecError
 from ashc_cli.design.pipeline import PRODUCTS, STAGES
 from ashc_cli.design.upstream import certified_set, format_box, outside_certified_set
+from ashc_cli.outputs.numbers import PEOPLE_DIGITS, no_negative_zero, number_text, readable  # noqa: F401 (re-exported)
 
-__all__ = ["summary", "EVALUABLE", "parse_point", "evaluate", "no_negative_zero", "number_text"]
+__all__ = ["summary", "EVALUABLE", "parse_point", "evaluate", "no_negative_zero", "number_text", "readable", "PEOPLE_DIGITS"]
 
 #: Functions built from m: evaluated only at states x whose output h(x) lies where m is certified
 #: (``inverse.m_domain``).
@@ -66,53 +67,6 @@ def summary(arts: dict[str, Artefact]) -> dict:
 
 def _num(x: float):
     return x + 0.0 if math.isfinite(x) else str(x)
-
-
-def no_negative_zero(obj):
-    """``obj`` with every float -0.0 replaced by 0.0, through dicts, lists, tuples and numpy arrays.
-
-    Printed, -0.0 reads as "-0" or "-0.0": a sign that means nothing (a product with a zero, a rounding).
-
-    Parameters
-    ----------
-    obj : object
-        A number or a JSON-like structure of them (other objects are returned as they are).
-
-    Returns
-    -------
-    object
-        The same structure (new containers), with 0.0 for -0.0.
-    """
-    if isinstance(obj, bool):
-        return obj
-    if isinstance(obj, (float, np.floating)):
-        return obj + 0.0 if obj == 0 else obj   # -0.0 + 0.0 is +0.0; NaN and inf are left alone
-    if isinstance(obj, dict):
-        return {k: no_negative_zero(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [no_negative_zero(v) for v in obj]
-    if isinstance(obj, tuple):
-        return tuple(no_negative_zero(v) for v in obj)
-    if isinstance(obj, np.ndarray) and obj.dtype.kind == "f":
-        return obj + 0.0
-    return obj
-
-
-def number_text(value: float, spec: str = ".6g") -> str:
-    """``format(value, spec)`` with -0.0 shown as 0 (see :func:`no_negative_zero`).
-
-    Parameters
-    ----------
-    value : float
-        The number.
-    spec : str
-        A format specification (``.4g``, ``g``, ...).
-
-    Returns
-    -------
-    str
-    """
-    return format(no_negative_zero(value), spec)
 
 
 def parse_point(text: str) -> dict[str, float]:

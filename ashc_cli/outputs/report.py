@@ -3,16 +3,16 @@
 The page holds the spec as written, the Problem 1 verdict row by row, every stage's headline numbers and
 checks, the error bounds (uniform, a-posteriori), the falsification result and the figures of
 :mod:`ashc_cli.outputs.plots` embedded as base64 PNG.  No script and no external resource: it opens offline and can
-be attached to a review as one file.  Every stored value is shown in full: a formula, a matrix (M) or a
-long list sits in a scroll box, one formula or matrix row per line, never cut short.  The layout fits a
-laptop screen (1366 px) without scrolling sideways: tables wrap, figures shrink to the page.
+be attached to a review as one file.  Numbers are shown to 5 significant digits (the artefacts and ``ashc summary
+--json`` keep every digit); a formula, a matrix (M) or a long list sits in a scroll box, one formula or matrix
+row per line, never cut short.  The layout fits a laptop screen (1366 px) without scrolling sideways: tables
+wrap at spaces (a column is never narrower than its longest word), figures shrink to the page.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-import json
 import struct
 from pathlib import Path
 
@@ -20,20 +20,25 @@ import numpy as np
 
 from ashc_cli import __version__
 from ashc_cli.design.artefacts import Artefact
-from ashc_cli.outputs.query import summary
+from ashc_cli.outputs.query import readable, summary
 
 __all__ = ["render"]
 
 CSS = """
-body { font-family: system-ui, sans-serif; max-width: 60rem; margin: 2rem auto; padding: 0 1rem; color: #222; }
+body { font-family: system-ui, sans-serif; max-width: 72rem; margin: 2rem auto; padding: 0 1rem; color: #222; }
 h1 { font-size: 1.5rem; } h2 { font-size: 1.2rem; border-bottom: 1px solid #ccc; margin-top: 2rem; }
 table { border-collapse: collapse; margin: 0.5rem 0; font-size: 0.9rem; max-width: 100%; }
 table.wide { width: 100%; table-layout: fixed; } table.wide th:first-child { width: 15rem; }
 table.checks { width: 100%; table-layout: fixed; } table.checks th:first-child { width: 4rem; }
-table.checks th:nth-child(2) { width: 14rem; } table.checks th:nth-child(3) { width: 10rem; }
-td, th { border: 1px solid #ddd; padding: 0.2rem 0.5rem; text-align: left; vertical-align: top; overflow-wrap: anywhere; }
+table.checks th:nth-child(2) { width: 19rem; } table.checks th:nth-child(3) { width: 8rem; }
+table.rows { width: 100%; table-layout: fixed; }
+table.rows th:nth-child(1) { width: 3rem; } table.rows th:nth-child(2) { width: 12rem; }
+table.rows th:nth-child(3) { width: 6rem; } table.rows th:nth-child(4) { width: 6.5rem; }
+table.rows th:nth-child(5) { width: 9rem; } td.num { text-align: right; white-space: nowrap; }
+td, th { border: 1px solid #ddd; padding: 0.2rem 0.5rem; text-align: left; vertical-align: top; overflow-wrap: break-word; }
 th { background: #f4f4f4; } .pass { color: #176617; font-weight: bold; } .fail { color: #b00; font-weight: bold; }
 .na { color: #888; } pre { background: #f8f8f8; padding: 0.5rem; overflow: auto; font-size: 0.8rem; }
+pre.spec { white-space: pre-wrap; overflow-wrap: break-word; }
 pre.box { margin: 0; padding: 0.3rem; max-height: 14rem; overflow: auto; white-space: pre-wrap; overflow-wrap: anywhere; }
 pre.box.matrix { white-space: pre; overflow-wrap: normal; }
 code { overflow-wrap: anywhere; }
@@ -55,7 +60,8 @@ CAPTIONS = {
     "m_relation_inputs.png": "m-relation run: v = b(x) + c(x) u and u with the limits of U (Fig. 9).",
     "m_relation_outputs.png": "m-relation run: ψ and y coincide; |ψ − y| below (Fig. 10).",
     "falsify.png": "Falsification: largest |ψ − y| / guaranteed bound of each run by search strategy, log scale; "
-                   "the best run (closest to the bound) starred. Every point must stay below 1.",
+                   "runs started on the manifold (W0 = 0) filled, the worst of them starred; off it hollow (the W0 term is "
+                   "tight at t = 0 by construction), the worst overall crossed. Every point must stay at or below 1.",
 }
 
 #: CSS pixels per PNG pixel of a figure: a one-column figure (3.5 in at 200 dpi) is shown 420 px wide.
@@ -64,17 +70,14 @@ FIGURE_SCALE = 0.6
 
 def _text(value) -> str:
     """A stored value as text, in full: one formula, matrix row or key per line for a list or a mapping."""
-    if isinstance(value, float):
-        return f"{value:.6g}"
     if isinstance(value, dict):
-        return "\n".join(f"{k}: {json.dumps(v, default=str)}" for k, v in value.items())
+        return "\n".join(f"{k}: {readable(v)}" for k, v in value.items())
     if isinstance(value, (list, tuple)):
         if value and all(isinstance(v, (list, tuple)) for v in value):  # a matrix: one row per line
-            return "\n".join(json.dumps(list(row), default=str) for row in value)
+            return "\n".join(readable(row) for row in value)
         if value and all(isinstance(v, str) for v in value) and max(map(len, value)) > 20:  # formulas
             return "\n".join(value)
-        return json.dumps(list(value), default=str)
-    return str(value)
+    return readable(value)
 
 
 #: A value longer than this, or of several lines, goes into a scroll box.
@@ -100,9 +103,10 @@ def _status(passed: bool | None) -> str:
     return '<span class="pass">pass</span>' if passed else '<span class="fail">fail</span>'
 
 
-def _row(status: bool | None, *cells: str) -> str:
-    """A table row: a pass/fail cell, then the text cells (escaped)."""
-    return f"<tr><td>{_status(status)}</td>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>"
+def _row(status: bool | None, *cells: str, num: int | None = None) -> str:
+    """A table row: a pass/fail cell, then the text cells (escaped); cell ``num`` (0-based) right-aligned, unbroken."""
+    opening = ["<td class=\"num\">" if k == num else "<td>" for k in range(len(cells))]
+    return f"<tr><td>{_status(status)}</td>" + "".join(f"{o}{html.escape(c)}</td>" for o, c in zip(opening, cells)) + "</tr>"
 
 
 def _stage_section(name: str, entry: dict) -> str:
@@ -135,6 +139,23 @@ def _figure_html(path: Path) -> str:
             f"<figcaption>{html.escape(cap)}</figcaption></figure>")
 
 
+def _falsify_paragraph(f: dict) -> str:
+    """The falsification result, led by the runs started on the manifold: off it, the W0 term of the bound is tight
+    at t = 0 by construction (ratio 1 at t = 0 says nothing about G)."""
+    ok = f["max_ratio"] <= 1.0
+    lead = f.get("max_ratio_w0_zero")
+    head = ""
+    if lead is not None and np.isfinite(lead):
+        head = (f"Started on the manifold (W0 = 0, where only G ||v||_inf counts): largest measured error / guaranteed "
+                f"bound = <b>{readable(lead, 4)}</b> (run {f.get('worst_w0_zero_run', '?')}; strongest strategy: "
+                f"{html.escape(str(f.get('strategy_of_worst_w0_zero', '?')))}). ")
+    return (f"<p>{head}{f['runs']} searched closed-loop runs in all (seed {f['seed']}; random, adversarial, linearised worst "
+            f"case, boundary of the certified region, refined), with starts off the manifold: largest ratio "
+            f"{readable(f['max_ratio'], 4)} (run {f['worst_run']}, {html.escape(str(f.get('strategy_of_worst', 'random')))}, "
+            f"t = {readable(f['worst_time'], 4)} s; at t = 0 the W0 term is tight by construction); {_status(ok)} "
+            f"(every ratio must stay at or below 1). {f['runs_leaving_V']} run(s) left V (not counted after that).</p>")
+
+
 def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path]) -> str:
     """The HTML page.
 
@@ -161,46 +182,43 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
         parts.append("<p class=\"note\">Every condition passes, but the rows marked <i>sampled</i> were checked on a grid or on "
                      "random points only: the design is not certified until they are proved (or falsified).</p>")
 
-    parts.append("<h2>Verdict on Problem 1</h2><table><tr><th></th><th>condition</th><th>evidence</th><th>measured</th><th>reference</th><th>detail</th></tr>")
+    parts.append("<h2>Verdict on Problem 1</h2><table class=\"rows\"><tr><th></th><th>condition</th><th>evidence</th><th>measured</th><th>reference</th><th>detail</th></tr>")
     for r in result.rows:
         value = "" if r.value is None else f"{r.value:.4g}"
-        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, r.evidence, value, r.reference, r.detail or ""))
+        parts.append(_row({"pass": True, "fail": False}.get(r.status), r.condition, r.evidence, value, r.reference, r.detail or "", num=2))
     parts.append("</table>")
 
     parts.append("<h2>Error bounds</h2><table class=\"wide\">")
     if "bound" in summ:
         b = summ["bound"]
         region = ("global: every W(xi0, x0) and every v" if not np.isfinite(b.get("w0_max_certified", np.inf))
-                  else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.6g} and ||v||_inf &lt;= {b['v_max_certified']:.6g} ({html.escape(b.get('region_limits', ''))})")
+                  else f"W(xi0, x0) &lt;= {b['w0_max_certified']:.5g} and ||v||_inf &lt;= {b['v_max_certified']:.5g} ({html.escape(b.get('region_limits', ''))})")
         ev = b.get("evidence", {})
         sampled = "" if b.get("bound_evidence") == "proved" else f" <span class=\"sampled\">(sampled: {html.escape(str(b.get('bound_sampled', '')))})</span>"
-        dist = f" + {b['gain_w']:.6g} ||w||_inf (disturbance, ebar = {b['ebar']:.6g})" if "gain_w" in b else ""
-        parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.6g}{sampled} ||v||_inf{dist} when W(xi0, x0) = 0</td></tr>"
+        dist = f" + {b['gain_w']:.5g} ||w||_inf (disturbance, ebar = {b['ebar']:.5g})" if "gain_w" in b else ""
+        parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.5g}{sampled} ||v||_inf{dist} when W(xi0, x0) = 0</td></tr>"
                      f"<tr><th>how each number was established</th><td>{html.escape(', '.join(f'{k}: {v}' for k, v in ev.items()))}</td></tr>"
                      f"<tr><th>certified region</th><td>{region}</td></tr>"
-                     f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.6g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"
-                     f"<tr><th>comparison-lemma form</th><td>{b['gain_comparison']:.6g} ||v||_inf (ERRATA item 7)</td></tr>"
-                     f"<tr><th>dbar (q = 0): design delta / delta = I</th><td>{b['dbar_q0']:.6g} / {b['dbar_q0_identity']:.6g}</td></tr>"
-                     f"<tr><th>alpha_h, epsilon</th><td>{b['alpha_h']:.6g}, {b['epsilon']:.6g}</td></tr>")
+                     f"<tr><th>dbar entering G</th><td>{b.get('dbar', b['dbar_q0']):.5g}: {html.escape(str(b.get('dbar_how', '')))}</td></tr>"
+                     f"<tr><th>comparison-lemma form</th><td>{b['gain_comparison']:.5g} ||v||_inf (ERRATA item 7)</td></tr>"
+                     f"<tr><th>dbar (q = 0): design delta / delta = I</th><td>{b['dbar_q0']:.5g} / {b['dbar_q0_identity']:.5g}</td></tr>"
+                     f"<tr><th>alpha_h, epsilon</th><td>{b['alpha_h']:.5g}, {b['epsilon']:.5g}</td></tr>")
     if "simulate" in summ and "tracking" in summ["simulate"]:
         t = summ["simulate"]["tracking"]
-        parts.append(f"<tr><th>tracking run: measured max |psi - y|</th><td>{t['max_abs_error']:.6g}</td></tr>"
-                     f"<tr><th>uniform bound G ||v||_inf</th><td>{t['uniform_bound']:.6g}</td></tr>")
+        parts.append(f"<tr><th>tracking run: measured max |psi - y|</th><td>{t['max_abs_error']:.5g}</td></tr>"
+                     f"<tr><th>uniform bound G ||v||_inf</th><td>{t['uniform_bound']:.5g}"
+                     + ("" if t.get("inside_certified_region", True) else
+                        " <span class=\"fail\">not certified for this run</span> (it leaves the certified region: "
+                        "W0 or ||v||_inf above what the bound stage certifies; the number is only compared)")
+                     + "</td></tr>")
         if "posterior_bound_max" in t:
-            parts.append(f"<tr><th>a-posteriori bound (largest over the run)</th><td>{t['posterior_bound_max']:.6g}, "
+            parts.append(f"<tr><th>a-posteriori bound (largest over the run)</th><td>{t['posterior_bound_max']:.5g}, "
                          f"{t['posterior_tightening']:.3g} times tighter than the uniform bound</td></tr>")
     parts.append("</table>")
 
     parts.append("<h2>Falsification</h2>")
     if "falsify" in summ:
-        f = summ["falsify"]
-        ok = f["max_ratio"] <= 1.0
-        parts.append(f"<p>{f['runs']} searched closed-loop runs (seed {f['seed']}; random, adversarial, linearised worst case, "
-                     f"boundary of the certified region, refined): largest measured error / guaranteed bound = "
-                     f"<b>{f['max_ratio']:.6g}</b> (run {f['worst_run']}, {html.escape(str(f.get('strategy_of_worst', 'random')))}, "
-                     f"t = {f['worst_time']:.4g} s); started on the manifold (W0 = 0, only G ||v||_inf counts): "
-                     f"<b>{f.get('max_ratio_w0_zero', float('nan')):.4g}</b>; {_status(ok)}. "
-                     f"{f['runs_leaving_V']} run(s) left V (not counted after that).</p>")
+        parts.append(_falsify_paragraph(summ["falsify"]))
     else:
         parts.append("<p class=\"na\">not run</p>")
 
@@ -213,6 +231,6 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
     parts.append("<h2>Stages</h2>")
     for name, entry in summ.items():
         parts.append(_stage_section(name, entry))
-    parts.append(f"<h2>Spec</h2><pre>{html.escape(spec_text)}</pre></body></html>")
+    parts.append(f"<h2>Spec</h2><pre class=\"spec\">{html.escape(spec_text)}</pre></body></html>")
     return "\n".join(parts)
 

@@ -118,10 +118,11 @@ _BINOPS = {ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow}
 class _Builder:
     """Walks an expression's syntax tree and builds the sympy expression, refusing anything else."""
 
-    def __init__(self, names: Mapping[str, sp.Basic], field: str, functions: Mapping[str, tuple]):
+    def __init__(self, names: Mapping[str, sp.Basic], field: str, functions: Mapping[str, tuple], offer=None):
         self.names = names
         self.field = field
         self.functions = functions
+        self.offer = list(names) if offer is None else [n for n in offer if n in names]
 
     def fail(self, what: str, expected: str) -> SpecError:
         return SpecError(self.field, what, expected)
@@ -160,11 +161,11 @@ class _Builder:
             return self.names[ident]
         if ident == "pi":
             return sp.pi
-        known = _listing(sorted(self.names, key=_natural))
+        known = _listing(sorted(self.offer, key=_natural))
         if ident in self.functions:
             raise self.fail(f"unknown name '{ident}' ({ident} is a function: call it as {ident}(...))",
                             f"one of the declared names ({known}) or pi")
-        hint = _did_you_mean(ident, [*self.names, "pi"])
+        hint = _did_you_mean(ident, [*self.offer, "pi"])
         raise self.fail(f"unknown name '{ident}'{hint}", f"one of the declared names ({known}) or pi")
 
     def binop(self, op: ast.operator, left: sp.Expr, right: sp.Expr) -> sp.Expr:
@@ -279,6 +280,7 @@ def parse_expression(
     field: str,
     *,
     signal: bool = False,
+    offer=None,
 ) -> sp.Expr:
     """Parse one spec expression into sympy through the whitelist.
 
@@ -292,6 +294,9 @@ def parse_expression(
         The spec field the text came from, used in error messages (e.g. ``concrete.f_bar[0]``).
     signal : bool
         Whether the time-signal functions ``triangle``, ``square`` and ``step`` are allowed.
+    offer : iterable of str, optional
+        The names this field may use, listed (and suggested) when an unknown name is met [default: all of
+        ``names``]; e.g. f_bar is offered the states and parameters only, not u, v or xi.
 
     Returns
     -------
@@ -322,7 +327,7 @@ def parse_expression(
         raise SpecError(field, "expression could not be parsed (too deep or malformed)", "a simpler expression") from None
     functions = {**FUNCTIONS, **SIGNAL_FUNCTIONS} if signal else FUNCTIONS
     try:
-        expr = _Builder(names, field, functions).build(tree)
+        expr = _Builder(names, field, functions, offer).build(tree)
     except RecursionError:
         raise SpecError(field, "expression nested too deeply", "a simpler expression") from None
     if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):

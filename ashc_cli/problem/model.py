@@ -613,15 +613,21 @@ def tidy(matrix: sp.Matrix, how=shorter) -> sp.Matrix:
     return matrix.applyfunc(lambda e: how(e) if sp.count_ops(e) <= SIMPLIFY_MAX_OPS and not e.atoms(sp.Float) else e)
 
 
-def _matrix(rows, names, field_name, shape) -> sp.Matrix:
-    """Parse a spec list (of expressions, or of rows of expressions) into a matrix of the given shape."""
+def _matrix(rows, names, field_name, shape, offer=None) -> sp.Matrix:
+    """Parse a spec list (of expressions, or of rows of expressions) into a matrix of the given shape; ``offer``
+    names what the field may use, for the message on an unknown name."""
     entries = []
     for i, row in enumerate(rows):
         if isinstance(row, list):
-            entries.extend(parse_expression(e, names, f"{field_name}[{i}][{j}]") for j, e in enumerate(row))
+            entries.extend(parse_expression(e, names, f"{field_name}[{i}][{j}]", offer=offer) for j, e in enumerate(row))
         else:
-            entries.append(parse_expression(row, names, f"{field_name}[{i}]"))
+            entries.append(parse_expression(row, names, f"{field_name}[{i}]", offer=offer))
     return sp.Matrix(shape[0], shape[1], entries)
+
+
+def _offer(names: dict, allowed: set) -> list[str]:
+    """The spec names (keys of ``names``) that stand for a symbol in ``allowed``: what a field may use."""
+    return [k for k, sym in names.items() if sym in allowed]
 
 
 def _check_free(expr_matrix: sp.Matrix, allowed: set, field_name: str, what: str) -> None:
@@ -661,17 +667,18 @@ def build_model(spec: Spec) -> Model:
     n, m, nh, mh = len(x), len(u), len(xi), len(v)
 
     pset = set(params.values())
-    h = _matrix(c.h, names, "concrete.h", (len(c.h), 1))
+    on_x, on_xi = _offer(names, pset | set(x)), _offer(names, pset | set(xi))
+    h = _matrix(c.h, names, "concrete.h", (len(c.h), 1), on_x)
     _check_free(h, pset | set(x), "concrete.h", "the concrete states")
     f_bar, g, f_general = _dynamics(spec, names, pset, x, u)
     w, e, W = sp.zeros(0, 1), None, None
     if c.disturbances:
         w = sp.Matrix([state_symbol(s) for s in c.disturbances])
-        e = _matrix(c.e, names, "concrete.e", (n, len(w)))
+        e = _matrix(c.e, names, "concrete.e", (n, len(w)), on_x)
         _check_free(e, pset | set(x), "concrete.e", "the concrete states")
         W = np.array(c.disturbance_bounds, dtype=float)
-    phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1))
-    l = _matrix(a.l, names, "abstract.l", (m, 1))
+    phi_bar = _matrix(a.phi_bar, names, "abstract.phi_bar", (nh, 1), on_xi)
+    l = _matrix(a.l, names, "abstract.l", (m, 1), on_xi)
     for mat, fname in ((phi_bar, "abstract.phi_bar"), (l, "abstract.l")):
         _check_free(mat, pset | set(xi), fname, "the abstract states")
     if a.delta == "identity":
@@ -679,12 +686,12 @@ def build_model(spec: Spec) -> Model:
     elif a.delta == "flatten":
         delta = None
     else:
-        delta = (_matrix(a.delta, names, "abstract.delta", (nh, mh)) if isinstance(a.delta, list)
-                 else sp.Matrix([[parse_expression(a.delta, names, "abstract.delta")]]))
+        delta = (_matrix(a.delta, names, "abstract.delta", (nh, mh), on_xi) if isinstance(a.delta, list)
+                 else sp.Matrix([[parse_expression(a.delta, names, "abstract.delta", offer=on_xi)]]))
         _check_free(delta, pset | set(xi), "abstract.delta", "the abstract states")
     m_given = None
     if a.m is not None:
-        m_given = _matrix(a.m, names, "abstract.m", (nh, 1))
+        m_given = _matrix(a.m, names, "abstract.m", (nh, 1), on_x)
         _check_free(m_given, pset | set(x), "abstract.m", "the concrete states")
     p_given = None
     if a.p is not None:
@@ -709,12 +716,13 @@ def _dynamics(spec: Spec, names: dict, pset: set, x: sp.Matrix, u: sp.Matrix) ->
     c = spec.concrete
     n, m = len(x), len(u)
     if c.f is None:
-        f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1))
-        g = _matrix(c.g, names, "concrete.g", (n, m))
+        offer = _offer(names, pset | set(x))
+        f_bar = _matrix(c.f_bar, names, "concrete.f_bar", (n, 1), offer)
+        g = _matrix(c.g, names, "concrete.g", (n, m), offer)
         for mat, fname in ((f_bar, "concrete.f_bar"), (g, "concrete.g")):
             _check_free(mat, pset | set(x), fname, "the concrete states")
         return f_bar, g, None
-    f = _matrix(c.f, names, "concrete.f", (n, 1))
+    f = _matrix(c.f, names, "concrete.f", (n, 1), _offer(names, pset | set(x) | set(u)))
     _check_free(f, pset | set(x) | set(u), "concrete.f", "the concrete states and inputs")
     g = sparse_jacobian(f, list(u)).as_mutable() if n * m <= SPARSE_JACOBIAN_ENTRIES else None
     if g is not None and not any(sp.expand(e).free_symbols & set(u) for e in g):

@@ -172,7 +172,21 @@ def _seconds(value: float) -> str:
     return "-" if not np.isfinite(value) else f"{value:.4g}"
 
 
-def table(art: Artefact) -> list[str]:
+def output_unit(spec: Spec) -> str | None:
+    """The unit of the output the tolerance is on (``units.y1`` or ``units.y``), None if the spec gives none.
+
+    Parameters
+    ----------
+    spec : Spec
+
+    Returns
+    -------
+    str or None
+    """
+    return spec.units.get("y1") or spec.units.get("y")
+
+
+def table(art: Artefact, unit: str | None = None) -> list[str]:
     """The rows ``ashc tradeoff`` prints: one per tolerance and mode, the seconds to reach each level.
 
     A ``-`` is a level not reached within the horizon; a refused mode shows its reason instead of times.
@@ -181,18 +195,22 @@ def table(art: Artefact) -> list[str]:
     ----------
     art : Artefact
         The tradeoff artefact (of :func:`tradeoff`).
+    unit : str, optional
+        The output's unit, shown in the EPS column's head.
 
     Returns
     -------
     list of str
-        A header, then per tolerance a budget and a governor row: EPS, mode, the seconds per level, their total and
+        A header (times in seconds), then per tolerance a budget and a governor row: EPS, mode, the seconds per level, their total and
         (governor rows) the speed-up of the totals, budget / governor.
     """
     v = art.values
     levels = np.asarray(v["levels"], dtype=float)
     names = [f"{lv[0]:g}" if lv.size == 1 else "(" + ", ".join(f"{x:g}" for x in lv) + ")" for lv in levels]
     width = max(9, *(len(n) for n in names))
-    head = f"{'EPS':>8}  {'mode':<8}  " + "  ".join(f"{n:>{width}}" for n in names) + f"  {'total':>9}  {'speed-up':>8}"
+    eps_head = f"EPS ({unit})" if unit else "EPS"
+    head = (f"{eps_head:>8}  {'mode':<8}  " + "  ".join(f"{n:>{width}}" for n in names) + f"  {'total':>9}  {'speed-up':>8}"
+            + "   (seconds to reach each level within EPS, and their total)")
     rows = [head]
     tot_b, tot_g = np.asarray(v["total_time/budget"]), np.asarray(v["total_time/governor"])
     for k, tol in enumerate(np.asarray(v["tolerances"], dtype=float)):
@@ -208,7 +226,7 @@ def table(art: Artefact) -> list[str]:
     return rows
 
 
-def plot(art: Artefact, path: str | Path) -> Path:
+def plot(art: Artefact, path: str | Path, unit: str | None = None) -> Path:
     """The speed/accuracy frontier: time to reach every level (the sum of the reach times) against EPS, for the
     budget and the governor (top, log-log), and the governor's speed-up over the budget (bottom).  One IEEE
     column wide (3.5 in), mathtext labels, in the style of :mod:`ashc_cli.outputs.plots`.
@@ -219,6 +237,8 @@ def plot(art: Artefact, path: str | Path) -> Path:
         The tradeoff artefact (``tolerances``, ``total_time/budget``, ``total_time/governor`` are read).
     path : str or Path
         The file; its suffix gives the format (:func:`ashc_cli.outputs.plots.save`).
+    unit : str, optional
+        The output's unit, on the tolerance axis.
 
     Returns
     -------
@@ -257,7 +277,8 @@ def plot(art: Artefact, path: str | Path) -> Path:
         ax_s.set_yscale("log")
         if not ok.any():
             ax_s.text(0.5, 0.5, "no speed-up: a mode missed a level", transform=ax_s.transAxes, ha="center", va="center")
-        ax_s.set_xlabel(r"guaranteed tolerance $\varepsilon$ on $|\psi - y|$")
+        shown_unit = "" if not unit else " (" + unit.replace("$", "\\$") + ")"   # a literal $ in mathtext
+        ax_s.set_xlabel(r"guaranteed tolerance $\varepsilon$ on $|\psi - y|$" + shown_unit)
         ax_s.set_ylabel("speed-up")
         # Plain factors on the log axis (7x, not 7 x 10^0).
         ax_s.yaxis.set_major_formatter(mticker.FuncFormatter(lambda value, _: f"{value:g}x"))
@@ -352,7 +373,7 @@ def run_tradeoff(spec: Spec, out, tolerances: list[float], *, on_stage: Callable
     write_artefact(artefact_path(folder.path, NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in UPSTREAM},
                    names=declared_names(spec))
-    figure = plot(art, folder.path / "plots" / f"{NAME}.png")
+    figure = plot(art, folder.path / "plots" / f"{NAME}.png", unit=output_unit(spec))
     if on_stage is not None:
         on_stage(StageReport(NAME, "ran", time.perf_counter() - start, headline(art)))
     return arts, art, figure

@@ -639,6 +639,7 @@ def summarise(art: Artefact) -> dict:
             out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
     if "tracking" in out:
         v = art.values
+        out["tracking"]["inside_certified_region"] = bool(v.get("tracking/inside_certified_region", True))
         if "tracking/max_reference_error" in v:    # a reference signal: followed, not settled on
             out["tracking"]["reference_period"] = float(v["tracking/reference_period"])
             out["tracking"]["max_reference_error"] = float(v["tracking/max_reference_error"])
