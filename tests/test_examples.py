@@ -123,3 +123,38 @@ def test_scaled_reactances_leave_the_numeric_manifold_unchanged(tmp_path):
     assert arts[0].meta["method"].split(" (")[0] == arts[1].meta["method"].split(" (")[0]
     assert arts[1].values["residual_scale"] > 1e3 * arts[0].values["residual_scale"]
     assert np.allclose(arts[0].values["p_grid"], arts[1].values["p_grid"], rtol=1e-9, atol=1e-9)
+
+
+# --- the shipped specs ------------------------------------------------------------------------------------------
+
+
+def test_the_example_specs_ship_inside_the_package_and_are_the_repositorys():
+    from ashc_cli.problem.examples import SHIPPED, shipped
+
+    from .conftest import ROOT
+
+    assert SHIPPED.parent.name == "ashc_cli" and SHIPPED.is_dir()                  # package data, not the repository
+    assert (ROOT / "specs").resolve() == SHIPPED.resolve()                           # specs/ is the link to them
+    assert '"specs/*.yaml"' in (ROOT / "pyproject.toml").read_text(encoding="utf-8")  # and the wheel takes them
+    names = shipped()
+    assert "cuk_converter" in names and len(names) == len(list(SHIPPED.glob("*.yaml"))) >= 10
+    assert all(names.values()), [n for n, d in names.items() if not d]             # each says what it is
+
+
+def test_ashc_example_lists_and_writes_a_shipped_spec(tmp_path):
+    from ashc_cli.problem.examples import SHIPPED
+
+    listing = ashc("example", "--list", check=True).stdout.splitlines()
+    assert any(line.startswith("cuk_converter ") and "Cuk converter" in line for line in listing)
+    assert any(line.startswith("ladder ") and "--stages N" in line for line in listing)
+    assert ashc("example", "cuk", check=True).stdout == (SHIPPED / "cuk_converter.yaml").read_text(encoding="utf-8")
+    out = tmp_path / "mine.yaml"
+    assert ashc("example", "quarter", "--output", str(out), check=True).stdout.strip() == f"{out}: the shipped spec quarter_car"
+    assert parse_spec_text(out.read_text(encoding="utf-8")).name == "quarter_car"
+    # rc_ladder without --stages is the shipped 5-node spec; with it, the family
+    assert "name: rc_ladder\n" in ashc("example", "rc_ladder", check=True).stdout
+    assert "rc_ladder_3" in ashc("example", "rc_ladder", "--stages", "3", check=True).stdout
+    for args, message in ((["cu"], "error: KIND: 'cu' names 3 shipped specs"), (["nothing"], "error: KIND: 'nothing' is no example"),
+                          (["cuk", "--stages", "2"], "error: --stages: 2; expected no --stages for a shipped spec")):
+        proc = ashc("example", *args)
+        assert proc.returncode == 2 and proc.stderr.startswith(message), (args, proc.stderr)

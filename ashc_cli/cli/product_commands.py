@@ -284,34 +284,52 @@ SWEEP_WORKERS = 2
 @app.command(short_help=SHORT_HELP["example"])
 @guard
 def example(
-    kind: Annotated[str, typer.Argument(metavar="KIND", help=(
-        "Which family: 'ladder' (an N-stage switched LC ladder, n = 4 N), 'rc_ladder' (the MORwiki nonlinear RC ladder "
-        "with N diodes, n = N) or 'chain' (N masses on springs, n = 2 N)."), show_default=False)],
-    stages: Annotated[int, typer.Option("--stages", min=1, max=4096, help="Number of stages N (cells, nodes or masses).")] = 1,
+    kind: Annotated[str | None, typer.Argument(metavar="KIND", help=(
+        "A shipped spec (cuk_converter, or short: cuk; `--list` shows them all) or a family of scalable plants: 'ladder' "
+        "(an N-stage switched LC ladder, n = 4 N), 'rc_ladder' (the MORwiki nonlinear RC ladder with N diodes, n = N; "
+        "without --stages the shipped 5-node spec) or 'chain' (N masses on springs, n = 2 N)."), show_default=False)] = None,
+    stages: Annotated[int | None, typer.Option("--stages", min=1, max=4096, show_default=False,
+                                               help="Number of stages N of a family (cells, nodes or masses) [default: 1].")] = None,
     output: Annotated[Path | None, typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
+    list_them: Annotated[bool, typer.Option("--list", help="List the shipped specs and the families, one line each.")] = False,
 ) -> None:
-    """Write the spec of a scalable example plant (for benchmarks and large designs).
+    """Write an example spec: one shipped with ashc (the paper's Cuk converter and a dozen other plants), or a
+    scalable plant of N stages (for benchmarks and large designs).
 
-    Prints the spec, or with --output writes it and prints its path.
+    Prints the spec, or with --output writes it and prints its path; then `ashc design FILE` designs it. The
+    shipped specs come with the package, so they are there after `pip install` without the repository.
     """
     from ashc_cli.problem import examples
 
     families = {"ladder": (examples.ladder, 256, lambda N: 4 * N), "rc_ladder": (examples.rc_ladder, 4096, lambda N: N),
                 "chain": (examples.chain, 1024, lambda N: 2 * N)}
-    if kind not in families:
-        raise SpecError("KIND", f"'{kind}' is not an example family", "one of " + ", ".join(families))
-    make, most, states = families[kind]
-    if kind == "rc_ladder" and stages < 2:
-        raise SpecError("--stages", f"{stages}", "at least 2 nodes for an RC ladder")
-    if stages > most:
-        raise SpecError("--stages", f"{stages}", f"at most {most} for the {kind} family")
-    text = make(stages)
+    if list_them:
+        for name, text in examples.shipped().items():
+            typer.echo(f"{name:<24} {text}")
+        for name in families:
+            typer.echo(f"{name:<24} family: `ashc example {name} --stages N`")
+        return
+    if kind is None:
+        raise SpecError("KIND", "missing", "a shipped spec or a family (`ashc example --list` shows them)")
+    if kind in families and not (kind == "rc_ladder" and stages is None):
+        make, most, states = families[kind]
+        stages = 1 if stages is None else stages
+        if kind == "rc_ladder" and stages < 2:
+            raise SpecError("--stages", f"{stages}", "at least 2 nodes for an RC ladder")
+        if stages > most:
+            raise SpecError("--stages", f"{stages}", f"at most {most} for the {kind} family")
+        text, what = make(stages), f"{stages}-stage {kind}, n = {states(stages)}"
+    else:
+        if stages is not None:
+            raise SpecError("--stages", f"{stages}", f"no --stages for a shipped spec ('{kind}'): only the families ladder, rc_ladder and chain take it")
+        name, text = examples.shipped_spec(kind)
+        what = f"the shipped spec {name}"
     if output is None:
         typer.echo(text, nl=False)
     else:
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(text, encoding="utf-8")
-        typer.echo(f"{output}: {stages}-stage {kind}, n = {states(stages)}")
+        typer.echo(f"{output}: {what}")
 
 
 @app.command(short_help=SHORT_HELP["regress"])

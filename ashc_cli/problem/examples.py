@@ -29,9 +29,66 @@ shorter), the decay rate does not.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import yaml
 
-__all__ = ["ladder", "rc_ladder", "chain", "parameters", "TOTALS"]
+from ashc_cli.errors import SpecError
+
+__all__ = ["ladder", "rc_ladder", "chain", "parameters", "TOTALS", "SHIPPED", "shipped", "shipped_spec"]
+
+#: The example specs shipped with the package (the repository's specs/ links here).
+SHIPPED = Path(__file__).resolve().parents[1] / "specs"
+
+#: Short names for the shipped specs a newcomer asks for first.
+ALIASES = {"cuk": "cuk_converter", "boost": "boost_converter", "pendulum": "inverted_pendulum"}
+
+
+def shipped() -> dict[str, str]:
+    """The shipped example specs: name -> the spec's ``description``.
+
+    Returns
+    -------
+    dict of str to str
+        In name order.
+    """
+    out = {}
+    for path in sorted(SHIPPED.glob("*.yaml")):
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        out[path.stem] = " ".join(str(data.get("description", "")).split())
+    return out
+
+
+def shipped_spec(name: str) -> tuple[str, str]:
+    """One shipped spec, by its name, an alias (``cuk``) or a prefix that names one spec only.
+
+    Parameters
+    ----------
+    name : str
+        ``cuk_converter``, ``cuk``, ``quarter``, ...
+
+    Returns
+    -------
+    name : str
+        The spec's name (its file's stem).
+    text : str
+        The spec file as shipped (comments included).
+
+    Raises
+    ------
+    SpecError
+        If no shipped spec, or more than one, answers to ``name``.
+    """
+    names = list(shipped())
+    full = ALIASES.get(name, name)
+    if full not in names:
+        matches = [n for n in names if n.startswith(name)]
+        if len(matches) != 1:
+            what = f"'{name}' names {len(matches)} shipped specs ({', '.join(matches)})" if matches else f"'{name}' is no example"
+            raise SpecError("KIND", what, "a family (ladder, rc_ladder, chain) or a shipped spec: " + ", ".join(names)
+                            + " (`ashc example --list` describes them)")
+        full = matches[0]
+    return full, (SHIPPED / f"{full}.yaml").read_text(encoding="utf-8")
 
 #: The line's totals: source voltage E, and L0, C0, r0, G0 split over the N stages (``parameters``).
 TOTALS = {"E": 10.0, "L": 1.0e-2, "C": 1.0e-2, "r": 0.2, "G_c": 0.02}

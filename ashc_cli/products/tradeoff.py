@@ -201,17 +201,16 @@ def table(art: Artefact, unit: str | None = None) -> list[str]:
     Returns
     -------
     list of str
-        A header (times in seconds), then per tolerance a budget and a governor row: EPS, mode, the seconds per level, their total and
-        (governor rows) the speed-up of the totals, budget / governor.
+        A header, a line naming the units (seconds; the output's unit), then per tolerance a budget and a
+        governor row: EPS, mode, the seconds per level, their total and (governor rows) the speed-up of the
+        totals, budget / governor.
     """
     v = art.values
     levels = np.asarray(v["levels"], dtype=float)
     names = [f"{lv[0]:g}" if lv.size == 1 else "(" + ", ".join(f"{x:g}" for x in lv) + ")" for lv in levels]
     width = max(9, *(len(n) for n in names))
-    eps_head = f"EPS ({unit})" if unit else "EPS"
-    head = (f"{eps_head:>8}  {'mode':<8}  " + "  ".join(f"{n:>{width}}" for n in names) + f"  {'total':>9}  {'speed-up':>8}"
-            + "   (seconds to reach each level within EPS, and their total)")
-    rows = [head]
+    head = f"{'EPS':>8}  {'mode':<8}  " + "  ".join(f"{n:>{width}}" for n in names) + f"  {'total':>9}  {'speed-up':>8}"
+    rows = [head, f"seconds to reach each level within EPS and their total; levels and EPS in {unit or 'the output units'}"]
     tot_b, tot_g = np.asarray(v["total_time/budget"]), np.asarray(v["total_time/governor"])
     for k, tol in enumerate(np.asarray(v["tolerances"], dtype=float)):
         for mode in MODES:
