@@ -21,6 +21,7 @@ import typer
 
 from ashc_cli import errors
 from ashc_cli.cli import app
+from ashc_cli.cli.common import engine
 from ashc_cli.design.pipeline import DESIGN, PRODUCTS, STAGES
 from ashc_cli.outputs.query import EVALUABLE
 from ashc_cli.design.verdict import Row
@@ -77,6 +78,7 @@ def _contract(group) -> list[str]:
     eval_missing = [n for n in CONTRACT_EVAL_NAMES if n not in EVALUABLE]
     row_keys = [f.name for f in dataclasses.fields(Row)]
     stage_files = "  ".join(f"{name}.h5" for name in STAGES)
+    engine()   # the products register with the pipeline when the machinery is loaded (the CLI loads it lazily)
     extra_files = "  ".join(f"{name}.h5" for name in PRODUCTS)
 
     out = [

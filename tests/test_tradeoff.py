@@ -87,8 +87,10 @@ def test_reach_times_match_the_simulate_run(result, short_spec, tmp_path):
 def test_table_has_one_row_per_tolerance_and_mode(result):
     rows = tradeoff.table(result["art"])
     assert rows[0].split()[:2] == ["EPS", "mode"] and rows[0].split()[2:5] == ["-19.11", "-44.27", "-12.48"]
-    assert [r.split()[:2] for r in rows[1:]] == [["20", "budget"], ["20", "governor"], ["10", "budget"], ["10", "governor"]]
-    assert rows[2].rstrip().endswith("x") and not rows[1].rstrip().endswith("x")   # the speed-up on the governor's row
+    assert rows[1] == "seconds to reach each level within EPS and their total; levels and EPS in the output units"
+    assert [r.split()[:2] for r in rows[2:]] == [["20", "budget"], ["20", "governor"], ["10", "budget"], ["10", "governor"]]
+    assert rows[3].rstrip().endswith("x") and not rows[2].rstrip().endswith("x")   # the speed-up on the governor's row
+    assert tradeoff.table(result["art"], unit="V")[1].endswith("levels and EPS in V")
 
 
 def test_frontier_figure_is_one_column_wide(result):
