@@ -305,6 +305,35 @@ class Simulate(_Strict):
     m_relation: MRelation | None = None
 
 
+class TaskReach(_Strict):
+    """Reach ``set`` by ``by`` seconds and hold it ``hold`` seconds: F_[0, by] G_[0, hold] (y in set)."""
+
+    set: list[Bounds] = Field(min_length=1)
+    by: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    hold: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+
+
+class TaskAvoid(_Strict):
+    """Stay out of ``set`` during the window ``during`` = [a, b] seconds: G_[a, b] (y not in set)."""
+
+    set: list[Bounds] = Field(min_length=1)
+    during: Bounds
+
+
+class Task(_Strict):
+    """A task on the output over a finite horizon, a bounded-time fragment of signal temporal logic
+    (``docs/spec-format.md``, "task"): ``always`` a box, each ``reach`` by its deadline and held, each ``avoid``
+    box left alone in its window.  Each set is one [lo, hi] interval per output."""
+
+    horizon: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    always: list[Bounds] | None = Field(default=None, min_length=1)
+    reach: list[TaskReach] = Field(default_factory=list)
+    avoid: list[TaskAvoid] = Field(default_factory=list)
+    x0: Literal["on_manifold"] | list[FiniteFloat] = "on_manifold"
+    #: The abstract start [default: simulate.tracking.xi0].
+    xi0: list[FiniteFloat] | None = None
+
+
 class Spec(_Strict):
     """A whole ashc spec (``docs/spec-format.md``)."""
 
@@ -316,6 +345,8 @@ class Spec(_Strict):
     abstract: Abstract
     interface: Interface = Field(default_factory=Interface)
     simulate: Simulate = Field(default_factory=Simulate)
+    #: An output task (reach, hold, avoid) for `ashc synthesize`; None: no task.
+    task: Task | None = None
     #: Units for figure axes: keys are declared state/input names, ``t``, ``y`` (every output) or ``y1``, ``y2``, ...
     units: dict[str, Annotated[str, Field(max_length=20)]] = Field(default_factory=dict)
 
@@ -348,6 +379,8 @@ def spec_sha256(spec: Spec) -> str:
     for key in ("f", "disturbances", "e", "disturbance_bounds"):     # added later: absent, not null
         if data["concrete"].get(key) is None:
             data["concrete"].pop(key, None)
+    if data.get("task") is None:          # added later: a spec without a task hashes as before
+        data.pop("task", None)
     tracking = (data.get("simulate") or {}).get("tracking") or {}
     for key in ("reference", "reference_period", "reference_levels", "dwell", "disturbance"):   # keys added later, or left out: absent, not null
         if key in tracking and tracking[key] is None:

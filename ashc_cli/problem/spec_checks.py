@@ -79,6 +79,49 @@ def check_shapes(spec: Spec) -> None:
     _check_names(spec)
     _check_units(spec)
     _check_simulate(spec, n, m, p, nh, mh)
+    _check_task(spec, n, p, nh)
+
+
+def _check_box(where: str, box: list[list[float]], p: int) -> None:
+    """A set of the task: one [lo, hi] interval per output, lo < hi."""
+    _check_len(where, box, p, "one [lo, hi] interval per output")
+    for i, (lo, hi) in enumerate(box):
+        if not lo < hi:
+            raise SpecError(f"{where}[{i}]", f"lo = {lo:g} >= hi = {hi:g}", "an interval [lo, hi] with lo < hi")
+
+
+def _check_task(spec: Spec, n: int, p: int, nh: int) -> None:
+    """The task's sets have one interval per output; deadlines, holds and windows lie within the horizon; the
+    reaches come in the order of their deadlines; there is an abstract start."""
+    task = spec.task
+    if task is None:
+        return
+    H = task.horizon
+    if task.always is None and not task.reach and not task.avoid:
+        raise SpecError("task", "asks for nothing (no always, reach or avoid)", "at least one of always, reach, avoid")
+    if task.always is not None:
+        _check_box("task.always", task.always, p)
+    last = 0.0
+    for k, r in enumerate(task.reach):
+        _check_box(f"task.reach[{k}].set", r.set, p)
+        if r.by + r.hold > H * (1 + 1e-12):
+            raise SpecError(f"task.reach[{k}].by", f"by + hold = {r.by + r.hold:g} s is past the horizon {H:g} s",
+                            "a deadline and hold that end within task.horizon")
+        if r.by < last:
+            raise SpecError(f"task.reach[{k}].by", f"{r.by:g} s is before the deadline of reach {k - 1} ({last:g} s)",
+                            "the reaches in the order they are to be met (deadlines non-decreasing)")
+        last = r.by
+    for k, a in enumerate(task.avoid):
+        _check_box(f"task.avoid[{k}].set", a.set, p)
+        t0, t1 = a.during
+        if not 0 <= t0 <= t1 <= H * (1 + 1e-12):
+            raise SpecError(f"task.avoid[{k}].during", f"[{t0:g}, {t1:g}]", f"a window [a, b] with 0 <= a <= b <= horizon = {H:g} s")
+    if task.x0 != "on_manifold":
+        _check_len("task.x0", task.x0, n, "one per concrete state")
+    xi0 = task.xi0 if task.xi0 is not None else (spec.simulate.tracking.xi0 if spec.simulate.tracking is not None else None)
+    if xi0 is None:
+        raise SpecError("task.xi0", "missing (and no simulate.tracking.xi0 to take)", "the abstract start, one number per abstract state")
+    _check_len("task.xi0", xi0, nh, "one per abstract state")
 
 
 def _check_dynamics(c: Concrete, n: int, m: int) -> None:
