@@ -401,13 +401,14 @@ SHORT_HELP = {
     "plot": "Draw the paper's figures for this design (PNG, PDF or SVG).",
     "falsify": "Search for a run that breaks the certified error bound.",
     "report": "Write a self-contained HTML page for a design review.",
+    "synthesize": "Solve the output task on the abstraction, for the plant.",
     "sweep": "Design the spec over a grid of parameter values (Dask).",
-    "example": "Write the spec of a scalable example plant.",
+    "example": "Write an example spec: one shipped, or a scalable plant.",
     "regress": "Rerun a folder of specs and compare with golden values.",
     "summary": "Print each stage's headline numbers, formulas and checks.",
     "eval": "Evaluate a stored function (p, kappa, m, ...) or u_w at a point.",
     "tradeoff": "Time to reach the levels against the guaranteed tolerance.",
-    "export": "Write the design as C99 code (file and header) or a numpy module.",
+    "export": "Write the design as C99 code and header, or a numpy module.",
     "version": "Print the ashc version.",
 }
 

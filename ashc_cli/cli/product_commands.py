@@ -168,6 +168,38 @@ def tradeoff_command(spec: SpecArg, tolerances: TolerancesOpt, out: OutOpt = Non
         typer.echo(f"tradeoff '{spec_obj.name}': {stored}, {figure}")
 
 
+@app.command(short_help=SHORT_HELP["synthesize"])
+@guard
+def synthesize(spec: SpecArg, out: OutOpt = None, as_json: JsonOpt = False,
+               frozen: frozen_opt("Never rerun a design stage: fail (exit 5, naming the stage) if one is stale.") = False) -> None:
+    """Solve the spec's task on the output (`task:` always, reach, avoid) on the abstraction, guaranteed on the plant.
+
+    Searches the tolerance EPS: the budget mode of the guaranteed controller keeps |psi - y| <= EPS for every
+    abstract input |v| <= (EPS - sqrt(W0 / alpha_h)) / G (eq. (38)); a plan of set-points on the abstraction,
+    aimed at the reach sets in order, is integrated and monitored, and kept when psi meets the task with
+    robustness >= EPS plus a sampling margin (then every plant run of the interface meets the task). The plan
+    then runs on the plant and the task's robustness of that run is reported (the signed distance, in output
+    units, to violating the task). Writes <out>/synthesize.h5 and prints EPS, the certified margin and the
+    plant run's robustness. Exit 3 when no EPS works, naming the part of the task that fails and by how much.
+    A plan that would have to go around an avoid set is refused (plan and verify, not a grid game).
+    """
+    from ashc_cli.outputs.query import summary
+    from ashc_cli.products.synthesize import NAME, run_synthesize
+
+    spec_obj, folder = load(spec, out)
+    with Progress() as progress:
+        _, art = run_synthesize(spec_obj, folder, on_stage=progress.on_stage, on_start=progress.on_start, frozen=frozen)
+    entry = summary({NAME: art})[NAME]
+    if as_json:
+        emit_json(entry)
+        return
+    task = entry["task"]
+    times = ", ".join("-" if not np.isfinite(x) else f"{x:.4g}" for x in task["reach_times"])
+    typer.echo(f"synthesize '{spec_obj.name}': EPS = {number_text(entry['tolerance'], '.4g')} (v_max = {number_text(entry['v_max'], '.4g')}), "
+               f"task certified with margin {number_text(entry['certified_margin'], '.4g')} (sampled in time); on the plant "
+               f"{'met' if task['satisfied'] else 'NOT met'}, robustness {number_text(task['robustness'], '.4g')}, reach times [{times}] s")
+
+
 @app.command(short_help=SHORT_HELP["report"])
 @guard
 def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: ReportSeedOpt = None, t_final: ReportTFinalOpt = None,

@@ -3,7 +3,8 @@ trade-off, parameter sweeps over a Dask cluster, and the regression of the shipp
 registers with :mod:`ashc_cli.design.pipeline` as a product (its artefact is cached like a stage's)."""
 
 from ashc_cli.design.pipeline import register_product
-from ashc_cli.products import falsify, tradeoff
+from ashc_cli.products import falsify, synthesize, tradeoff
 
 register_product(falsify)
 register_product(tradeoff)
+register_product(synthesize)
