@@ -153,6 +153,8 @@ CASES: tuple[Case, ...] = (
     Case("sim-leaves-m-real", "the m-relation run leaves where m is certified", edits=(("x0: [10.3256, 2.0561, -4.9785, -6.9732]", "x0: [0, 0, 0, 0]"), ('u: "0.3*triangle(t - 2) + 0.1*sin(2*pi*(t - 2)) + 0.45"', 'u: "0.95"')),
          targets=("simulate",), drop_tracking=True, code=3, fragment="leaves kappa(V) = [-126.188, 0], where m is certified"),
     Case("sim-u-bad-name", "an unknown name in the m-relation input signal", edits=(('u: "0.3*triangle(t - 2)', 'u: "0.3*triangle(s - 2)'),), targets=("simulate",), drop_tracking=True, code=2, fragment="unknown name 's'"),
+    Case("param-zero-divides", "a parameter of 0 that an expression divides by", edits=(("L_1: 10.0e-3", "L_1: 0"),),
+         fragment="concrete.f_bar[0]: is not finite with the parameter values (L_1 = 0: a division by zero)"),
     Case("task-past-horizon", "a task deadline whose hold runs past the horizon", edits=(('units: {t: s, y: V}', 'units: {t: s, y: V}' + "\ntask: {horizon: 10, reach: [{set: [[-82, -78]], by: 8, hold: 5}]}"),), fragment='task.reach[0].by: by + hold = 13 s is past the horizon 10 s'),
     Case("task-set-size", "a task set with two intervals for one output", edits=(('units: {t: s, y: V}', 'units: {t: s, y: V}' + "\ntask: {horizon: 10, always: [[-110, -1], [0, 1]]}"),), fragment='task.always: has 2 entries; expected 1'),
     Case("task-empty-set", "a task set with lo >= hi", edits=(('units: {t: s, y: V}', 'units: {t: s, y: V}' + "\ntask: {horizon: 10, avoid: [{set: [[-60, -70]], during: [0, 2]}]}"),), fragment='task.avoid[0].set[0]: lo = -60 >= hi = -70'),

@@ -383,8 +383,8 @@ def test_check_names_a_simulate_artefact_of_an_earlier_design_stale(tmp_path):
                          f"(`ashc summary {out}` lists them)")
     ashc("bound", str(CUK), "--out", str(out), "--force", check=True)   # a new bound.h5: the runs were for the old one
     lines = ashc("check", str(CUK), "--out", str(out), check=True).stdout.splitlines()
-    assert lines[-2] == (f"Simulated scenarios: {out / 'simulate.h5'} is stale (made for an earlier design (bound.h5 "
-                         "changed since)), not shown; rerun `ashc simulate SPEC`")
+    assert lines[-2] == (f"Simulated scenarios: {out / 'simulate.h5'} is stale, made for an earlier design (bound.h5 "
+                         f"changed since); not shown. Rerun `ashc simulate SPEC --out {out}`")
     got = json.loads(ashc("check", str(CUK), "--out", str(out), "--json", check=True).stdout)
     assert got["simulated"] == [] and got["simulated_stale"] == "made for an earlier design (bound.h5 changed since)"
 
@@ -409,3 +409,23 @@ def test_an_unknown_name_in_f_bar_is_offered_only_the_names_f_bar_may_use(tmp_pa
     assert err.startswith("error: concrete.f_bar[1]: unknown name 'x9'"), err
     offered = err.split("declared names (")[1].split(")")[0].split(", ")
     assert "x4" in offered and "E" in offered and not {"u", "v", "xi"} & set(offered), offered
+
+
+def test_a_usage_error_is_one_line_with_the_option_the_value_and_what_was_expected():
+    cases = {("falsify", str(CUK), "--runs", "0"): "error: --runs: '0'; expected a number >= 1 (see `ashc falsify --help`)",
+             ("falsify", str(CUK), "--runs", "abc"): "error: --runs: 'abc'; expected a whole number (see `ashc falsify --help`)",
+             ("plot", str(CUK), "--format", "jpg"): "error: --format: 'jpg'; expected one of 'png', 'pdf', 'svg' (see `ashc plot --help`)",
+             ("design",): "error: Missing argument 'SPEC' (see `ashc design --help`)"}
+    for args, line in cases.items():
+        proc = ashc(*args)
+        assert proc.returncode == 2 and proc.stderr == line + "\n", (args, proc.stderr)
+
+
+def test_example_does_not_overwrite_a_file_without_force(tmp_path):
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("# my edits\n", encoding="utf-8")
+    proc = ashc("example", "cuk", "--output", str(mine))
+    assert proc.returncode == 2 and proc.stderr.strip() == f"error: --output: {mine} exists; expected a new file, or --force to overwrite it"
+    assert mine.read_text(encoding="utf-8") == "# my edits\n"
+    ashc("example", "cuk", "--output", str(mine), "--force", check=True)
+    assert mine.read_text(encoding="utf-8").startswith("# DC-to-DC Cuk converter")

@@ -507,4 +507,52 @@ def main(argv: list[str] | None = None) -> None:
         args = [a for a in args if a != "--debug"]
     else:
         warnings.simplefilter("ignore")  # the one-line error contract: library warnings only with --debug
+    # typer's usage errors (a bad option value, a missing argument, an unknown option) in ashc's one-line form
+    # rather than click's four lines (typer vendors click as typer._click).
+    from typer import _click
+
+    _click.exceptions.UsageError.show = lambda self, file=None: typer.echo(usage_line(self, args), err=True)
     app(args=args, prog_name="ashc")
+
+
+#: click's and typer's wording of a bad option value, and what ashc says instead.
+_VALUE_WORDING = (
+    (re.compile(r"Input should be a valid integer.*"), "a whole number"),
+    (re.compile(r"Input should be a valid number.*"), "a number"),
+    (re.compile(r"Input should be greater than or equal to (\S+)"), r"a number >= \1"),
+    (re.compile(r"Input should be less than or equal to (\S+)"), r"a number <= \1"),
+    (re.compile(r"Input should be greater than (\S+)"), r"a number > \1"),
+    (re.compile(r"(?:Value error, )?'[^']*' is not one of (.*?)\.?$"), r"one of \1"),
+)
+
+
+def usage_line(exc, args: list[str]) -> str:
+    """A usage error (bad option value, missing argument, unknown option or command) as ashc's one line:
+    ``error: --runs: 0; expected a number >= 1 (ashc falsify --help)``.
+
+    Parameters
+    ----------
+    exc : click.UsageError
+        What click raised.
+    args : list of str
+        The command line (to echo the value given).
+
+    Returns
+    -------
+    str
+    """
+    from typer._click.exceptions import BadParameter, MissingParameter
+
+    where = f" (see `{exc.ctx.command_path} --help`)" if getattr(exc, "ctx", None) is not None else ""
+    if isinstance(exc, BadParameter) and not isinstance(exc, MissingParameter) and exc.param is not None:
+        names = list(getattr(exc.param, "opts", [])) or [exc.param.human_readable_name]
+        value = next((args[i + 1] for i, a in enumerate(args[:-1]) if a in names), None)
+        value = value if value is not None else next((a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in names and "=" in a), None)
+        expected = exc.message
+        for pattern, text in _VALUE_WORDING:
+            if pattern.fullmatch(expected.strip()):
+                expected = pattern.sub(text, expected.strip())
+                break
+        shown = "" if value is None else f"{value!r}; "
+        return f"error: {names[0]}: {shown}expected {expected}{where}"
+    return f"error: {exc.format_message().rstrip('.')}{where}"

@@ -324,6 +324,7 @@ def example(
                                                help="Number of stages N of a family (cells, nodes or masses) [default: 1].")] = None,
     output: Annotated[Path | None, typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
     list_them: Annotated[bool, typer.Option("--list", help="List the shipped specs and the families, one line each.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite an existing --output file (else refused: it may hold your edits).")] = False,
 ) -> None:
     """Write an example spec: one shipped with ashc (the paper's Cuk converter and a dozen other plants), or a
     scalable plant of N stages (for benchmarks and large designs).
@@ -359,6 +360,8 @@ def example(
     if output is None:
         typer.echo(text, nl=False)
     else:
+        if output.exists() and not force:
+            raise SpecError("--output", f"{output} exists", "a new file, or --force to overwrite it")
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(text, encoding="utf-8")
         typer.echo(f"{output}: {what}")

@@ -138,7 +138,8 @@ def _echo_simulated(simulated: list[dict], stale: str | None, path: Path) -> Non
     """One line on the scenario checks of `ashc simulate` (simulated, not part of the verdict); a failed one in full;
     a simulate.h5 of an earlier design named as stale, its checks not shown."""
     if stale not in (None, "no artefact yet"):
-        typer.echo(f"Simulated scenarios: {path / 'simulate.h5'} is stale ({stale}), not shown; rerun `ashc simulate SPEC`")
+        typer.echo(f"Simulated scenarios: {path / 'simulate.h5'} is stale, {stale}; not shown. Rerun "
+                   f"`ashc simulate SPEC --out {path}`")
         return
     if not simulated:
         return

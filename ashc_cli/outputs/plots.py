@@ -513,7 +513,7 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
     strategies = np.asarray(v["strategy"]).astype(str) if "strategy" in v else np.full(ratios.size, "random")
     on_manifold = np.asarray(v["W0"], dtype=float) == 0 if "W0" in v else np.ones(ratios.size, dtype=bool)
     names = list(dict.fromkeys(strategies))          # the order falsify ran them in
-    fig, (ax,) = _figure(height=2.6)
+    fig, (ax,) = _figure(height=3.4)     # room for the legend above the panel
     positive = ratios[ratios > 0]
     floor = float(positive.min()) / 2 if positive.size else 1e-12
     shown = np.maximum(ratios, floor)

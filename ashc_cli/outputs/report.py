@@ -149,11 +149,12 @@ def _falsify_paragraph(f: dict) -> str:
         head = (f"Started on the manifold (W0 = 0, where only G ||v||_inf counts): largest measured error / guaranteed "
                 f"bound = <b>{readable(lead, 4)}</b> (run {f.get('worst_w0_zero_run', '?')}; strongest strategy: "
                 f"{html.escape(str(f.get('strategy_of_worst_w0_zero', '?')))}). ")
-    return (f"<p>{head}{f['runs']} searched closed-loop runs in all (seed {f['seed']}; random, adversarial, linearised worst "
-            f"case, boundary of the certified region, refined), with starts off the manifold: largest ratio "
+    names = ", ".join(str(k).replace("_", "-") for k in f.get("ratio_by_strategy", {})) or "random"
+    return (f"<p>{head}{f['runs']} searched closed-loop runs in all (seed {f['seed']}; strategies {html.escape(names)}), "
+            f"with starts off the manifold: largest ratio "
             f"{readable(f['max_ratio'], 4)} (run {f['worst_run']}, {html.escape(str(f.get('strategy_of_worst', 'random')))}, "
             f"t = {readable(f['worst_time'], 4)} s; at t = 0 the W0 term is tight by construction); {_status(ok)} "
-            f"(every ratio must stay at or below 1). {f['runs_leaving_V']} run(s) left V (not counted after that).</p>")
+            f"(every ratio must stay at or below 1). Runs that left V: {f['runs_leaving_V']} (not counted after that).</p>")
 
 
 def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path]) -> str:

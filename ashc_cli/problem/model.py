@@ -625,6 +625,22 @@ def _matrix(rows, names, field_name, shape, offer=None) -> sp.Matrix:
     return sp.Matrix(shape[0], shape[1], entries)
 
 
+def _check_finite_with_values(values: dict, fields: list) -> None:
+    """Refuse an expression that the parameter values make infinite (1/L_1 with L_1 = 0): otherwise every stage
+    would meet sympy's complex infinity.  Only a zero parameter can do that to a parsed expression."""
+    zeros = {sym: val for sym, val in values.items() if val == 0}
+    if not zeros:
+        return
+    for field_name, mat in fields:
+        if mat is None:
+            continue
+        for k, expr in enumerate(mat):
+            if expr.free_symbols & set(zeros) and expr.xreplace(zeros).has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+                used = ", ".join(sorted(f"{s} = 0" for s in expr.free_symbols & set(zeros)))
+                raise SpecError(f"{field_name}[{k}]", f"is not finite with the parameter values ({used}: a division by zero)",
+                                "parameter values for which every expression is finite")
+
+
 def _offer(names: dict, allowed: set) -> list[str]:
     """The spec names (keys of ``names``) that stand for a symbol in ``allowed``: what a field may use."""
     return [k for k, sym in names.items() if sym in allowed]
@@ -698,6 +714,9 @@ def build_model(spec: Spec) -> Model:
         p_given = _matrix(a.p, names, "abstract.p", (n, 1))
         _check_free(p_given, pset | set(xi), "abstract.p", "the abstract states")
     V = None if a.domain == "auto" else np.array(a.domain, dtype=float)
+    _check_finite_with_values(values, [("concrete.f_bar", f_bar), ("concrete.g", g), ("concrete.f", f_general), ("concrete.h", h),
+                                       ("concrete.e", e), ("abstract.phi_bar", phi_bar), ("abstract.l", l),
+                                       ("abstract.delta", delta), ("abstract.m", m_given), ("abstract.p", p_given)])
     return Model(
         spec=spec, params=params, values=values, x=x, u=u, xi=xi, v=v, f_bar=f_bar, g=g, h=h,
         phi_bar=phi_bar, l=l, delta=delta, U=np.array(c.input_bounds, dtype=float),

@@ -310,15 +310,17 @@ def summarise(art: Artefact) -> dict:
     """
     v = art.values
     by = {k.split("/", 1)[1]: float(x) for k, x in v.items() if k.startswith("ratio_by_strategy/")}
-    out = {"runs": int(art.meta["runs"]), "seed": int(art.meta["seed"]), "max_ratio": float(v["max_ratio"]),
-           "worst_run": int(v["worst_run"]), "worst_time": float(v["worst_time"]), "runs_leaving_V": int(v["runs_leaving_V"]),
-           "max_error": float(v["max_error"])}
+    out = {"runs": int(art.meta["runs"]), "seed": int(art.meta["seed"])}
+    if "max_ratio_w0_zero" in v:   # first: the ratio of the runs started on the manifold, the one that tests G
+        out.update({"max_ratio_w0_zero": float(v["max_ratio_w0_zero"]), "worst_w0_zero_run": int(v["worst_w0_zero_run"]),
+                    "strategy_of_worst_w0_zero": str(v["strategy_of_worst_w0_zero"])})
+    out.update({"max_ratio": float(v["max_ratio"]), "worst_run": int(v["worst_run"]), "worst_time": float(v["worst_time"]),
+                "runs_leaving_V": int(v["runs_leaving_V"]), "max_error": float(v["max_error"])})
     out["certificate_counterexamples"] = int(v.get("certificate_counterexamples", 0))
     out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
     if "max_ratio_w0_zero" in v:
         out.update({
-            "max_ratio_w0_zero": float(v["max_ratio_w0_zero"]), "worst_w0_zero_run": int(v["worst_w0_zero_run"]),
-            "strategy_of_worst": str(v["strategy_of_worst"]), "strategy_of_worst_w0_zero": str(v["strategy_of_worst_w0_zero"]),
+            "strategy_of_worst": str(v["strategy_of_worst"]),
             "ratio_by_strategy": by, "worst_xi0": np.asarray(v["worst_xi0"]).tolist(), "worst_x0": np.asarray(v["worst_x0"]).tolist(),
             "worst_W0": float(v["worst_W0"]), "v_limit": float(v["v_limit"]),
             "linearised_worst_ratio": float(v["linearised_worst_ratio"]), "hold": float(v["hold"]),
@@ -349,4 +351,6 @@ def headline(art: Artefact) -> str:
     # started on it is the one that tests G, so it leads.
     lead = (f"{runs} runs: on the manifold largest error / bound = {float(v['max_ratio_w0_zero']):.4g} "
             f"(run {v['worst_w0_zero_run']}, strongest strategy {v['strategy_of_worst_w0_zero']})")
-    return f"{lead}; with starts off it {overall}, by {v['strategy_of_worst']}; {left} left V"
+    overall = (f"{float(v['max_ratio']):.4g} (run {v['worst_run']}, {v['strategy_of_worst']}, "
+               f"t = {float(v['worst_time']):.4g} s)")
+    return f"{lead}; all runs, off the manifold too: {overall}; {left} left V"
