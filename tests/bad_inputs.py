@@ -56,7 +56,7 @@ class Case:
 CASES: tuple[Case, ...] = (
     # --- YAML and structure -------------------------------------------------------------------------
     Case("yaml-malformed", "malformed YAML", raw="name: [\n", fragment="malformed YAML"),
-    Case("yaml-not-mapping", "top level is a list", raw="- 1\n- 2\n", fragment="top level is list"),
+    Case("yaml-not-mapping", "top level is a list", raw="- 1\n- 2\n", fragment="top level is a list"),
     Case("yaml-duplicate-key", "a key given twice", raw="name: a\nname: b\n", fragment="duplicate key 'name'"),
     Case("yaml-alias", "YAML aliases (billion-laughs vector)", raw="a: &x [1, 2]\nb: *x\n", fragment="aliases"),
     Case("yaml-python-tag", "a python object tag", raw="name: !!python/object/apply:os.system ['echo hi']\n", fragment="malformed YAML"),

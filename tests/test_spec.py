@@ -76,7 +76,8 @@ def test_yaml_problems():
     assert "malformed YAML" in error_of("name: [")
     assert "duplicate key 'name'" in error_of("name: a\nname: b\n")
     assert "aliases" in error_of("a: &x [1]\nb: *x\n")
-    assert "top level is list" in error_of("- 1\n")
+    assert "top level is a list" in error_of("- 1\n")
+    assert ": empty; expected a YAML mapping" in error_of("")
 
 
 def test_file_errors(tmp_path):

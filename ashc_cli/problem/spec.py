@@ -392,6 +392,10 @@ def spec_sha256(spec: Spec) -> str:
 # --- YAML ----------------------------------------------------------------------------------------------
 
 
+#: What a YAML document's top level is, in YAML's words (not Python's type names).
+_YAML_KINDS = {"list": "a list", "str": "a string", "int": "a number", "float": "a number", "bool": "a boolean"}
+
+
 class _SafeStrictLoader(yaml.SafeLoader):
     """SafeLoader that refuses aliases (no billion-laughs) and duplicate keys (a typo must not hide)."""
 
@@ -648,7 +652,8 @@ def parse_spec_text(text: str, source: str = "spec") -> Spec:
     """
     data = _yaml_load(text, source)
     if not isinstance(data, dict):
-        raise SpecError(source, f"top level is {type(data).__name__}", "a YAML mapping with keys name, concrete, stabilisability, abstract, ...")
+        what = "empty" if data is None else f"top level is {_YAML_KINDS.get(type(data).__name__, type(data).__name__)}"
+        raise SpecError(source, what, "a YAML mapping with keys name, concrete, stabilisability, abstract, ...")
     try:
         spec = Spec.model_validate(data)
     except ValidationError as exc:
