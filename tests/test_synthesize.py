@@ -37,6 +37,9 @@ def test_the_cuk_task_is_certified_and_met_on_the_plant(synthesized):
     assert v["run/max_abs_error"] <= eps
     assert entry["task"]["robustness"] >= entry["plan_robustness"] - eps - float(v["plan_deviation"]) - float(v["sampling_margin"])
     assert entry["v_max"] == pytest.approx(eps / float(read_artefact(synthesized[0] / "bound.h5").value("gain")), rel=1e-9)
+    # each reach's deepest hold window lies within its deadline, and the figure is drawn
+    assert all(s <= r.by for s, r in zip(v["task/best_hold_starts"], load_spec(TASK_SPEC).task.reach))
+    assert (synthesized[0] / "plots" / "synthesize.png").stat().st_size > 10_000
 
 
 def test_rtamt_agrees_with_the_stored_runs_robustness(synthesized):

@@ -75,11 +75,14 @@ class TaskRobustness:
         ``always``, ``reach[k]``, ``avoid[k]``: the robustness of each part.
     reach_times : list of float
         Per reach, the first sample time (<= its deadline) from which y stays in the set for the hold; NaN if none.
+    best_times : list of float
+        Per reach, the start of the hold window that gives its robustness (the deepest hold).
     """
 
     robustness: float
     parts: dict[str, float] = field(default_factory=dict)
     reach_times: list[float] = field(default_factory=list)
+    best_times: list[float] = field(default_factory=list)
 
     @property
     def satisfied(self) -> bool:
@@ -114,7 +117,7 @@ def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
     parts: dict[str, float] = {}
     if task.always is not None:
         parts["always"] = float(box_margin(y[:, within], task.always).min())
-    times = []
+    times, best = [], []
     for k, reach in enumerate(task.reach):
         inside = _RangeMin(box_margin(y, reach.set))
         starts = np.flatnonzero(t <= reach.by * (1 + 1e-12) + 1e-12)
@@ -122,8 +125,9 @@ def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
         parts[f"reach[{k}]"] = float(held.max())
         met = np.flatnonzero(held >= 0)
         times.append(float(t[starts[met[0]]]) if met.size else float("nan"))
+        best.append(float(t[starts[int(np.argmax(held))]]))
     for k, avoid in enumerate(task.avoid):
         a, b = avoid.during
         sel = (t >= a - 1e-12) & (t <= b * (1 + 1e-12) + 1e-12)
         parts[f"avoid[{k}]"] = float((-box_margin(y[:, sel], avoid.set)).min()) if sel.any() else float("inf")
-    return TaskRobustness(min(parts.values()), parts, times)
+    return TaskRobustness(min(parts.values()), parts, times, best)
