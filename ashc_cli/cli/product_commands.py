@@ -13,7 +13,7 @@ from ashc_cli.errors import ArtefactError, SpecError
 from ashc_cli.outputs.numbers import number_text
 from ashc_cli.cli.common import (
     FALSIFY, engine, ForceOpt, JsonOpt, OutOpt, Progress, REPORT_RUNS, REPORT_SEED, ReportRunsOpt, ReportSeedOpt, ReportTFinalOpt, RunsOpt, SHORT_HELP,
-    SeedOpt, SpecArg, TFinalOpt, app, current_artefact, emit_json, exclusive, frozen_opt, guard, load, positive_t_final,
+    SeedOpt, SpecArg, TFinalOpt, app, emit_json, product_staleness, exclusive, frozen_opt, guard, load, positive_t_final,
 )
 
 
@@ -98,8 +98,11 @@ def _falsify_for_report(spec, folder, arts: dict, runs: int | None, seed: int | 
     from ashc_cli.products.falsify import headline as falsify_headline
 
 
-    stored = current_artefact(spec, folder, FALSIFY)
-    why = "--force" if force else ("missing (none made from this spec)" if stored is None else
+    stale = product_staleness(spec, folder, FALSIFY)
+    stored = None if stale else folder.read(FALSIFY)
+    if stale is not None:
+        stale = "missing" if stale == "no artefact yet" else stale
+    why = "--force" if force else (stale if stored is None else
                                    falsify_differs(spec, arts, stored, runs, seed, t_final, t_final_given=t_final is not None))
     if why is not None and why.startswith("made with") and runs is not None and int(stored.meta["runs"]) > runs:
         # More runs of this very design are more evidence: never replaced by a smaller search without --force.
@@ -118,10 +121,10 @@ def _falsify_for_report(spec, folder, arts: dict, runs: int | None, seed: int | 
     seed = REPORT_SEED if seed is None else seed
     wanted = f"--runs {runs} --seed {seed} --t-final {falsify_t_final(spec, t_final):g}"
     if frozen:
-        raise ArtefactError("falsify.h5", f"{'is' if stored is None else 'was'} {why} (--frozen runs nothing)",
+        raise ArtefactError("falsify.h5", f"{'is' if why == 'missing' else 'was'} {why} (--frozen runs nothing)",
                             f"`ashc falsify SPEC {wanted}` first, or drop --frozen")
     if not force:
-        progress.line(f"note: running falsify {wanted}: falsify.h5 {'is' if stored is None else 'was'} {why}")
+        progress.line(f"note: running falsify {wanted}: falsify.h5 {'is' if why == 'missing' else 'was'} {why}")
     return run_falsify(spec, folder, runs, seed, t_final, on_stage=progress.on_stage, on_start=progress.on_start,
                        progress=lambda step: progress.update(completed=step),
                        on_runs=lambda count, per_second: progress.update(note=f"{count} runs integrated, {per_second:.0f} runs/s"))[1]
