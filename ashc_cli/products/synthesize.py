@@ -88,16 +88,16 @@ def _plan(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.ndarra
     switches = [0.0]
     k, entered = 0, None
 
-    def field(z, ref):
-        phi, delta, *_ = plant.at_xi(z)
-        dplus = np.linalg.pinv(delta)
-        v = np.clip(dplus @ (gain * (ref - z) - phi[:, 0]), -v_max, v_max)
+    def field(z, ref, terms=None):
+        phi, delta, *_ = plant.at_xi(z) if terms is None else terms
+        v = np.clip(np.linalg.pinv(delta) @ (gain * (ref - z) - phi[:, 0]), -v_max, v_max)
         return phi[:, 0] + delta @ v, v
 
     z = xi0.copy()
     for i in range(t.size):
         xi[:, i] = z
-        psi[:, i] = np.ravel(plant.kappa(*z))
+        here = plant.at_xi(z)            # phi_bar, delta and kappa at the sample, once
+        psi[:, i] = here[4][:, 0]
         ref = refs[min(k, len(refs) - 1)]
         if k < len(refs) - 1:       # switch once the current set has been held (its deflated box)
             box = np.asarray(task.reach[k].set, dtype=float)
@@ -107,12 +107,12 @@ def _plan(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.ndarra
                 k, entered = k + 1, None
                 switches.append(float(t[i]))
                 ref = refs[k]
-        k1, v_run[:, i] = field(z, ref)
+        k1, v_run[:, i] = field(z, ref, here)
         if i == t.size - 1:
             break
-        k2, _ = field(z + 0.5 * dt * k1, ref)
-        k3, _ = field(z + 0.5 * dt * k2, ref)
-        k4, _ = field(z + dt * k3, ref)
+        k2 = field(z + 0.5 * dt * k1, ref)[0]
+        k3 = field(z + 0.5 * dt * k2, ref)[0]
+        k4 = field(z + dt * k3, ref)[0]
         z = z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
     return t, xi, psi, v_run, switches
 
@@ -196,7 +196,7 @@ def _concrete(model, plant, up, task, xi0, x0, W0, refs, gain, best, tried) -> A
                 if t1 > t0]
     res = sim.closed_loop_run(model, plant, up, law, np.r_[xi0, x0, W0], segments, refs, sim.tracking_loop_for(model, up, law))
     t, y = res["t"], res["y"]
-    psi = np.stack([np.ravel(plant.kappa(*res["xi"][:, i])) for i in range(t.size)], axis=1)
+    psi = plant.kappa(*res["xi"])[:, 0, :]          # as simulate's tracking run records it
     on_y, on_psi = robustness(task, t, y), best["rob"]
     # The plan's RK4 against the run's adaptive integration of the same abstraction and law: what the plan's psi may be
     # off by, taken from the margin (the switching times are the plan's, so the two follow the same references).
