@@ -109,3 +109,47 @@ def test_sub_boxes_cover_the_box_and_split_where_the_lmi_binds():
     volume = np.prod(np.ptp(boxes, axis=2)[:, :2], axis=1).sum()
     assert volume == pytest.approx(np.prod(np.ptp(model.state_box, axis=1)), rel=1e-12)   # a partition of the box
     assert len(grid.boxes) == 2
+
+
+# A term that is numerically tiny on the whole box (exp(40 x) in [4.2e-18, 2.3e-16]) times a huge coefficient: df/dx
+# = -1 + 40 a exp(40 x) spans [-0.5, 26.3], so the plant is not contracting on the box.  Rounding the corners of the
+# sub-boxes' term ranges to 15 decimals merged the two ends and kept only the stable one (audit, finding 1).
+TINY_TERM = """
+name: tiny_term
+parameters: {a: 2.94e15}
+concrete:
+  states: [x1]
+  inputs: [u]
+  f_bar: ["-x1 + a*exp(40*x1)"]
+  g: [["1"]]
+  h: ["x1"]
+  input_bounds: [[-0.01, 0.01]]
+  output_set: [[-1.0, -0.9]]
+  state_box: [[-1.0, -0.9]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-1.0, -0.9]]
+"""
+
+
+def test_a_tiny_term_with_a_huge_coefficient_keeps_both_corners_on_every_sub_box():
+    model = build_model(parse_spec_text(TINY_TERM))
+    grid = terms.SubBoxes(model, terms.decompose(model, sparse_jacobian(model.f, model.x)))
+    for _ in range(3):
+        poly = grid.polytope()
+        # every sub-box contributes both ends of its range of df/dx: the largest vertex is the true sup (26.3)
+        assert len(poly.matrices) == 2 * len(grid.boxes)
+        assert max(A[0, 0] for A in poly.matrices) == pytest.approx(-1 + 40 * 2.94e15 * np.exp(-36.0), rel=1e-6)
+        grid.split(poly, np.eye(1), 0.0, share=1.0)
+
+
+def test_a_plant_that_is_not_contracting_on_its_box_is_refused_not_proved():
+    from ashc_cli.errors import DesignError
+
+    model = build_model(parse_spec_text(TINY_TERM))
+    with pytest.raises(DesignError):
+        stabilise.run(model, {})

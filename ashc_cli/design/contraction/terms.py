@@ -527,7 +527,9 @@ class SubBoxes:
             if ranges is None:
                 return None
             for corner in itertools.product(*ranges):
-                key = tuple(np.round(corner, 15))
+                # equal corners only, by their exact enclosure values: a term enclosed in [4e-18, 2e-16] times a
+                # coefficient of 1e17 spans tens of units of df/dx, so no rounding of the term may merge its ends
+                key = tuple(float(v) for v in corner)
                 if key not in seen:
                     seen.add(key)
                     corners.append(corner)
