@@ -305,8 +305,7 @@ def _prove_region(model: Model, upstream: dict[str, Artefact], M: np.ndarray, db
                     return None
                 if proofs.upper(denom) > 0:
                     bounds.append(proofs.arb(room) / proofs.arb(proofs.upper(denom)))
-        box_used = "state_box" in stab.meta or model.C is None
-        if box_used and model.state_box is not None:
+        if _rests_on_state_box(model, stab) and model.state_box is not None:
             if p_expr is None and p_range is None:
                 return None
             pf = proofs.compile_claims(model, _rooms(p_expr, model.state_box), list(model.xi)) if p_range is None else None
@@ -336,6 +335,14 @@ def _rooms(exprs, box: np.ndarray) -> list[sp.Expr]:
     for e, (lo, hi) in zip(exprs, np.asarray(box, dtype=float)):
         out += [e - sp.Float(float(lo)), sp.Float(float(hi)) - e]
     return out
+
+
+def _rests_on_state_box(model: Model, stab: Artefact) -> bool:
+    """Whether a quantity of the bound is taken over ``concrete.state_box`` only, so that the region must keep x in it:
+    a Jacobian LMI (lambda), a nonlinear h (L_h and alpha_h) or a disturbance matrix e(x) that depends on the states
+    (ebar = sup over the box of ||sqrt(M) e(x)||).  Only when none is can the region be global."""
+    e_varies = model.e is not None and bool(model.e.free_symbols & set(model.x))
+    return "state_box" in stab.meta or model.C is None or e_varies
 
 
 def _input_must_stay_in_U(model: Model, upstream: dict[str, Artefact]) -> bool:
@@ -398,8 +405,7 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
         c = min(c, c_sat)
         reasons.append(f"feedback K (x - p) does not clip (c <= {c_sat:.6g})" if model.spec.interface.saturate is not False
                         else f"u = l + K (x - p) + q v stays in U, where A(u) is certified (c <= {c_sat:.6g})")
-    box_used = "state_box" in stab.meta or model.C is None
-    if box_used and model.state_box is not None:
+    if _rests_on_state_box(model, stab) and model.state_box is not None:
         # p(xi) + e stays in the box for every e^T M e <= c: |e_j| <= sqrt(c (M^-1)_jj).
         p = p_grid[:, 0, :]
         dist = np.minimum(p - model.state_box[:, 0:1], model.state_box[:, 1:2] - p)    # (n, N)
