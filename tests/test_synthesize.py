@@ -72,3 +72,88 @@ def test_a_spec_without_a_task_is_told_what_synthesize_needs(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1] == ("error: task: missing; expected a task on the output "
                                                      "(docs/spec-format.md, 'task') for `ashc synthesize`")
+
+
+# --- a task with a disturbance (audit finding 3): the deflation counts G_w ||w||_inf ---------------------------------
+
+DISTURBED_TASK = """
+name: disturbed_task
+parameters: {a: 2.0}
+concrete:
+  states: [x]
+  inputs: [u]
+  f_bar: ["-a*x"]
+  g: [["1"]]
+  h: ["x"]
+  input_bounds: [[-4, 4]]
+  output_set: [[-1, 1]]
+  disturbances: [w]
+  e: [["1"]]
+  disturbance_bounds: [[-W, W]]
+stabilisability: {method: polytopic_lmi, decay_rate: 2.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["a*xi"]
+  domain: [[-1.5, 1.5]]
+task:
+  horizon: 12.0
+  always: [[-1.5, 1.5]]
+  reach:
+    - {set: [[LO, HI]], by: 8.0, hold: 2.0}
+  xi0: [0.0]
+"""
+
+
+def _task_spec(w: float | None, lo: float, hi: float) -> str:
+    text = DISTURBED_TASK.replace("LO", str(lo)).replace("HI", str(hi))
+    if w is None:
+        return "\n".join(line for line in text.splitlines() if "disturbance" not in line and line.strip() != 'e: [["1"]]')
+    return text.replace("[[-W, W]]", f"[[{-w}, {w}]]")
+
+
+def _synthesized(text: str, tmp_path):
+    from ashc_cli.design.pipeline import DESIGN, design_model, run
+    from ashc_cli.problem.spec import parse_spec_text
+    from ashc_cli.products.synthesize import synthesize
+
+    spec = parse_spec_text(text)
+    arts = run(spec, tmp_path, DESIGN)
+    return spec, arts, synthesize(design_model(spec, arts), arts)
+
+
+def _plan_on_the_disturbed_plant(spec, art, w: float) -> float:
+    """The synthesised plan (its xi(t), v(t)) driving x' = -a x + SAT(a xi + q v) + w (q = 1 here), integrated by
+    solve_ivp on its own numpy form; the task's robustness on y = x."""
+    from scipy.integrate import solve_ivp
+
+    t, xi, v = (np.asarray(art.values[k], dtype=float) for k in ("plan/t", "plan/xi", "plan/v"))
+
+    def rhs(s, z):
+        u = np.clip(2.0 * np.interp(s, t, xi[0]) + np.interp(s, t, v[0]), -4, 4)
+        return [-2.0 * z[0] + u + w]
+
+    sol = solve_ivp(rhs, (0.0, t[-1]), [xi[0, 0]], t_eval=t, rtol=1e-10, atol=1e-12, max_step=0.01)
+    return robustness(spec.task, sol.t, sol.y).robustness
+
+
+def test_a_plan_certified_without_the_disturbance_breaks_under_it_so_the_disturbance_is_counted(tmp_path):
+    from ashc_cli.errors import DesignError
+
+    # the same plant without disturbances: a narrow set is certified, and a constant w = 0.3 breaks the plan
+    spec, _, art = _synthesized(_task_spec(None, 0.1, 0.3), tmp_path / "plain")
+    assert art.checks["task_certified"].passed
+    assert min(_plan_on_the_disturbed_plant(spec, art, w) for w in (-0.3, 0.3)) < 0
+    # with w in [-0.3, 0.3] in the spec, G_w ||w||_inf = 0.42 alone exceeds the set's half width: refused
+    with pytest.raises(DesignError, match="task"):
+        _synthesized(_task_spec(0.3, 0.1, 0.3), tmp_path / "disturbed")
+
+
+def test_a_task_certified_with_its_disturbance_holds_with_w_at_the_vertices(tmp_path):
+    spec, arts, art = _synthesized(_task_spec(0.05, 0.5, 1.3), tmp_path)
+    term = float(arts["bound"].values["disturbance_term"])
+    assert art.checks["task_certified"].passed and art.values["tolerance"] >= term > 0
+    assert art.values["v_max"] == pytest.approx((art.values["tolerance"] - term) / float(arts["bound"].values["gain"]), rel=1e-9)
+    worst = min(_plan_on_the_disturbed_plant(spec, art, w) for w in (-0.05, 0.0, 0.05))
+    assert worst >= float(art.values["certified_margin"]) >= 0

@@ -79,10 +79,10 @@ class GuaranteedPlan:
     W0, alpha_h, gain_G : float
         W(xi0, x0), alpha_h and the gain G of eq. (38).
     budget_v_max : float
-        The largest |v| (2-norm) with sqrt(W0 / alpha_h) + G |v| <= EPS, capped by v_max_certified; NaN when
-        none exists.
+        The largest |v| (2-norm) with sqrt(W0 / alpha_h) + G |v| + G_w ||w||_inf <= EPS (the disturbance's term when
+        the spec has one, at its bound), capped by v_max_certified (with w); NaN when none exists.
     budget_tolerance : float
-        sqrt(W0 / alpha_h) + G budget_v_max: what the budget mode proves (<= EPS).
+        sqrt(W0 / alpha_h) + G budget_v_max + G_w ||w||_inf: what the budget mode proves (<= EPS).
     budget_refusal : str or None
         Why the budget mode cannot run (None when it can).
     governor_level : float
@@ -127,7 +127,9 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
 
     Budget (eq. (9) with the uniform bound of Theorem 2, eq. (38)): the largest v_max with
     sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max <= EPS for all t >= 0; the left side is largest at t = 0,
-    so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).
+    so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).  With
+    disturbances (``concrete.disturbances``) every w in their box is admitted: v_max = (EPS - sqrt(W0 / alpha_h) -
+    G_w ||w||_inf) / G, capped by the region's limit with w; the governor is refused (it cannot see w).
     Governor: the level W_max = min(EPS^2 alpha_h, w0_max_certified), kept invariant (less GOVERNOR_MARGIN); it
     needs W0 <= W_max.
 
@@ -157,19 +159,33 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     w0_max = float(bd.get("w0_max_certified", np.inf))
     v_cert = float(bd.get("v_max_certified", np.inf))
     start = float(np.sqrt(max(W0, 0.0) / alpha_h))          # sqrt(W0 / alpha_h), the first term of eq. (9) at t = 0
-    least = start * (1.0 + BUDGET_MARGIN)
+    # A spec with disturbances admits every w in disturbance_bounds: the bound's G_w ||w||_inf is spent before any v,
+    # and the region's v limit is the one that keeps {W <= c} invariant with w (bound.v_max_certified_with_w).
+    w_term = float(bd.get("disturbance_term", 0.0))
+    if "disturbance_term" in bd:
+        v_cert = float(bd.get("v_max_certified_with_w", v_cert))
+    start_w = start + w_term
+    least = start_w * (1.0 + BUDGET_MARGIN)
     region = "" if not np.isfinite(w0_max) else f", W0 <= w0_max_certified = {w0_max:.6g}"
     budget_refusal = governor_refusal = None
     if W0 > w0_max:
         budget_refusal = governor_refusal = (f"W(xi0, x0) = {W0:.6g} is outside the region where the bound is certified (W0 <= {w0_max:.6g}): "
                                              "no tolerance is certified from this start")
-    elif not tolerance > start:
-        budget_refusal = (f"the start alone takes sqrt(W0 / alpha_h) = {start:.6g} of the tolerance {tolerance:g} (W0 = {W0:.6g}, "
-                          f"alpha_h = {alpha_h:.6g}), which leaves no v (eq. (9) at t = 0)")
-    budget_v = min((tolerance - start) / G, v_cert) if budget_refusal is None else np.nan
-    budget_tol = start + G * budget_v if budget_refusal is None else np.nan
+    elif not tolerance > start_w:
+        taken = f"the start alone takes sqrt(W0 / alpha_h) = {start:.6g}" if w_term == 0 else \
+            f"the start and the disturbance take sqrt(W0 / alpha_h) + G_w ||w||_inf = {start:.6g} + {w_term:.6g}"
+        budget_refusal = (f"{taken} of the tolerance {tolerance:g} (W0 = {W0:.6g}, alpha_h = {alpha_h:.6g}), which leaves no v "
+                          "(eq. (9) at t = 0)")
+    elif not v_cert > 0:
+        budget_refusal = (f"the region's v limit with the disturbance is {v_cert:.6g} (bound.v_max_certified_with_w): no v keeps the "
+                          "certified region invariant against every w in disturbance_bounds")
+    budget_v = min((tolerance - start_w) / G, v_cert) if budget_refusal is None else np.nan
+    budget_tol = start_w + G * budget_v if budget_refusal is None else np.nan
     proved = min(tolerance**2 * alpha_h, w0_max)                # w <= proved gives |psi - y| <= sqrt(proved / alpha_h) <= EPS
     level = (1.0 - GOVERNOR_MARGIN) * proved
+    if governor_refusal is None and "disturbance_term" in bd:
+        governor_refusal = ("the governor keeps W below its level from the interface's own r(s), which cannot see the disturbance "
+                            "e(x) w of concrete.disturbance_bounds (the budget mode counts it)")
     if governor_refusal is None and not W0 <= level:
         governor_refusal = (f"W(xi0, x0) = {W0:.6g} is above the level the governor keeps, W_max = {level:.6g} "
                             f"(tolerance^2 alpha_h less {GOVERNOR_MARGIN:g}{region})")
