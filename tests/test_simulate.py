@@ -666,3 +666,18 @@ def test_a_constant_disturbance_offsets_the_plant_by_its_steady_state_within_G_w
     assert art.checks["tracking_error_within_posterior_bound"].passed        # the comparison system counts e w0
     with pytest.raises(Exception, match=r"simulate\.tracking\.disturbance\[0\]: 0\.5 is outside disturbance_bounds"):
         parse_spec_text(text.replace("disturbance: [0.1]", "disturbance: [0.5]"))
+
+
+def test_a_guaranteed_controller_on_a_reference_signal_has_a_one_line_headline(tmp_path):
+    # Audit finding 8: with a reference signal every sample is a 'level', and the headline printed the reach time of
+    # each (an array of 3000 NaN, 100,141 characters).  A moving reference has no level to reach.
+    from .conftest import ashc, edited
+
+    spec = edited(SPECS / "cuk_sine_reference.yaml", tmp_path,
+                  ("abstract_controller: {kind: setpoint, gain: 80.0, v_max: 60.0}",
+                   "abstract_controller: {kind: guaranteed, tolerance: 5.0, gain: 80.0, mode: budget}"),
+                  ("t_final: 30.0", "t_final: 3.0"))
+    proc = ashc("simulate", str(spec), "--out", str(tmp_path / "o"))
+    assert proc.returncode == 0, proc.stderr
+    line = next(l for l in proc.stdout.splitlines() + proc.stderr.splitlines() if "tracking max|psi - y|" in l)
+    assert len(line) < 400 and "nan" not in line.lower() and "following the reference signal" in line, line

@@ -638,3 +638,49 @@ def test_a_jacobian_singular_at_the_origin_outside_the_box_is_no_crash():
     k = meta["jacobian_entries"].index("df2/dx2")
     assert ranges[k][0] == pytest.approx(-0.2 / np.sqrt(0.05), rel=1e-9) and ranges[k][1] == pytest.approx(-0.2 / np.sqrt(30), rel=1e-9)
     assert all(A[0, 1] == 0 for A in A_list)
+
+
+# Audit finding 6: x' = -exp(u) x + u has a Jacobian -exp(u) free of x but not affine in u; the vertices of U do not
+# bound it (refused before as "A(u) is not affine in u"), the term polytope over U does: rate 2 e^-1 = 0.7358.
+EXP_INPUT = """
+name: exp_input
+concrete:
+  states: [x]
+  inputs: [u]
+  f: ["-exp(u)*x + u"]
+  h: ["x"]
+  input_bounds: [[-1, 1]]
+  output_set: [[-0.2, 0.2]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.5, 0.5]]
+"""
+
+
+def test_a_jacobian_of_the_input_alone_is_certified_over_U_for_every_state(tmp_path):
+    from scipy.integrate import solve_ivp
+
+    from ashc_cli.design.pipeline import DESIGN, run
+
+    arts = run(parse_spec_text(EXP_INPUT), tmp_path, DESIGN)
+    st, bd = arts["stabilise"], arts["bound"].values
+    assert 2 * np.exp(-1.0) * (1 - 1e-5) <= st.values["lambda"] <= 2 * np.exp(-1.0) and st.checks["lmi_margin"].evidence == "proved"
+    assert "state_box" not in st.meta and not np.isfinite(bd["w0_max_certified"])       # no state box: every x
+    # the global claim attacked from far starts: u = SAT(l(xi)) (q = 0 for a plant given as f), xi' = v
+    M, lam, eps, alpha_h, G = (float(np.ravel(bd[k])[0]) for k in ("M", "lambda", "epsilon", "alpha_h", "gain"))
+    for x0, v in ((5.0, 0.1), (-8.0, -0.1), (20.0, 0.0)):
+        def rhs(t, z, v=v):
+            xi, x = z
+            u = np.clip(xi, -1, 1)
+            return [v, -np.exp(u) * x + u]
+
+        xi0 = 0.2
+        p0 = xi0 * np.exp(-xi0)                      # the manifold: exp(xi) p = xi
+        sol = solve_ivp(rhs, (0.0, 2.5), [xi0, x0], rtol=1e-10, atol=1e-12, max_step=0.01)
+        psi = sol.y[0] * np.exp(-sol.y[0])
+        bound = np.sqrt(M * (p0 - x0) ** 2 * np.exp(-(lam - eps) * sol.t) / alpha_h) + G * abs(v)
+        assert np.all(np.abs(psi - sol.y[1]) <= bound)

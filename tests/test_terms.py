@@ -153,3 +153,39 @@ def test_a_plant_that_is_not_contracting_on_its_box_is_refused_not_proved():
     model = build_model(parse_spec_text(TINY_TERM))
     with pytest.raises(DesignError):
         stabilise.run(model, {})
+
+
+# Audit finding 5: a diode Is exp((x1 - 0.7) / Vt) with Vt = 1 mV.  With the parameters put in as doubles sympy splits
+# it into 1e-313 exp(1000 x1), whose exp(1000 x1) overflows on the box (NaN vertex matrices, a LinAlgError); the
+# term is enclosed as written.
+DIODE = """
+name: diode
+parameters: {Is: 1e-12, Vt: 0.001}
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["-x1 + x2 - Is*exp((x1 - 0.7)/Vt)", "-x2 - x1"]
+  g: [["1"], ["0"]]
+  h: ["x1"]
+  input_bounds: [[-0.5, 0.5]]
+  output_set: [[-0.1, 0.1]]
+  state_box: [[-1, 0.72], [-1, 1]]
+stabilisability: {method: polytopic_lmi, decay_rate: maximise}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[-0.3, 0.3]]
+"""
+
+
+def test_a_steep_diode_is_enclosed_as_written_not_after_a_split_that_overflows():
+    model = build_model(parse_spec_text(DIODE))
+    T = terms.decompose(model, sparse_jacobian(model.f, model.x))
+    assert len(T) == 1 and np.all(np.isfinite(T.ranges)) and T.proved
+    # df1/dx1 = -1 - (Is / Vt) exp((x1 - 0.7) / Vt) in [-1 - 1e-9 e^20, -1]
+    np.testing.assert_allclose(np.sort(T.ranges[0] * T.dense()[0][0, 0]), [-1e-9 * np.exp(20.0), 0.0], rtol=1e-9, atol=1e-300)
+    art = stabilise.run(model, {})
+    # J = [[-1 - d, 1], [-1, -1]], d >= 0: M = I certifies rate 2 at every d, and no M does better at d = 0
+    assert art.values["lambda"] == pytest.approx(2.0, rel=1e-4) and art.checks["lmi_margin"].evidence == "proved"

@@ -67,6 +67,14 @@ def _np_step(t):
     return np.where(np.asarray(t, dtype=float) >= 0.0, 1.0, 0.0)
 
 
+def _np_lambertw(z, k=0):
+    """Numeric Lambert W (sympy.solve writes it into closed forms such as the inverse of x e^-x): scipy's, real where
+    the branch is real (complex values become NaN in :func:`ashc_cli.problem.model.lambdify`)."""
+    from scipy.special import lambertw
+
+    return np.real_if_close(lambertw(z, int(k)), tol=1e6)
+
+
 class triangle(sp.Function):
     """The paper's nabla(t) = (2/pi) int_0^t sign(sin s) ds - 1: a triangle wave of period 2 pi in [-1, 1]."""
 
@@ -110,7 +118,7 @@ SIGNAL_FUNCTIONS: dict[str, tuple[object, int | None]] = {
 RESERVED_NAMES = frozenset(FUNCTIONS) | frozenset(SIGNAL_FUNCTIONS) | {"pi", "t"}
 
 #: Extra modules for :func:`sympy.lambdify` so the signal functions evaluate numerically.
-NUMERIC_MODULES = [{"triangle": _np_triangle, "square": _np_square, "step": _np_step}, "numpy"]
+NUMERIC_MODULES = [{"triangle": _np_triangle, "square": _np_square, "step": _np_step, "LambertW": _np_lambertw}, "numpy"]
 
 _BINOPS = {ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow}
 

@@ -268,6 +268,27 @@ class Terms:
         return [f"{t} in [{lo:.6g}, {hi:.6g}] ({h})" for t, (lo, hi), h in zip(self.thetas, self.ranges, self.how)]
 
 
+def _parts(e: sp.Expr) -> tuple:
+    """The additive terms of e (expanded at the top level only; exp(a + b) and powers kept whole)."""
+    return sp.Add.make_args(sp.expand(e, deep=False, power_exp=False, power_base=False, log=False, multinomial=False))
+
+
+def _valued(model: Model, e: sp.Expr, args: list) -> sp.Expr:
+    """e with the parameter values put in.  As doubles, sympy pulls a number out of an exponential (a diode's
+    Is exp((x - 0.7) / Vt) becomes 1e-313 exp(1000 x), whose exp(1000 x) overflows on the box and whose
+    coefficient is subnormal); where a coefficient comes out that way, the entry takes the spec's numbers as exact
+    rationals instead, which keeps exp(1000 x - 700) whole for the enclosure."""
+    floats = model.substitute(e)
+    for part in _parts(floats):
+        c, _ = part.as_independent(*args, as_Add=False)
+        if c.free_symbols:
+            continue
+        value = abs(complex(c))
+        if value != 0 and not (1e-250 < value < 1e250):
+            return proofs.exact(model, [e])[0]
+    return floats
+
+
 def decompose(model: Model, J: sp.Matrix) -> Terms:
     """Write the Jacobian as A0 + sum_k theta_k A_k: each entry is split into its additive terms, each term into a
     constant coefficient and a factor that depends on (x, u); equal factors across the entries are one theta_k.
@@ -299,11 +320,11 @@ def decompose(model: Model, J: sp.Matrix) -> Terms:
         if e == 0:
             continue
         if True:
-            e = model.substitute(e)
+            e = _valued(model, e, args)
             if not e.free_symbols & argset:
                 const[(i, j)] = const.get((i, j), sp.S.Zero) + e
                 continue
-            for part in sp.Add.make_args(sp.expand(e, deep=False, power_exp=False, power_base=False, log=False, multinomial=False)):
+            for part in _parts(e):
                 c, theta = part.as_independent(*args, as_Add=False)
                 if theta == 1:
                     const[(i, j)] = const.get((i, j), sp.S.Zero) + c

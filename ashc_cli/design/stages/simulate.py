@@ -518,8 +518,9 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
         "tracking/tolerance": float(plan.tolerance), "tracking/guaranteed_tolerance": float(eps_proved),
         "tracking/guaranteed_w_level": float(w_level), "tracking/budget_v_max": float(plan.budget_v_max),
         "tracking/budget_tolerance": float(plan.budget_tolerance), "tracking/governor_w_max": float(plan.governor_level),
-        "tracking/level_reached_within_tolerance_time": reached,
     }
+    if tr.reference is None:        # a moving reference has no level to reach (no array of NaN per sample)
+        values["tracking/level_reached_within_tolerance_time"] = reached
     err_ok = bool(err.max() <= eps_proved)
     checks = {
         "tracking_error_within_tolerance": Check(float(err.max() - eps_proved), err_ok,
@@ -656,6 +657,10 @@ def summarise(art: Artefact) -> dict:
     return out
 
 
+#: The most reach times of levels a headline lists (the rest are counted).
+HEADLINE_LEVELS = 8
+
+
 def headline(art: Artefact) -> str:
     """One progress line.
 
@@ -677,7 +682,13 @@ def headline(art: Artefact) -> str:
         outside = "" if bool(v.get("tracking/inside_certified_region", True)) else "; not certified for this run (outside the certified region)"
         err = float(v["tracking/max_abs_error"])
         if "tracking/guaranteed_mode" in v:
-            times = ", ".join(f"{x:.3g}" for x in np.asarray(v["tracking/level_reached_within_tolerance_time"]))
+            if "tracking/level_reached_within_tolerance_time" in v:
+                reached = np.asarray(v["tracking/level_reached_within_tolerance_time"], dtype=float)
+                shown = ", ".join("never" if not np.isfinite(x) else f"{x:.3g}" for x in reached[:HEADLINE_LEVELS])
+                more = f", ... {reached.size - HEADLINE_LEVELS} more" if reached.size > HEADLINE_LEVELS else ""
+                where = f"levels reached within it in [{shown}{more}] s"
+            else:
+                where = f"following the reference signal, max |psi - r| = {float(v.get('tracking/max_reference_error', np.nan)):.4g}"
             speed = np.asarray(v.get("tracking/governor_speedup", []), dtype=float)
             speed = speed[np.isfinite(speed)]
             faster = f"; {speed.min():.3g} to {speed.max():.3g} times the budget's speed" if speed.size else ""
@@ -685,7 +696,7 @@ def headline(art: Artefact) -> str:
             held = "tracking_error_within_tolerance" not in art.checks or art.checks["tracking_error_within_tolerance"].passed
             relation = f"<= {eps_g:.5g} guaranteed{sampled}" if err <= eps_g and held else f"> {eps_g:.5g}: the guaranteed tolerance is NOT met"
             parts.append(f"tracking max|psi - y| = {err:.4g} {relation} "
-                         f"({v['tracking/guaranteed_mode']}; levels reached within it in [{times}] s{faster}){outside}")
+                         f"({v['tracking/guaranteed_mode']}; {where}{faster}){outside}")
         else:
             bound = float(v["tracking/uniform_bound"])
             relation = f"<= {bound:.5g}{sampled}" if err <= bound else f"> {bound:.5g}{sampled} (G ||v||_inf exceeded)"

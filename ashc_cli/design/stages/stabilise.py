@@ -22,6 +22,7 @@ divided by the plant's rate scale so that its tolerances are relative, and prove
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -97,13 +98,9 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
         if e.free_symbols & xs:
             raise DesignError("concrete", f"f(x, u) is not affine in x: df{i + 1}/d{model.x[j]} = {e} depends on x",
                               "f(x, u) = A(u) x + b(u) for stabilisability.method polytopic_lmi or given")
-        if not e.free_symbols.intersection(us):
-            continue
-        for a, b in itertools.product(us, us):
-            second = sp.diff(e, a, b)
-            if second != 0 and sp.simplify(second) != 0:   # simplify only what is not plainly zero
-                raise DesignError("concrete", f"A(u) is not affine in u: entry ({i + 1}, {j + 1}) = {e}",
-                                  "A(u) affine in u so that the LMI at the vertices of U covers all of U")
+        if not _affine_in(e, us):
+            raise DesignError("concrete", f"A(u) is not affine in u: entry ({i + 1}, {j + 1}) = {e}",
+                              "A(u) affine in u so that the LMI at the vertices of U covers all of U")
     b = tidy(sp.expand(model.f - A * model.x))
     for i, e in enumerate(b):
         if e.free_symbols & xs:
@@ -111,6 +108,28 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
                               "derivative almost everywhere but is not affine)",
                               "f(x, u) = A(u) x + b(u), or a concrete.state_box on which f is Lipschitz and C^1 almost everywhere")
     return tidy(A), b
+
+
+def _depends_on_x(model: Model, J: sp.Matrix) -> bool:
+    """Whether df/dx depends on the states (or f has a jump in them, whose Jacobian is free of x almost everywhere)."""
+    return any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x)
+
+
+def _u_only(model: Model, J: sp.Matrix) -> bool:
+    """df/dx free of x but not affine in u (x' = -exp(u) x + u): the vertices of U do not bound it, and the term
+    polytope over U does (the states do not enter, so the certificate holds for every x)."""
+    return not _depends_on_x(model, J) and not all(_affine_in(e, list(model.u)) for e in J)
+
+
+def _affine_in(e: sp.Expr, us: list) -> bool:
+    """Whether e is affine in the symbols us (every second derivative zero; simplify only what is not plainly zero)."""
+    if not e.free_symbols.intersection(us):
+        return True
+    for a, b in itertools.product(us, us):
+        second = sp.diff(e, a, b)
+        if second != 0 and sp.simplify(second) != 0:
+            return False
+    return True
 
 
 #: The term polytope is refined (its sub-box grid doubled) while the certified rate grows by more than this.
@@ -144,7 +163,7 @@ def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp
         If f has a jump in the box, or no polytope is small enough to enumerate.
     """
     # (a sign of a state has a Jacobian free of x almost everywhere, but f is not affine: its jump needs the box)
-    affine = model.state_box is None or not (any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x))
+    affine = (model.state_box is None or not _depends_on_x(model, J)) and not _u_only(model, J)
     if affine:
         A_sym, b_sym = affine_form(model, J)
         return [affine_polytope(model, A_sym, vertices(model.U))], A_sym, b_sym
@@ -195,6 +214,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """
     st = model.spec.stabilisability
     J = sparse_jacobian(model.f, model.x)
+    u_only = _u_only(model, J)
+    if u_only and model.state_box is None:
+        # df/dx reads u alone: its terms are enclosed over U, the (absent) state box any point
+        model = dataclasses.replace(model, state_box=np.zeros((model.n, 2)))
     candidates, A_sym, b_sym = polytopes(model, J)
     if st.feedback == "linear_gain" and not model.affine:
         raise DesignError("stabilisability.feedback", "linear_gain needs an input-affine plant with a constant g, and concrete.f is not affine in the inputs",
@@ -221,7 +244,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         M, lam, meta = _min_gain(model, st, poly, upstream, M, lam, meta)
     meta.update(method=st.method, feedback=st.feedback, polytope=poly.kind, vertices_count=len(poly.matrices),
                 polytopes_tried=[p.kind for p in candidates], **{k: v for k, v in poly.meta.items() if not k.startswith("_")})
-    if poly.kind != "affine in u":
+    if u_only:
+        meta["condition"] = "df/dx(u)^T M + M df/dx(u) <= -lambda M for u in U (" + poly.kind + " over U; df/dx does not depend on x: every state)"
+    elif poly.kind != "affine in u":
         # The certificate holds while x stays in the box: the bound stage's region reads this key.
         meta["condition"] = "J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (" + poly.kind + ")"
         meta["state_box"] = model.state_box.tolist()
