@@ -510,3 +510,43 @@ def test_a_two_state_manifold_without_closed_form_keeps_its_digits_through_kappa
     assert np.abs(dm - central).max() < 1e-7
     for name in ("left_inverse", "condition_i", "condition_ii", "V_covers_Y", "m_real_on_Y"):
         assert inv.checks[name].passed, name
+
+
+# Audit finding 4: a p whose second row is a huge homogeneous solution of a resonant row (phi_bar's rate -1 twice is
+# the plant's rate -2, so 6e7 xi^2 solves that row exactly) and whose first row misses by 0.3.  Judged against the
+# largest term of all rows (2.7e8) the residual looked relative 1e-9; each row is now judged against its own terms,
+# and the resonance is named.
+RESONANT = """
+name: resonant
+concrete:
+  states: [x1, x2]
+  inputs: [u]
+  f_bar: ["-3*x1", "-2*x2"]
+  g: [["1"], ["0"]]
+  h: ["x1"]
+  input_bounds: [[-4, 4]]
+  output_set: [[0.5, 1.5]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["-xi"]
+  l: ["2*xi"]
+  p: ["xi + 0.1", "6e7*xi**2"]
+  domain: [[0.5, 1.5]]
+"""
+
+
+def test_each_row_of_the_pde_is_judged_against_its_own_terms_and_a_resonance_is_named():
+    from ashc_cli.design.stages import manifold
+    from ashc_cli.errors import DesignError
+    from ashc_cli.problem.model import build_model
+    from ashc_cli.problem.spec import parse_spec_text
+
+    with pytest.raises(DesignError) as caught:
+        manifold.run(build_model(parse_spec_text(RESONANT)), {})
+    text = str(caught.value)
+    assert "is 0.3 in row 1" in text and "resonant" in text and "(-2)" in text
+    # the same p with its first row right is accepted, and its relative residual is the worst row's
+    art = manifold.run(build_model(parse_spec_text(RESONANT.replace('"xi + 0.1"', '"xi"'))), {})
+    assert art.values["residual_relative"] <= 1e-12 and len(art.values["residual_rows"]) == 2

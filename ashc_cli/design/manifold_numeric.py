@@ -6,6 +6,8 @@ Used by :mod:`ashc_cli.design.stages.manifold`, which checks what they return.""
 from __future__ import annotations
 
 
+import itertools
+
 import numpy as np
 import scipy.optimize as sopt
 import scipy.sparse as sps
@@ -17,7 +19,8 @@ from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
 
-__all__ = ["ManifoldPlant", "manifold_field", "solve_collocation", "field_terms", "continuation", "solve_numeric_equilibria", "equilibrium_error"]
+__all__ = ["ManifoldPlant", "manifold_field", "solve_collocation", "field_terms", "continuation", "solve_numeric_equilibria", "equilibrium_error",
+           "resonance"]
 
 
 def manifold_field(model: Model, valued: bool = False) -> sp.Matrix:
@@ -48,6 +51,50 @@ def _residual_function(model: Model, jacobian: bool = False):
     return (model.numeric(F, args), model.numeric(sparse_jacobian(F, model.x), args)) if jacobian else model.numeric(F, args)
 
 
+#: The orders k of the resonance test: sum_i k_i mu_i (|k| <= RESONANCE_ORDER) against the plant's rates.
+RESONANCE_ORDER = 4
+
+
+def resonance(model: Model, x_c: np.ndarray | None = None) -> str:
+    """Name a resonance of eq. (14a) at the centre of V: a combination sum_i k_i mu_i (k_i >= 0, 1 <= |k| <=
+    RESONANCE_ORDER) of the rates mu of dphi_bar/dxi equal to a rate of dF/dx (F = f_bar + g l) at x_c.  There the
+    PDE's homogeneous equation has a polynomial solution of degree |k| (p is not unique, and a fit can grow it
+    without bound), or the equation has no polynomial solution at all.
+
+    Parameters
+    ----------
+    model : Model
+    x_c : ndarray (n,), optional
+        The state to linearise at (p at V's centre); without it only a Jacobian free of x is read.
+
+    Returns
+    -------
+    str
+        "; ..." naming the rates, or "" when none matches (or the Jacobians cannot be evaluated).
+    """
+    try:
+        xi_c = np.mean(np.asarray(model.V, dtype=float), axis=1)
+        A_hat = np.asarray(model.numeric(sp.Matrix(model.phi_bar).jacobian(list(model.xi)), list(model.xi))(*xi_c), dtype=float)
+        J_sym = sparse_jacobian(manifold_field(model, valued=True), model.x)
+        if x_c is None and any(e.free_symbols & set(model.x) for e in J_sym):
+            return ""
+        x_c = np.zeros(model.n) if x_c is None else np.asarray(x_c, dtype=float)
+        J = np.asarray(model.numeric(J_sym, list(model.x) + list(model.xi))(*x_c, *xi_c), dtype=float).reshape(model.n, model.n)
+        mu, rates = np.linalg.eigvals(A_hat.reshape(model.n_hat, model.n_hat)), np.linalg.eigvals(J)
+    except Exception:      # a Jacobian that is not finite at the centre: nothing to name
+        return ""
+    for order in range(1, RESONANCE_ORDER + 1):
+        for k in itertools.combinations_with_replacement(range(model.n_hat), order):
+            combo = complex(sum(mu[i] for i in k))
+            for r in rates:
+                if abs(combo - r) <= 1e-6 * max(1.0, abs(r)):
+                    what = " + ".join(f"{complex(mu[i]).real:.6g}" for i in k)
+                    return (f"; the PDE is resonant: phi_bar's rates at the centre of V ({what} = {combo.real:.6g}) equal a rate "
+                            f"of the plant's df/dx there ({complex(r).real:.6g}), so its homogeneous equation has a polynomial solution "
+                            f"of degree {order} (p is not unique or has no polynomial form); change phi_bar's rates")
+    return ""
+
+
 class ManifoldPlant:
     """f_bar(x), g(x) and l(xi) compiled once for numpy (broadcasting), for the residuals of fits and of p; f(x, u)
     and l(xi) for a plant that is not input-affine."""
@@ -61,6 +108,16 @@ class ManifoldPlant:
         else:
             self.f = model.numeric(model.valued["f"], x + list(model.u))
         self.l = model.numeric(model.valued["l"], xi)
+        # the size of each row's terms: sum of |additive part| of F_i(x, xi) = f_bar_i + (g l)_i (top-level expanded,
+        # so that (v_k - v_k+1) / L counts as |v_k / L| + |v_k+1 / L|, not as its small difference)
+        size = [sp.Add(*[sp.Abs(part) for part in sp.Add.make_args(sp.expand(F, deep=False, power_exp=False, power_base=False,
+                                                                               log=False, multinomial=False))])
+                for F in manifold_field(model, valued=True)]
+        self.size = model.numeric(size, x + xi)
+
+    def sizes(self, P: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The size of each row's terms at the points P (n, N) and z (n_hat, N): (n, N)."""
+        return np.broadcast_to(self.size(*P, *z)[:, 0, :], P.shape)
 
     def sides(self, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """f_bar(P) and g(P) l(z) at the points P (n, N) and z (n_hat, N), each (n, N); f(P, l(z)) and zeros for a
@@ -74,28 +131,35 @@ class ManifoldPlant:
         return self.fbar(*P)[:, 0, :], np.einsum("ijk,jk->ik", self.g(*P), L)
 
 
-def _residual_terms(p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray) -> tuple[np.ndarray, float]:
-    """|dp/dxi phi_bar - f_bar(p) - g(p) l| at each point of z (max over the rows) for a fitted p (a Series or
-    PiecewiseSeries; phi = phi_bar on z), and the size of its terms there, max(1, |dp/dxi phi_bar|,
-    |f_bar(p)|, |g(p) l|, |f_bar(p) + g(p) l|).
+def _residual_terms(p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|dp/dxi phi_bar - f_bar(p) - g(p) l| at each point of z, row by row, for a fitted p (a Series or
+    PiecewiseSeries; phi = phi_bar on z), and the size of each row's terms there, max(1, |dp/dxi phi_bar|_i,
+    |f_bar(p)|_i, |g(p) l|_i, |f_bar(p) + g(p) l|_i, the sum of the row's additive parts :meth:`ManifoldPlant.sizes`).
 
     The terms, not their sum: with phi_bar = 0 the sum is the residual itself, and a plant whose terms are
-    large (the ladder's v / L, 1e5 at n = 512) could never meet an absolute tolerance.  ``run`` judges the
-    stored p against the same scale.
+    large (the ladder's v / L, 1e5 at n = 512) could never meet an absolute tolerance.  Each row against its own
+    terms: one row of size 6e7 (a resonant row's homogeneous solution) must not make the other rows' residual of
+    0.3 look relative 1e-9.  ``run`` judges the stored p the same way.
+
+    Returns
+    -------
+    residual : ndarray (n, N)
+    scale : ndarray (n,)
     """
     P = p.at(z)[:, 0, :]
     lhs = np.einsum("ikN,kN->iN", p.jacobian().at(z), phi) if np.any(phi) else np.zeros_like(P)
     fbar, gl = plant.sides(P, z)
     rhs = fbar + gl
-    scale = max(1.0, np.abs(lhs).max(), np.abs(rhs).max(), np.abs(fbar).max(), np.abs(gl).max())
-    return np.abs(lhs - rhs).max(axis=0), float(scale)
+    scale = np.max(np.abs(np.stack([lhs, rhs, fbar, gl, plant.sizes(P, z)])), axis=(0, 2), initial=1.0)
+    return np.abs(lhs - rhs), scale
 
 
-def _relative_residual(model: Model, p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray, scale: float | None = None) -> float:
-    """max of :func:`_residual_terms` on z relative to the size of the terms there, or to ``scale`` when given
-    (the size of the terms on all of V, for a piece)."""
+def _relative_residual(model: Model, p, z: np.ndarray, plant: ManifoldPlant, phi: np.ndarray, scale: np.ndarray | None = None) -> float:
+    """max over the rows of :func:`_residual_terms` on z relative to the size of that row's terms there, or to
+    ``scale`` when given (the size of the terms on all of V, for a piece: one number, or one per row)."""
     residual, own = _residual_terms(p, z, plant, phi)
-    return float(residual.max() / (own if scale is None else scale))
+    by = np.asarray(own if scale is None else scale, dtype=float)
+    return float((residual / (by[:, None] if by.ndim else by)).max())
 
 
 def _check_grid(box: np.ndarray) -> np.ndarray:
@@ -169,7 +233,9 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
             if nh == 1:
                 break
             raise DesignError("abstract.phi_bar", f"the polynomial fit of eq. (14a) stopped improving at degree {degree - 1} (relative residual "
-                              f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial", "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
+                              f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial"
+                              f"{resonance(model, series.at(np.mean(box, axis=1)[:, None])[:, 0, 0])}",
+                              "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
         grown = np.zeros((n,) + (degree + 1,) * nh)
         grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
         z = chebyshev.nodes(box, 2 * (degree + 1))
@@ -200,7 +266,8 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
     if nh == 1:
         p = _collocate_pieces(model, F, F_x, phi_num, plant, top)
         return p, p.degree, _relative_residual(model, p, check, plant, phi_check)
-    raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. (14a) on V to {tol:g}: the best relative residual is {best:.3g}",
+    raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. (14a) on V to {tol:g}: the best relative residual is {best:.3g}"
+                      f"{resonance(model, series.at(np.mean(box, axis=1)[:, None])[:, 0, 0])}",
                       "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")
 
 
@@ -228,7 +295,7 @@ def _collocate_pieces(model: Model, F, F_x, phi_num, plant: ManifoldPlant, degre
         for k, piece in enumerate(p.pieces):
             grid = domain_grid(piece.box, PIECE_CHECK_POINTS)
             residual, _ = _residual_terms(p, grid, plant, phi_num(*grid)[:, 0, :])
-            best[k] = float(residual.max() / scale)
+            best[k] = float((residual / scale[:, None]).max())
             # Half the tolerance on the piece's grid: between its points, and at the breaks, the residual is higher
             # (the stage judges p on a finer grid of V).
             if best[k] > tol / 2:
@@ -242,7 +309,8 @@ def _collocate_pieces(model: Model, F, F_x, phi_num, plant: ManifoldPlant, degre
             why = (f"{chebyshev.MAX_PIECES} pieces are not enough" if too_many else
                    "the pieces there are already too narrow: p has a kink or a near-singularity there")
             raise DesignError("abstract.phi_bar", f"no piecewise polynomial ({len(breaks) - 1} pieces of degree {degree}) solves eq. (14a) to {tol:g}: "
-                              f"near xi in [{breaks[worst]:.6g}, {breaks[worst + 1]:.6g}] the relative residual is {best[worst]:.3g}; {why}",
+                              f"near xi in [{breaks[worst]:.6g}, {breaks[worst + 1]:.6g}] the relative residual is {best[worst]:.3g}; {why}"
+                              f"{resonance(model, p.at(np.mean(model.V, axis=1)[:, None])[:, 0, 0])}",
                               "a domain V that stops short of it, a larger abstract.pde_tolerance or pde_max_degree, or phi_bar = 0")
         breaks = np.sort(np.r_[breaks, [_split_point(breaks[k], breaks[k + 1], zeros) for k in failing]])
 
@@ -643,9 +711,11 @@ def solve_numeric_equilibria(model: Model, plant: ManifoldPlant | None = None) -
         def sample(z: np.ndarray) -> np.ndarray:
             X = continuation(model, z, _stacked(solved), terms)
             solved.append((z, X))
-            if not scale:   # the size of the terms on all of V, from the first (whole-V) nodes
+            if not scale:   # the size of the terms on all of V, from the first (whole-V) nodes: one number for all rows
+                # here (the equilibria come from Newton at each node, so no homogeneous solution can grow in one row
+                # and hide another's residual; the stage's own check then judges each row against its terms)
                 fbar, gl = plant.sides(X, z)
-                scale.append(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
+                scale.append(float(np.max(np.abs(np.stack([fbar, gl])), initial=1.0)))
             return X
 
         def accept(piece: chebyshev.Series) -> tuple[bool, float]:

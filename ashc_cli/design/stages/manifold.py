@@ -35,7 +35,7 @@ from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import SYMBOLIC_BUDGET, Model, within_budget
-from ashc_cli.design.manifold_numeric import ManifoldPlant, equilibrium_error, manifold_field, solve_collocation, solve_numeric_equilibria
+from ashc_cli.design.manifold_numeric import ManifoldPlant, equilibrium_error, manifold_field, resonance, solve_collocation, solve_numeric_equilibria
 
 NAME = "manifold"
 UPSTREAM: tuple[str, ...] = ()
@@ -354,13 +354,15 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if isinstance(series, chebyshev.PiecewiseSeries):
         art.checks["p_continuous"] = _continuity_check(series, on["p_grid"], tolerance)
     art.values.update({"V": V, "xi_grid": on["grid"], "p_grid": on["p_grid"], "residual": on["residual"], "residual_scale": on["scale"],
+                       "residual_relative": on["relative"], "residual_rows": on["rows"], "residual_row_scales": on["scales"],
                        "l_range": l_range, "p_error": _p_error(model, p, series, method, tolerance, V)})
     points = on["grid"].shape[1]
     if series is None and not p.atoms(sp.Float) and proofs.symbolic_zero(list(proofs.exact(model, _pde_residual_expr(model, p)))):
         art.checks["pde_residual"] = Check(0.0, True, "dp/dxi phi_bar - f_bar(p) - g(p) l simplifies to 0 (sympy): p solves eq. (14a) exactly", proofs.PROVED)
     else:
         which = f" (the Chebyshev series and its formula; they differ by {on['deviation']:.2g})" if series is not None else ""
-        art.checks["pde_residual"] = Check(on["residual"], True, f"max over a {points}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. (14a)){which}")
+        art.checks["pde_residual"] = Check(on["residual"], True, f"max over a {points}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. (14a)){which}; "
+                                                                    f"{on['relative']:.3g} of the size of its row's terms at the worst row")
     if l_proved:
         how = ("l affine: its values at the corners of V, in exact rationals" if proofs.affine_in(model.l, list(model.xi))
                else "the ball-arithmetic enclosure of l(V)")
@@ -505,18 +507,23 @@ def _on_grid(model: Model, plant: ManifoldPlant, p, series, V: np.ndarray, toler
         on["dp"] = dp = p.jacobian(model.xi)
         p_grid = model.numeric(p, xi_args)(*grid)[:, 0, :]                   # (n, N)
         dp_grid = model.numeric(dp, xi_args)(*grid)                          # (n, n_hat, N)
-    residual, scale = _grid_residual(plant, p_grid, dp_grid, phi_grid, l_grid)
+    rows, scales = _grid_residual(plant, grid, p_grid, dp_grid, phi_grid, l_grid)
     if series is not None:
         # Readers of the artefact get p's formula (Horner on power coefficients), which differs from the series
         # by the round-off of that conversion: it must solve the PDE too, and the check covers both.
         p_formula = series.formula_at(grid)[:, 0, :]
         on["deviation"] = float(np.abs(p_formula - p_grid).max())
-        formula_residual, formula_scale = _grid_residual(plant, p_formula, dp_series.formula_at(grid), phi_grid, l_grid)
-        residual, scale = max(residual, formula_residual), max(scale, formula_scale)
-    if not np.isfinite(residual) or residual > tolerance * scale:
-        raise NumericalError(NAME, f"residual of eq. (14a) on V is {residual:.3g} (scale {scale:.3g})",
+        formula_rows, formula_scales = _grid_residual(plant, grid, p_formula, dp_series.formula_at(grid), phi_grid, l_grid)
+        rows, scales = np.maximum(rows, formula_rows), np.maximum(scales, formula_scales)
+    # each row against the size of its own terms (a large row must not hide another row's residual)
+    relative = rows / scales
+    worst = int(np.argmax(np.where(np.isfinite(relative), relative, np.inf)))
+    if not np.all(np.isfinite(rows)) or relative[worst] > tolerance:
+        raise NumericalError(NAME, f"residual of eq. (14a) on V is {rows[worst]:.3g} in row {worst + 1} (the size of that row's terms {scales[worst]:.3g})"
+                             f"{resonance(model, p_grid[:, int(np.argmin(np.abs(grid - np.mean(V, axis=1)[:, None]).sum(axis=0)))])}",
                              f"below {tolerance:g} relative: a smaller abstract.domain, a larger abstract.pde_tolerance, or abstract.p written by hand (checked, not trusted)")
-    on.update(p_grid=p_grid, dp_grid=dp_grid, residual=residual, scale=scale)
+    on.update(p_grid=p_grid, dp_grid=dp_grid, residual=float(rows.max()), scale=float(scales.max()), relative=float(relative[worst]),
+              rows=rows, scales=scales)
     return on
 
 
@@ -539,11 +546,14 @@ def _l_in_U(model: Model, V: np.ndarray, l_grid: np.ndarray):
     return np.c_[l_lo, l_hi], excursion, l_proved, grid_excursion, l_inside
 
 
-def _grid_residual(plant: ManifoldPlant, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray, l_grid: np.ndarray) -> tuple[float, float]:
-    """max |dp/dxi phi_bar - f_bar(p) - g(p) l| over a grid, and the size of its terms max(1, |f_bar(p)|, |g(p) l|)."""
+def _grid_residual(plant: ManifoldPlant, grid: np.ndarray, p_grid: np.ndarray, dp_grid: np.ndarray, phi_grid: np.ndarray,
+                   l_grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row by row: max |dp/dxi phi_bar - f_bar(p) - g(p) l| over a grid, and the size of that row's terms
+    max(1, |dp/dxi phi_bar|_i, |f_bar(p)|_i, |g(p) l|_i, the sum of its additive parts); each (n,)."""
     fbar, gl = plant.sides_at(p_grid, l_grid)
-    residual = float(np.abs(np.einsum("ijk,jk->ik", dp_grid, phi_grid) - (fbar + gl)).max())
-    return residual, float(max(1.0, np.abs(fbar).max(), np.abs(gl).max()))
+    lhs = np.einsum("ijk,jk->ik", dp_grid, phi_grid)
+    residual = np.abs(lhs - (fbar + gl)).max(axis=1)
+    return residual, np.max(np.abs(np.stack([lhs, fbar, gl, plant.sizes(p_grid, grid)])), axis=(0, 2), initial=1.0)
 
 
 def _pde_residual_expr(model: Model, p: sp.Matrix) -> sp.Matrix:
