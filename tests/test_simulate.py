@@ -668,6 +668,7 @@ def test_a_constant_disturbance_offsets_the_plant_by_its_steady_state_within_G_w
         parse_spec_text(text.replace("disturbance: [0.1]", "disturbance: [0.5]"))
 
 
+@pytest.mark.slow
 def test_a_guaranteed_controller_on_a_reference_signal_has_a_one_line_headline(tmp_path):
     # Audit finding 8: with a reference signal every sample is a 'level', and the headline printed the reach time of
     # each (an array of 3000 NaN, 100,141 characters).  A moving reference has no level to reach.

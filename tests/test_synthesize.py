@@ -138,6 +138,7 @@ def _plan_on_the_disturbed_plant(spec, art, w: float) -> float:
     return robustness(spec.task, sol.t, sol.y).robustness
 
 
+@pytest.mark.slow
 def test_a_plan_certified_without_the_disturbance_breaks_under_it_so_the_disturbance_is_counted(tmp_path):
     from ashc_cli.errors import DesignError
 
@@ -150,6 +151,7 @@ def test_a_plan_certified_without_the_disturbance_breaks_under_it_so_the_disturb
         _synthesized(_task_spec(0.3, 0.1, 0.3), tmp_path / "disturbed")
 
 
+@pytest.mark.slow
 def test_a_task_certified_with_its_disturbance_holds_with_w_at_the_vertices(tmp_path):
     spec, arts, art = _synthesized(_task_spec(0.05, 0.5, 1.3), tmp_path)
     term = float(arts["bound"].values["disturbance_term"])

@@ -180,6 +180,7 @@ abstract:
 """
 
 
+@pytest.mark.slow
 def test_a_steep_diode_is_enclosed_as_written_not_after_a_split_that_overflows():
     model = build_model(parse_spec_text(DIODE))
     T = terms.decompose(model, sparse_jacobian(model.f, model.x))
