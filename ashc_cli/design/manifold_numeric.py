@@ -234,7 +234,7 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
                 break
             raise DesignError("abstract.phi_bar", f"the polynomial fit of eq. (14a) stopped improving at degree {degree - 1} (relative residual "
                               f"{best:.3g}, tolerance {tol:g}): p is not smooth enough on V for a polynomial"
-                              f"{resonance(model, series.at(np.mean(box, axis=1)[:, None])[:, 0, 0])}",
+                              f"{resonance(model, chebyshev.Series.column(coeffs, box).at(np.mean(box, axis=1)[:, None])[:, 0, 0])}",
                               "a smaller domain V, a larger pde_tolerance, or phi_bar = 0")
         grown = np.zeros((n,) + (degree + 1,) * nh)
         grown[(slice(None),) + tuple(slice(0, degree) for _ in range(nh))] = coeffs
