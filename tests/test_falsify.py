@@ -200,3 +200,29 @@ def test_scale_keeps_the_direction_of_the_correction():
     # The largest such factor: some channel sits on its bound whenever s < 1.
     on_edge = np.any(np.isclose(u, U[:, 0]) | np.isclose(u, U[:, 1]), axis=1)
     assert np.all(on_edge | np.isclose(s, 1.0))
+
+
+@pytest.mark.slow
+def test_falsify_attacks_disturbances_at_their_vertices_and_a_global_region_outside_its_box(tmp_path, monkeypatch):
+    # Audit finding 2, as falsify now finds it: with e(x) = x the region used to be called global (the stored copy of
+    # that rule below); the attack starts outside the state box with w at the vertices of its box and breaks the bound.
+    from ashc_cli.design.stages import bound
+    from ashc_cli.problem.spec import parse_spec_text
+
+    from .test_bound import _disturbed_state_dependent
+
+    faulty = lambda model, stab: "state_box" in stab.meta or model.C is None     # noqa: E731  (before the fix)
+    monkeypatch.setattr(bound, "_rests_on_state_box", faulty)
+    spec = parse_spec_text(_disturbed_state_dependent(0.5, 1.0))
+    arts = run(spec, tmp_path / "faulty", DESIGN)
+    assert not np.isfinite(arts["bound"].values["w0_max_certified"])
+    art = falsify.falsify(design_model(spec, arts), arts, 12, 0, 4.0)
+    assert art.values["disturbance_attack/outside_box"] > 0 and art.values["disturbance_attack/max_ratio"] > 1
+    assert not art.checks["disturbance_attack"].passed
+    monkeypatch.undo()
+    # the fixed region, where the design holds (w in [-0.05, 0.05]): the same attack finds nothing
+    spec = parse_spec_text(_disturbed_state_dependent(2.0, 0.05))
+    arts = run(spec, tmp_path / "fixed", DESIGN)
+    art = falsify.falsify(design_model(spec, arts), arts, 12, 0, 4.0)
+    assert art.values["disturbance_attack/runs"] == 12 and 0 < art.values["disturbance_attack/max_ratio"] <= 1
+    assert art.checks["disturbance_attack"].passed and "disturbances at their vertices" in falsify.headline(art)

@@ -61,8 +61,16 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
                    f"all runs: {number_text(entry['max_ratio'], '.4g')} (run {entry['worst_run']}, {entry.get('strategy_of_worst', 'random')}, "
                    f"t = {number_text(entry['worst_time'], '.4g')} s; off the manifold the W0 term is tight at t = 0); "
                    f"{entry['runs_leaving_V']} left V")
+    if "disturbance_max_ratio" in entry and not as_json:
+        typer.echo(f"disturbance attack: largest error / bound {number_text(entry['disturbance_max_ratio'], '.4g')} over "
+                   f"{entry['disturbance_runs']} runs with w at the vertices of disturbance_bounds"
+                   f"{(', ' + str(entry['disturbance_outside_box']) + ' started outside the state box') if entry['disturbance_outside_box'] else ''}")
     for text in entry.get("counterexamples", []):
         typer.echo(f"counter-example to a sampled row: {text}")
+    if entry.get("disturbance_max_ratio", 0.0) > 1.0:
+        typer.echo(f"error: falsify: a run with a disturbance at a vertex of its box (or started outside the state box) breaks the "
+                   f"bound (ratio {entry['disturbance_max_ratio']:.4g}); saved in {folder / 'falsify.h5'}", err=True)
+        raise typer.Exit(3)
     if entry["max_ratio"] > 1.0:
         typer.echo(f"error: falsify: the bound is violated by a factor {entry['max_ratio']:.4g} in run {entry['worst_run']} at "
                    f"t = {entry['worst_time']:.4g} s; the run is saved in {folder / 'falsify.h5'}", err=True)

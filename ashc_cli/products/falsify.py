@@ -34,6 +34,7 @@ from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.closedloop.falsify_loop import falsify_loop
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.products.attack import attack
+from ashc_cli.products.disturbance_attack import attack_disturbances, wanted
 from ashc_cli.problem.model import Model
 from ashc_cli.numerics.proofs import SIMULATED
 from ashc_cli.closedloop.batch import BatchPlant
@@ -152,10 +153,30 @@ def falsify(model: Model, arts: dict[str, Artefact], runs: int, seed: int = 0, t
         # What the design only sampled is attacked where it could fail (attack.py): the LMI between its samples,
         # a second equilibrium, L_h; a counter-example there breaks the certificate whatever the runs show.
         found = attack(model, arts, seed)
+        # disturbances at their vertices and, for a global region, starts outside the state box (numpy runs)
+        disturbed = attack_disturbances(model, arts, runs, st.t_final, st.v_limit, seed) if wanted(model, arts) else None
         report(SEGMENTS)
     art = _artefact(st, batch, res, verified, series, runs, seed, counts, disc)
     _store_counterexamples(art, found)
+    if disturbed is not None:
+        _store_disturbance_attack(art, disturbed)
     return art
+
+
+def _store_disturbance_attack(art: Artefact, found: dict) -> None:
+    """The disturbance attack's runs in the falsify artefact (values ``disturbance_attack/...`` and a check)."""
+    worst = found["worst"]
+    v = {"runs": found["runs"], "max_ratio": found["max_ratio"], "left_V": found["left_V"], "outside_box": found["outside_box"]}
+    for key in ("xi0", "x0", "W0", "w", "v", "time", "error", "bound"):
+        if key in worst:
+            v[key] = worst[key]
+    art.values.update({f"disturbance_attack/{k}": value for k, value in v.items()})
+    where = (f"worst at t = {worst['time']:.4g} s from W0 = {worst['W0']:.4g}, w = {np.round(worst['w'], 6).tolist()}, "
+             f"v = {np.round(worst['v'], 6).tolist()}" if "time" in worst else "no error above the floor")
+    art.checks["disturbance_attack"] = Check(found["max_ratio"], found["max_ratio"] <= 1.0,
+                                             f"largest |psi - y| / bound (with G_w ||w||) over {found['runs']} runs with w at the vertices of "
+                                             f"disturbance_bounds and starts on the region's boundary ({found['outside_box']} outside the state box) "
+                                             f"(<= 1); {where}", SIMULATED)
 
 
 def _store_counterexamples(art: Artefact, found: list[dict]) -> None:
@@ -317,6 +338,9 @@ def summarise(art: Artefact) -> dict:
     out.update({"max_ratio": float(v["max_ratio"]), "worst_run": int(v["worst_run"]), "worst_time": float(v["worst_time"]),
                 "runs_leaving_V": int(v["runs_leaving_V"]), "max_error": float(v["max_error"])})
     out["certificate_counterexamples"] = int(v.get("certificate_counterexamples", 0))
+    if "disturbance_attack/max_ratio" in v:    # products/disturbance_attack.py
+        out.update({"disturbance_max_ratio": float(v["disturbance_attack/max_ratio"]), "disturbance_runs": int(v["disturbance_attack/runs"]),
+                    "disturbance_outside_box": int(v["disturbance_attack/outside_box"])})
     out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
     if "max_ratio_w0_zero" in v:
         out.update({
@@ -340,8 +364,17 @@ def headline(art: Artefact) -> str:
     -------
     str
         Runs; the largest ratio of the runs started on the manifold, its run and strategy (when stored); the largest
-        ratio over all runs (run, time and strategy); how many runs left V.
+        ratio over all runs (run, time and strategy); how many runs left V; the disturbance attack's ratio.
     """
+    v = art.values
+    extra = ""
+    if "disturbance_attack/max_ratio" in v:
+        extra = (f"; disturbances at their vertices{' and starts outside the state box' if int(v['disturbance_attack/outside_box']) else ''}: "
+                 f"{float(v['disturbance_attack/max_ratio']):.4g} over {int(v['disturbance_attack/runs'])} runs")
+    return _bound_headline(art) + extra
+
+
+def _bound_headline(art: Artefact) -> str:
     v = art.values
     runs, left = art.meta["runs"], v["runs_leaving_V"]
     overall = f"{float(v['max_ratio']):.4g} (run {v['worst_run']}, t = {float(v['worst_time']):.4g} s)"
