@@ -682,3 +682,33 @@ def test_a_guaranteed_controller_on_a_reference_signal_has_a_one_line_headline(t
     assert proc.returncode == 0, proc.stderr
     line = next(l for l in proc.stdout.splitlines() + proc.stderr.splitlines() if "tracking max|psi - y|" in l)
     assert len(line) < 400 and "nan" not in line.lower() and "following the reference signal" in line, line
+
+
+def test_a_simulated_run_that_breaks_a_proved_verdict_is_reported_as_a_bug(tmp_path, capsys):
+    # Audit: simulate flagged the error row of a design whose check said "proved".  A run inside the certified region
+    # that breaks a guarantee of a proved design is a bug in ashc (exit 1, one line), not a result.
+    import typer
+
+    from ashc_cli.cli.stage_commands import _refuse_contradicted
+    from ashc_cli.design.artefacts import Artefact, Check
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.design.verdict import verdict
+    from ashc_cli.problem.spec import parse_spec_text
+
+    from .test_bound import DISTURBED
+
+    lag = "\n".join(line for line in DISTURBED.splitlines() if "disturbance" not in line and line.strip() != 'e: [["1"]]')
+    arts = run(parse_spec_text(lag), tmp_path, DESIGN)
+    assert verdict(arts).proved
+    sim = Artefact(stage="simulate")
+    sim.values["tracking/inside_certified_region"] = True
+    sim.checks["tracking_settled"] = Check(0.5, False, "the set-point controller's choice, no guarantee")
+    _refuse_contradicted(arts, sim, tmp_path)                     # not a contradiction
+    sim.checks["tracking_error_within_bound"] = Check(0.25, False, "max |psi - y| - bound")
+    with pytest.raises(typer.Exit) as caught:
+        _refuse_contradicted(arts, sim, tmp_path)
+    assert caught.value.exit_code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bug in ashc" in err[0] and "tracking_error_within_bound = 0.25" in err[0]
+    sim.values["tracking/inside_certified_region"] = False        # a start outside the region claims nothing
+    _refuse_contradicted(arts, sim, tmp_path)

@@ -29,6 +29,8 @@ def _make_stage_command(stage: str):
             emit_json(summary({stage: arts[stage]})[stage])
         else:
             typer.echo(str(engine().artefact_path(folder.path, stage)))
+        if stage == "simulate":
+            _refuse_contradicted(arts, arts[stage], folder.path)
 
     command.__name__ = f"{stage}_command"
     command.__doc__ = (cite(STAGE_HELP[stage]) + " Runs any stale upstream stage first (unless --frozen).\n\n"
@@ -73,6 +75,27 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
         raise typer.Exit(3)
 
+
+
+def _refuse_contradicted(arts: dict, sim, path: Path) -> None:
+    """A run of `ashc simulate` that breaks a guarantee the verdict calls proved is a bug in ashc, not a result:
+    one line naming the checks, exit 1 (docs/guide.md, exit codes).  On a verdict that holds on samples only it
+    shows the sampling missed something: exit 3."""
+    from ashc_cli.design.stages.simulate import contradictions
+    from ashc_cli.design.verdict import verdict
+
+    broken = contradictions(sim)
+    if not broken:
+        return
+    result = verdict({k: a for k, a in arts.items() if k in engine().DESIGN})
+    if result.proved:
+        typer.echo(f"error: simulate: the design's verdict is proved, yet its run breaks it ({'; '.join(broken)}): this is a bug in "
+                   f"ashc; please report it with the spec and {path / 'simulate.h5'}", err=True)
+        raise typer.Exit(1)
+    if result.solved:
+        typer.echo(f"error: simulate: the run breaks what the design holds on samples only ({'; '.join(broken)}): the verdict "
+                   f"'holds on samples only' is false for this plant; saved in {path / 'simulate.h5'}", err=True)
+        raise typer.Exit(3)
 
 
 class Require(str, Enum):
@@ -128,6 +151,8 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
                 typer.echo(plain_text(f"              {r.detail}"))
         _echo_simulated(simulated, stale, path)
         typer.echo(result.line())
+    if sim is not None and result.solved:
+        _refuse_contradicted(arts, sim, path)
     if not result.solved:
         raise typer.Exit(3)
     if require == Require.proved and not result.proved:

@@ -710,6 +710,37 @@ def headline(art: Artefact) -> str:
     return ", ".join(parts)
 
 
+#: The scenario checks that test a guarantee of the design (a bound, a tolerance, an invariant level, the m-relation's
+#: outputs, the state box of a region resting on it): one that fails on a run inside the certified region contradicts
+#: the design.  (``tracking_settled`` and the deadlines test the controller's choice, not a guarantee.)
+GUARANTEE_CHECKS = ("tracking_error_within_bound", "tracking_error_within_posterior_bound", "tracking_error_within_tolerance",
+                    "tracking_w_below_level", "tracking_x_in_state_box", "m_relation_outputs_match")
+
+
+def contradictions(art: Artefact) -> list[str]:
+    """The guarantee checks (:data:`GUARANTEE_CHECKS`) a simulate artefact fails where the design claims them: the
+    tracking ones only when the run started inside the certified region.
+
+    Parameters
+    ----------
+    art : Artefact
+        The simulate stage's artefact.
+
+    Returns
+    -------
+    list of str
+        "name = value" for each; empty when the runs agree with the design.
+    """
+    inside = bool(art.values.get("tracking/inside_certified_region", True))
+    out = []
+    for name in GUARANTEE_CHECKS:
+        chk = art.checks.get(name)
+        if chk is None or chk.passed or (name.startswith("tracking_") and not inside):
+            continue
+        out.append(f"{name} = {chk.value:.4g}" if np.isfinite(chk.value) else name)
+    return out
+
+
 def _failed_checks(art: Artefact) -> dict:
     """The scenario checks that did not pass (shown by ``simulate``, ``ashc check`` and the report)."""
     return {name: chk for name, chk in art.checks.items() if not chk.passed}
