@@ -550,3 +550,40 @@ def test_each_row_of_the_pde_is_judged_against_its_own_terms_and_a_resonance_is_
     # the same p with its first row right is accepted, and its relative residual is the worst row's
     art = manifold.run(build_model(parse_spec_text(RESONANT.replace('"xi + 0.1"', '"xi"'))), {})
     assert art.values["residual_relative"] <= 1e-12 and len(art.values["residual_rows"]) == 2
+
+
+# Audit finding 7: a collocation for two abstract states ran 25 minutes without an answer.  Its least-squares work
+# is counted (rows x columns^2 per Jacobian, a count, not a clock) against abstract.pde_work.
+TWO_COLLOCATED = """
+name: two_collocated
+concrete:
+  states: [x1, x2]
+  inputs: [u1, u2]
+  f_bar: ["-x1 + 0.1*x2**2", "-2*x2 + 0.2*sin(x1)"]
+  g: [["1", "0"], ["0", "1"]]
+  h: ["x1", "x2"]
+  input_bounds: [[-4, 4], [-4, 4]]
+  output_set: [[-0.3, 0.3], [-0.3, 0.3]]
+stabilisability: {method: polytopic_lmi, decay_rate: 1.0}
+abstract:
+  states: [xi1, xi2]
+  inputs: [v1, v2]
+  phi_bar: ["-0.3*xi1", "-0.3*xi2"]
+  l: ["xi1", "xi2"]
+  domain: [[-1, 1], [-1, 1]]
+  pde_tolerance: 1.0e-5
+"""
+
+
+def test_the_collocation_for_two_abstract_states_stops_on_its_work_budget_and_names_it():
+    import re
+
+    arts = [manifold.run(build_model(parse_spec_text(TWO_COLLOCATED)), {}) for _ in range(2)]
+    work = [float(re.search(r"least-squares work ([0-9.e+]+) of abstract.pde_work", a.meta["method"]).group(1)) for a in arts]
+    assert work[0] == work[1] > 0 and np.array_equal(arts[0].values["p_grid"], arts[1].values["p_grid"])
+    budget = work[0] / 4
+    with pytest.raises(DesignError) as caught:
+        manifold.run(build_model(parse_spec_text(TWO_COLLOCATED + f"  pde_work: {budget!r}\n")), {})
+    assert caught.value.where == "abstract.pde_work" and "a larger abstract.pde_work" in str(caught.value)
+    spent = float(re.search(r"spent ([0-9.e+]+) of its work budget", str(caught.value)).group(1))
+    assert 0 < spent <= budget * (1 + 1e-3)

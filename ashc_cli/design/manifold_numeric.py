@@ -185,6 +185,11 @@ def _stalled(history: list[float]) -> bool:
     return history[-1] > STALL_FACTOR * history[-1 - STALL_DEGREES]
 
 
+#: Evaluations of one degree's Levenberg-Marquardt fit at most (the problem is nearly linear in the coefficients:
+#: it converges in a few; the bound keeps a degree that does not from running on).
+LM_MAX_STEPS = 100
+
+
 def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np.ndarray | None = None) -> tuple[chebyshev.Series | chebyshev.PiecewiseSeries, int, float]:
     """Tensor Chebyshev collocation for eq. (14a) (phi_bar != 0), any number of abstract states.
 
@@ -211,6 +216,8 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
         The degree per axis (the highest of a piece) that reached the tolerance.
     residual : float
         Relative residual on the independent grid.
+    work : float
+        The least-squares work spent (rows x columns^2 summed over the Jacobian evaluations; ``abstract.pde_work``).
 
     Raises
     ------
@@ -228,6 +235,7 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
     coeffs = np.zeros((n,) + (1,) * nh)
     best, history = np.inf, []
     top = min(max_degree, chebyshev.PIECE_MAX_DEGREE) if nh == 1 else max_degree
+    budget, work = float(model.spec.abstract.pde_work), 0.0
     for degree in range(1, top + 1):
         if _stalled(history):
             if nh == 1:
@@ -256,16 +264,25 @@ def solve_collocation(model: Model, plant: ManifoldPlant | None = None, seed: np
             J = np.einsum("ij,NK->iNjK", np.eye(n), E) - np.einsum("ijN,NK->iNjK", Fx, V)
             return J.reshape(n * len(V), n * K)
 
-        fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        # The work of one step: rows x columns^2 of the Jacobian (a QR).  Counted, not timed (deterministic).
+        per_step = float(n * z.shape[1]) * float(n * K) ** 2
+        steps = int((budget - work) // per_step)
+        if steps < 1:
+            raise DesignError("abstract.pde_work", f"the collocation of eq. (14a) spent {work:.3g} of its work budget {budget:.3g} up to degree "
+                              f"{degree - 1} (best relative residual {best:.3g}, tolerance {tol:g}); degree {degree} needs {per_step:.3g} a step",
+                              "a larger abstract.pde_work, a larger pde_tolerance, a smaller domain V, or abstract.p written by hand (checked)")
+        fit = sopt.least_squares(residual, grown.ravel(), jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                                 max_nfev=min(steps, LM_MAX_STEPS))
+        work += per_step * int(fit.njev if fit.njev is not None else fit.nfev)      # a QR per Jacobian
         coeffs = fit.x.reshape(grown.shape)
         series = chebyshev.Series.column(coeffs, box)
         best = min(best, _relative_residual(model, series, check, plant, phi_check))
         history.append(best)
         if best <= tol:
-            return series, degree, best
+            return series, degree, best, work
     if nh == 1:
         p = _collocate_pieces(model, F, F_x, phi_num, plant, top)
-        return p, p.degree, _relative_residual(model, p, check, plant, phi_check)
+        return p, p.degree, _relative_residual(model, p, check, plant, phi_check), work
     raise DesignError("abstract.phi_bar", f"no polynomial of degree <= {max_degree} solves eq. (14a) on V to {tol:g}: the best relative residual is {best:.3g}"
                       f"{resonance(model, series.at(np.mean(box, axis=1)[:, None])[:, 0, 0])}",
                       "a smaller domain V, a larger abstract.pde_max_degree or pde_tolerance, or phi_bar = 0")

@@ -166,6 +166,11 @@ class Abstract(_Strict):
     #: ``pde_tolerance`` is met or the fit stops improving (the degree used is reported).  With one abstract
     #: state each piece's degree is at most min(this, 32), and V is split into pieces where one is not enough.
     pde_max_degree: Annotated[int, Field(ge=1, le=128)] = 64
+    #: Work budget of the collocation of the invariance PDE with several abstract states: the sum over its
+    #: Jacobian evaluations of rows x columns^2 (the arithmetic of one least-squares step); a fit that would exceed
+    #: it stops with the best residual reached, naming this key.  A count, never a clock: the same spec gives the
+    #: same p on any machine.
+    pde_work: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 2e12
     #: A point near the equilibrium p at the centre of V, where Newton continuation starts (phi_bar = 0, no closed form).
     manifold_guess: list[FiniteFloat] | None = None
     #: An explicit left inverse m(x) of p (n_hat expressions in the concrete states and parameters).  The

@@ -411,19 +411,21 @@ def _solve(model: Model, plant: ManifoldPlant):
             if model.V is None:
                 raise DesignError("abstract.domain", "'auto' needs a p defined independently of V (phi_bar = 0 with a closed form, or a linear plant)",
                                   "a box [[lo, hi], ...] per abstract state for the PDE solver")
-            p, degree, fit_residual = solve_collocation(model, plant)
+            p, degree, fit_residual, work = solve_collocation(model, plant)
             if not _full_rank(p.jacobian().at(domain_grid(model.V, 201))):
                 # Several solutions (the abstraction is the plant itself, l = 0: p = 0 and p = xi): start again from
                 # xi in the first n_hat states, and keep the injective solution if that reaches one.
                 seed = np.zeros((model.n, model.n_hat))
                 seed[:model.n_hat] = np.eye(model.n_hat)
-                p, degree, fit_residual = solve_collocation(model, plant, seed=seed)
+                p, degree, fit_residual, more = solve_collocation(model, plant, seed=seed)
+                work += more
                 if not _full_rank(p.jacobian().at(domain_grid(model.V, 201))):
                     raise DesignError("abstract.p", f"eq. (14a) is solved by a p whose dp/dxi has rank < n_hat = {model.n_hat} on V (from p = 0 and from "
                                       "p = xi in the first states): p is not injective, and no left inverse m exists",
                                       "abstract.p: the manifold you mean, n expressions in the abstract states (checked, not trusted)", check="pde_residual")
             tolerance = fitted_tolerance
-            method = f"Chebyshev collocation, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid)"
+            method = (f"Chebyshev collocation, {_fit_text(p, degree)} (relative residual {fit_residual:.2g} on an independent grid; "
+                      f"least-squares work {work:.3g} of abstract.pde_work = {model.spec.abstract.pde_work:.3g})")
     found_V = model.V
     series = None
     if isinstance(p, (chebyshev.Series, chebyshev.PiecewiseSeries)):
