@@ -22,6 +22,9 @@ from ashc_cli.cli.common import (
 @guard
 def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt = 0, t_final: TFinalOpt = None,
             as_json: JsonOpt = False,
+            scheduler: Annotated[str | None, typer.Option("--scheduler", show_default=False, help=(
+                "Address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) for the task attack's runs; its "
+                "workers read the design from --out [default: threads on this machine]."))] = None,
             frozen: frozen_opt("Never rerun a design stage: fail (exit 5, naming the stage) if one is stale.") = False) -> None:
     """Search for a run that breaks the certified error bound (compiled closed loops over every core).
 
@@ -34,8 +37,11 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     the runs started on the manifold (max_ratio_w0_zero, where only G ||v|| counts). Rows of the design that
     were only sampled are attacked where they could fail: the LMI of eq. (28) between its samples (local searches
     from many starts, seeded by branch and bound), a second equilibrium of the frozen-input plant, and L_h; each
-    counter-example is printed with its coordinates. Writes falsify.h5 either way; exit 3 if a ratio exceeds 1
-    (a violation) or a counter-example is found.
+    counter-example is printed with its coordinates. With a task in the spec, the synthesised plan also runs on the
+    plant from --runs starts across its certified start region (its boundary along M's eigen-directions, random
+    starts on and inside it) and the smallest robustness of the task is reported (task_min_robustness). Writes
+    falsify.h5 either way; exit 3 if a ratio exceeds 1 (a violation), a counter-example is found or a task run
+    has negative robustness.
     """
     from ashc_cli.outputs.query import summary
     from ashc_cli.products.campaign import run_falsify
@@ -50,7 +56,7 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
             progress.update(note=f"{count} runs integrated, {per_second:.0f} runs/s")
 
         _, art = run_falsify(spec_obj, folder, runs, seed, t_final, on_stage=progress.on_stage, on_start=progress.on_start,
-                             progress=advance, on_runs=speed, frozen=frozen)
+                             progress=advance, on_runs=speed, frozen=frozen, scheduler=scheduler)
     entry = summary({FALSIFY: art})[FALSIFY]
     if as_json:
         emit_json(entry)
@@ -65,6 +71,9 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
         typer.echo(f"disturbance attack: largest error / bound {number_text(entry['disturbance_max_ratio'], '.4g')} over "
                    f"{entry['disturbance_runs']} runs with w at the vertices of disturbance_bounds"
                    f"{(', ' + str(entry['disturbance_outside_box']) + ' started outside the state box') if entry['disturbance_outside_box'] else ''}")
+    if "task_min_robustness" in entry and not as_json:
+        typer.echo(f"task: smallest robustness {number_text(entry['task_min_robustness'], '.4g')} over {entry['task_runs']} plant runs of the "
+                   f"synthesised plan from starts with W0 <= {number_text(entry['task_start_region_W0'], '.4g')} (the certified start region)")
     for text in entry.get("counterexamples", []):
         typer.echo(f"counter-example to a sampled row: {text}")
     if entry.get("disturbance_max_ratio", 0.0) > 1.0:
@@ -78,6 +87,17 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     if entry.get("certificate_counterexamples", 0):
         typer.echo(f"error: falsify: {entry['certificate_counterexamples']} counter-example(s) to rows the design only sampled "
                    f"(the verdict 'holds on samples only' is false); saved in {folder / 'falsify.h5'}", err=True)
+        raise typer.Exit(3)
+    if "task_disturbed_min_robustness" in entry and not as_json:
+        typer.echo(f"task with disturbances: smallest robustness {number_text(entry['task_disturbed_min_robustness'], '.4g')} over "
+                   f"{entry['task_disturbed_runs']} plant runs with w held at each vertex of disturbance_bounds")
+    if entry.get("task_disturbed_min_robustness", 0.0) < 0:
+        typer.echo(f"error: falsify: the task is violated on the plant with a disturbance at a vertex of its box (robustness "
+                   f"{entry['task_disturbed_min_robustness']:.4g}); saved in {folder / 'falsify.h5'}", err=True)
+        raise typer.Exit(3)
+    if entry.get("task_min_robustness", 0.0) < 0:
+        typer.echo(f"error: falsify: the task is violated on the plant (robustness {entry['task_min_robustness']:.4g}, a start with "
+                   f"W0 = {entry['task_worst_W0']:.4g}); saved in {folder / 'falsify.h5'}", err=True)
         raise typer.Exit(3)
 
 

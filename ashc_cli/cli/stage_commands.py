@@ -81,8 +81,7 @@ def _refuse_contradicted(arts: dict, sim, path: Path) -> None:
     """A run of `ashc simulate` that breaks a guarantee the verdict calls proved is a bug in ashc, not a result:
     one line naming the checks, exit 1 (docs/guide.md, exit codes).  On a verdict that holds on samples only it
     shows the sampling missed something: exit 3."""
-    from ashc_cli.design.stages.simulate import contradictions
-    from ashc_cli.design.verdict import verdict
+    from ashc_cli.design.verdict import contradictions, verdict
 
     broken = contradictions(sim)
     if not broken:

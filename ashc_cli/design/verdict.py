@@ -25,7 +25,7 @@ from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import AshcError
 from ashc_cli.paper import cite
 
-__all__ = ["Row", "ROWS", "Verdict", "verdict", "PROVED", "SAMPLED", "FAILS"]
+__all__ = ["Row", "ROWS", "Verdict", "verdict", "PROVED", "SAMPLED", "FAILS", "GUARANTEE_CHECKS", "contradictions"]
 
 #: The three verdicts (``ashc check --json`` key ``verdict``).
 PROVED, SAMPLED, FAILS = "proved", "sampled", "fails"
@@ -158,3 +158,34 @@ def verdict(arts: dict[str, Artefact], stopped: tuple[str, AshcError] | None = N
     else:
         kind = SAMPLED
     return Verdict(kind, tuple(rows))
+
+
+#: The scenario checks that test a guarantee of the design (a bound, a tolerance, an invariant level, the m-relation's
+#: outputs, the state box of a region resting on it): one that fails on a run inside the certified region contradicts
+#: the design.  (``tracking_settled`` and the deadlines test the controller's choice, not a guarantee.)
+GUARANTEE_CHECKS = ("tracking_error_within_bound", "tracking_error_within_posterior_bound", "tracking_error_within_tolerance",
+                    "tracking_w_below_level", "tracking_x_in_state_box", "m_relation_outputs_match")
+
+
+def contradictions(art: Artefact) -> list[str]:
+    """The guarantee checks (:data:`GUARANTEE_CHECKS`) a simulate artefact fails where the design claims them: the
+    tracking ones only when the run started inside the certified region.
+
+    Parameters
+    ----------
+    art : Artefact
+        The simulate stage's artefact.
+
+    Returns
+    -------
+    list of str
+        "name = value" for each; empty when the runs agree with the design.
+    """
+    inside = bool(art.values.get("tracking/inside_certified_region", True))
+    out = []
+    for name in GUARANTEE_CHECKS:
+        chk = art.checks.get(name)
+        if chk is None or chk.passed or (name.startswith("tracking_") and not inside):
+            continue
+        out.append(f"{name} = {chk.value:.4g}" if np.isfinite(chk.value) else name)
+    return out

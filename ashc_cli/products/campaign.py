@@ -90,8 +90,9 @@ def falsify_differs(spec: Spec, arts: dict[str, Artefact], stored: Artefact, run
 
 def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, t_final: float | None = None, *,
                 on_stage: Callable[[StageReport], None] | None = None, progress=None, on_runs=None,
-                frozen: bool = False, on_start: OnStart | None = None) -> tuple[dict[str, Artefact], Artefact]:
-    """Bring the design up to date, run :func:`ashc_cli.products.falsify.falsify` and store ``falsify.h5``.
+                frozen: bool = False, on_start: OnStart | None = None, scheduler: str | None = None) -> tuple[dict[str, Artefact], Artefact]:
+    """Bring the design up to date, run :func:`ashc_cli.products.falsify.falsify` (and, when the spec has a task,
+    :func:`ashc_cli.products.task_attack.attack_task` with as many runs) and store ``falsify.h5``.
 
     The artefact is written whatever the verdict (a violation must be kept to be studied).
 
@@ -111,6 +112,8 @@ def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, 
         Never recompute a design stage: refuse (naming it) if one is not up to date.
     on_start : callable, optional
         Called with (stage, reason) before a design stage is computed and before the falsification starts.
+    scheduler : str, optional
+        A dask.distributed scheduler for the task attack's runs.
 
     Returns
     -------
@@ -124,7 +127,28 @@ def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, 
     if on_start is not None:
         on_start(falsify_mod.NAME, f"{runs} runs")
     start = time.perf_counter()
-    art = falsify_mod.falsify(design_model(spec, arts), arts, runs, seed, t_final, progress, on_runs)
+    model = design_model(spec, arts)
+    art = falsify_mod.falsify(model, arts, runs, seed, t_final, progress, on_runs)
+    if spec.task is not None:
+        from ashc_cli.products.task_attack import attack_task, record
+
+        if on_start is not None:
+            on_start(falsify_mod.NAME, f"the task: {runs} plant runs of the synthesised plan across its certified start region")
+        from ashc_cli.closedloop.terms import DesignTerms
+        from ashc_cli.design import task_plan
+        from ashc_cli.design.stages.simulate import task_run
+
+        plant = DesignTerms(model, arts)
+        plan = task_plan.plan_task(model, arts, plant=plant)
+        plan, _ = task_plan.on_the_plant(model, plant, plan, task_run(model, plant, arts, plan))
+        found = attack_task(model, arts, runs, seed, scheduler=scheduler, folder=folder.path, plan=plan)
+        record(art, found)
+        if model.e is not None:
+            # the same plan with w held at each vertex of disturbance_bounds (numpy runs), from the plan's start and the
+            # boundary of its start region along M's eigen-directions
+            from ashc_cli.products.disturbance_attack import attack_task_disturbances, record_task
+
+            record_task(art, attack_task_disturbances(model, arts, plan, np.asarray(found["task_starts"])[: 1 + 2 * model.n]))
     write_artefact(artefact_path(folder.path, falsify_mod.NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in FALSIFY_UPSTREAM},
                    names=declared_names(spec))

@@ -28,7 +28,7 @@ from scipy.integrate import solve_ivp
 from ashc_cli.closedloop.batch import BatchPlant, interface
 from ashc_cli.problem.model import Model, apply_saturation
 
-__all__ = ["attack_disturbances", "wanted"]
+__all__ = ["attack_disturbances", "attack_task_disturbances", "record_task", "wanted"]
 
 #: Samples per run at which the ratio is measured (solve_ivp's dense output between them).
 SAMPLES = 400
@@ -153,3 +153,72 @@ def attack_disturbances(model: Model, arts: dict, runs: int, t_final: float, v_l
             worst = {"ratio": float(ratio[k]), "xi0": xi0, "x0": x0, "W0": float(W0), "w": w, "v": v, "time": float(sol.t[k]),
                      "error": float(err[k]), "bound": float(bound[k])}
     return {"runs": len(combos), "max_ratio": float(worst["ratio"]), "worst": worst, "left_V": left, "outside_box": outside}
+
+
+def attack_task_disturbances(model: Model, arts: dict, plan, x0s: np.ndarray) -> dict:
+    """The synthesised task plan on the plant with the disturbance held at each vertex of its box, from each start.
+
+    The plan's abstract run does not depend on the plant (its xi(t) and v(t) are the plan's, interpolated between its
+    samples), so each run is the plant alone: x' = f_bar(x) + g(x) SAT(l(xi) + K (x - p(xi)) + q v) + e(x) w,
+    integrated by solve_ivp on the numpy closed loop; the task's robustness of y (task_monitor).
+
+    Parameters
+    ----------
+    model : Model
+    arts : dict of str to Artefact
+    plan : TaskPlan
+        The synthesised plan (:func:`ashc_cli.design.task_plan.plan_task`).
+    x0s : ndarray (k, n)
+        The plant's starts (inside the plan's certified start region).
+
+    Returns
+    -------
+    dict
+        ``runs``, ``min_robustness``, ``worst_x0``, ``worst_w``.
+    """
+    from ashc_cli.closedloop.task_monitor import robustness
+
+    plant = BatchPlant(model, arts)
+    e_fun = model.numeric(model.e, list(model.x))
+    t, xi_plan, v_plan = np.asarray(plan.t), np.asarray(plan.xi), np.asarray(plan.v)
+    worst = {"min_robustness": np.inf}
+    runs = 0
+    for x0, w in itertools.product(list(x0s), [np.array(w, dtype=float) for w in itertools.product(*model.W)]):
+        def rhs(s, x, w=w):
+            xi = np.array([[np.interp(s, t, row)] for row in xi_plan])
+            v = np.array([np.interp(s, t, row) for row in v_plan])
+            terms = interface(model, plant, xi, x[:, None])
+            a, b = terms["a"], terms["b"]
+            u = apply_saturation(a["l"][0, :, 0], terms["kx"][0] + terms["q"][0] @ v, model.U, model.spec.interface.saturate)
+            dx = b["f_bar"][0, :, 0] + b["g"][0] @ u if model.affine else plant.at_x(x[:, None], u[:, None])["f_bar"][0, :, 0]
+            return dx + np.asarray(e_fun(*x), dtype=float).reshape(model.n, -1) @ w
+
+        sol = solve_ivp(rhs, (0.0, float(t[-1])), np.asarray(x0, dtype=float), t_eval=t, rtol=RTOL, atol=ATOL, max_step=float(t[1] - t[0]) * 10)
+        runs += 1
+        y = plant.at_x(sol.y)["h"][:, :, 0].T
+        rob = robustness(model.spec.task, sol.t, y).robustness
+        if rob < worst["min_robustness"]:
+            worst = {"min_robustness": float(rob), "worst_x0": np.asarray(x0, dtype=float), "worst_w": w}
+    return {"runs": runs, **worst}
+
+
+def record_task(art, found: dict) -> None:
+    """Store :func:`attack_task_disturbances` in the falsify artefact (``task_disturbed/...``) with the check
+    ``task_met_with_disturbances`` (smallest robustness >= 0; simulated).
+
+    Parameters
+    ----------
+    art : Artefact
+        The falsify artefact.
+    found : dict
+        Of :func:`attack_task_disturbances`.
+    """
+    from ashc_cli.design.artefacts import Check
+    from ashc_cli.numerics.proofs import SIMULATED
+
+    for key, value in found.items():
+        art.values[f"task_disturbed/{key}"] = value
+    art.checks["task_met_with_disturbances"] = Check(
+        found["min_robustness"], found["min_robustness"] >= 0,
+        f"the task's smallest robustness over {found['runs']} plant runs of the plan with w held at each vertex of disturbance_bounds "
+        f"(>= 0: met on every run)", SIMULATED)

@@ -341,6 +341,11 @@ def summarise(art: Artefact) -> dict:
     if "disturbance_attack/max_ratio" in v:    # products/disturbance_attack.py
         out.update({"disturbance_max_ratio": float(v["disturbance_attack/max_ratio"]), "disturbance_runs": int(v["disturbance_attack/runs"]),
                     "disturbance_outside_box": int(v["disturbance_attack/outside_box"])})
+    if "task_disturbed/min_robustness" in v:    # the task with disturbances (products/disturbance_attack.py)
+        out.update({"task_disturbed_min_robustness": float(v["task_disturbed/min_robustness"]), "task_disturbed_runs": int(v["task_disturbed/runs"])})
+    if "task/min_robustness" in v:    # the task attack (products/task_attack.py)
+        out.update({"task_min_robustness": float(v["task/min_robustness"]), "task_runs": int(v["task/runs"]),
+                    "task_start_region_W0": float(v["task/start_region_W0"]), "task_worst_W0": float(v["task/worst_W0"])})
     out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
     if "max_ratio_w0_zero" in v:
         out.update({
@@ -364,13 +369,19 @@ def headline(art: Artefact) -> str:
     -------
     str
         Runs; the largest ratio of the runs started on the manifold, its run and strategy (when stored); the largest
-        ratio over all runs (run, time and strategy); how many runs left V; the disturbance attack's ratio.
+        ratio over all runs (run, time and strategy); how many runs left V; the disturbance attack's ratio; the task
+        attack's smallest robustness.
     """
     v = art.values
     extra = ""
     if "disturbance_attack/max_ratio" in v:
         extra = (f"; disturbances at their vertices{' and starts outside the state box' if int(v['disturbance_attack/outside_box']) else ''}: "
                  f"{float(v['disturbance_attack/max_ratio']):.4g} over {int(v['disturbance_attack/runs'])} runs")
+    if "task/min_robustness" in v:
+        extra += (f"; task: smallest robustness {float(v['task/min_robustness']):.4g} over {int(v['task/runs'])} plant runs "
+                  f"from W0 <= {float(v['task/start_region_W0']):.3g}")
+    if "task_disturbed/min_robustness" in v:
+        extra += f", {float(v['task_disturbed/min_robustness']):.4g} with w at its vertices ({int(v['task_disturbed/runs'])} runs)"
     return _bound_headline(art) + extra
 
 

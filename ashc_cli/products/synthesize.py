@@ -1,22 +1,10 @@
 """``ashc synthesize``: a task on the output (``spec.task``) solved on the abstraction and guaranteed on the plant.
 
-The guarantee is the budget mode of the guaranteed controller (docs/guaranteed.md): from a start with W(xi0, x0) =
-W0, any abstract input with |v| <= v_max = (EPS - sqrt(W0 / alpha_h)) / G that keeps xi in V keeps
-|psi - y| <= EPS at every time (Theorem 2, eq. (38)).  The abstract controller is then chosen on the abstraction
-alone: it is the set-point law clipped at v_max, aimed at the reach sets one after the other (a set's reference
-state has kappa(xi_ref) at the set's centre), switching to the next set once psi has held the current one, deflated,
-for its hold.  Its run xi(t) does not depend on the plant, so the plan is integrated here once and its psi monitored:
-if psi meets the task with robustness rho_psi >= EPS + the sampling margin, every plant run of the interface meets
-the original task (robustness >= rho_psi - EPS: the box margins are 1-Lipschitz in the output).  The sampling margin
-is max |dpsi/dt| times the plan's step (what psi can do between two samples; taken on the plan's samples).
-
-EPS is searched: a small EPS allows a small v_max (a slow abstraction), a large one deflates the sets away.  The
-EPS of the largest certified margin is kept; when none is >= 0, the command exits 3 naming the part of the task
-that fails at the best EPS and by how much.  Then the plan runs on the concrete plant (the compiled closed loop of
-``simulate`` with the plan's switching times) and the task's robustness of that run is reported.
-
-This is a plan-and-verify synthesis on the abstraction, not the grid fixed point of reach-avoid games: it does not
-route psi around an avoid set (a plan that crosses one is refused, with the part named).
+The abstract controller, its tolerance EPS and why it is certified are :mod:`ashc_cli.design.task_plan` (the budget
+mode of the guaranteed controller, Theorem 2, eq. (38); EPS searched).  This product brings the design up to date,
+plans the task, runs the plan on the concrete plant (the compiled closed loop of ``simulate``, the task scenario:
+:func:`ashc_cli.design.stages.simulate.task_run`), monitors the task's robustness on that run and stores all of it in
+``synthesize.h5`` with the figure of the task (docs/guide.md, "Tasks on the output").
 """
 
 from __future__ import annotations
@@ -25,114 +13,20 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
-from ashc_cli.closedloop import plan as guaranteed
-from ashc_cli.closedloop.task_monitor import robustness
 from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.design import task_plan
 from ashc_cli.design.artefacts import Artefact, Check, write_artefact
 from ashc_cli.design.stages import simulate as sim
-from ashc_cli.errors import DesignError, SpecError
+from ashc_cli.errors import SpecError
 from ashc_cli.numerics.proofs import SAMPLED, SIMULATED
 from ashc_cli.problem.spec import Spec
 
-__all__ = ["NAME", "UPSTREAM", "synthesize", "run_synthesize", "plot", "summarise", "headline", "EPS_CANDIDATES", "PLAN_STEPS"]
+__all__ = ["NAME", "UPSTREAM", "synthesize", "run_synthesize", "plot", "summarise", "headline", "store"]
 
 NAME = "synthesize"
 #: The design artefacts the plan reads (a change in any makes synthesize.h5 stale).
 UPSTREAM = ("stabilise", "manifold", "kappa", "delta", "bound")
-
-#: Tolerances EPS tried, spread geometrically below the largest that leaves every reach set non-empty.
-EPS_CANDIDATES = 12
-#: RK4 steps of the plan over the horizon (the abstraction is smooth; the plant run is integrated adaptively).
-PLAN_STEPS = 5000
-#: The set-point gain of the plan when neither the task nor the tracking scenario gives one.
-DEFAULT_GAIN = 10.0
-
-
-def _start(model, plant: DesignTerms, up: dict) -> tuple[np.ndarray, np.ndarray, float]:
-    """(xi0, x0, W0) of the task: its own xi0 or the tracking scenario's, on the manifold unless x0 is given."""
-    task = model.spec.task
-    xi0 = np.array(task.xi0 if task.xi0 is not None else model.spec.simulate.tracking.xi0, dtype=float)
-    if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
-        raise DesignError("task.xi0", f"{xi0.tolist()} is outside V = {model.V.tolist()}", "an abstract start in V")
-    x0 = plant.p_map(*xi0)[:, 0] if task.x0 == "on_manifold" else np.array(task.x0, dtype=float)
-    e0 = plant.p_map(*xi0)[:, 0] - x0
-    return xi0, x0, float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
-
-
-def _reference(model, plant: DesignTerms, box, where: str) -> np.ndarray:
-    """A reference state in V whose psi is the box's centre (one abstract state: a bounded scalar search on V)."""
-    target = np.mean(np.asarray(box, dtype=float), axis=1)
-    if model.n_hat != 1:
-        raise DesignError(where, f"a plan for {model.n_hat} abstract states is not built yet", "an abstraction with one abstract state")
-    lo, hi = model.V[0]
-    grid = np.linspace(lo, hi, 401)
-    miss = [float(np.linalg.norm(np.ravel(plant.kappa(x)) - target)) for x in grid]
-    k = int(np.argmin(miss))
-    a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
-    best = minimize_scalar(lambda x: float(np.linalg.norm(np.ravel(plant.kappa(x)) - target)), bounds=(a, b), method="bounded",
-                           options={"xatol": 1e-12})
-    return np.array([best.x])
-
-
-def _plan(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.ndarray], v_max: float, gain: float, shrink: float):
-    """The abstraction under the set-point law (clipped at v_max), aimed at reach set k until psi has held it,
-    shrunk by ``shrink``, for its hold; RK4 on PLAN_STEPS steps.  Returns t, xi, psi, v, the switching times."""
-    t = np.linspace(0.0, task.horizon, PLAN_STEPS + 1)
-    dt = t[1] - t[0]
-    nh = xi0.size
-    xi = np.empty((nh, t.size))
-    psi = np.empty((model.p, t.size))
-    v_run = np.empty((model.m_hat, t.size))
-    switches = [0.0]
-    k, entered = 0, None
-
-    def field(z, ref, terms=None):
-        phi, delta, *_ = plant.at_xi(z) if terms is None else terms
-        v = np.clip(np.linalg.pinv(delta) @ (gain * (ref - z) - phi[:, 0]), -v_max, v_max)
-        return phi[:, 0] + delta @ v, v
-
-    z = xi0.copy()
-    for i in range(t.size):
-        xi[:, i] = z
-        here = plant.at_xi(z)            # phi_bar, delta and kappa at the sample, once
-        psi[:, i] = here[4][:, 0]
-        ref = refs[min(k, len(refs) - 1)]
-        if k < len(refs) - 1:       # switch once the current set has been held (its deflated box)
-            box = np.asarray(task.reach[k].set, dtype=float)
-            inside = bool(np.all(psi[:, i] >= box[:, 0] + shrink) and np.all(psi[:, i] <= box[:, 1] - shrink))
-            entered = (t[i] if entered is None else entered) if inside else None
-            if entered is not None and t[i] - entered >= task.reach[k].hold:
-                k, entered = k + 1, None
-                switches.append(float(t[i]))
-                ref = refs[k]
-        k1, v_run[:, i] = field(z, ref, here)
-        if i == t.size - 1:
-            break
-        k2 = field(z + 0.5 * dt * k1, ref)[0]
-        k3 = field(z + 0.5 * dt * k2, ref)[0]
-        k4 = field(z + dt * k3, ref)[0]
-        z = z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return t, xi, psi, v_run, switches
-
-
-def _try(model, plant, up, task, xi0, W0, refs, gain, eps):
-    """One tolerance: the budget's v_max, the plan, psi's robustness and the certified margin (None if refused)."""
-    try:
-        plan = guaranteed.guaranteed_plan(float(eps), "budget", W0, up)
-    except DesignError:
-        return None
-    v_max = plan.budget_v_max / np.sqrt(model.m_hat)        # elementwise clip within the 2-norm budget
-    t, xi, psi, v, switches = _plan(model, plant, task, xi0, refs, v_max, gain, shrink=float(eps))
-    dt = t[1] - t[0]
-    slope = float(np.abs(np.diff(psi, axis=1)).max() / dt) if t.size > 1 else 0.0
-    margin = slope * dt
-    rob = robustness(task, t, psi)
-    in_V = bool(np.all((xi >= model.V[:, :1] - 1e-12) & (xi <= model.V[:, 1:] + 1e-12)))
-    certified = rob.robustness - plan.budget_tolerance - margin
-    return dict(eps=float(plan.budget_tolerance), v_max=float(v_max), t=t, xi=xi, psi=psi, v=v, switches=switches, rob=rob,
-                margin=margin, certified=float(certified) if in_V else -np.inf, in_V=in_V)
 
 
 def synthesize(model, up: dict[str, Artefact]) -> Artefact:
@@ -148,10 +42,7 @@ def synthesize(model, up: dict[str, Artefact]) -> Artefact:
     Returns
     -------
     Artefact
-        ``tolerance`` (the EPS kept), ``v_max``, the plan (``plan/t``, ``plan/xi``, ``plan/psi``, ``plan/v``,
-        ``switch_times``, ``references``), the concrete run (``run/t``, ``run/y``, ``run/psi``), the task's robustness
-        on psi and on y with each part, the reach times; checks ``task_certified`` (the plan's margin, sampled in
-        time) and ``task_met_on_the_plant`` (the concrete run's robustness, simulated).
+        See :func:`store`.
 
     Raises
     ------
@@ -159,70 +50,55 @@ def synthesize(model, up: dict[str, Artefact]) -> Artefact:
         No task; an abstraction the plan cannot handle; or (exit 3) no EPS for which the plan meets the task
         deflated, naming the part that fails and by how much.
     """
-    task = model.spec.task
-    if task is None:
-        raise SpecError("task", "missing", "a task on the output (docs/spec-format.md, 'task') for `ashc synthesize`")
-    if not task.reach:
-        raise DesignError("task.reach", "empty: a plan aims at the reach sets", "at least one reach set")
     plant = DesignTerms(model, up)
-    xi0, x0, W0 = _start(model, plant, up)
-    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
-    tr = model.spec.simulate.tracking
-    gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN)) if tr is not None else DEFAULT_GAIN
-    half = min(float(np.min(np.diff(np.asarray(r.set, dtype=float), axis=1))) / 2 for r in task.reach)
-    if task.always is not None:
-        half = min(half, float(np.min(np.diff(np.asarray(task.always, dtype=float), axis=1))) / 2)
-    tried = [_try(model, plant, up, task, xi0, W0, refs, gain, e) for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES)]
-    tried = [r for r in tried if r is not None]
-    if not tried:
-        raise DesignError("task", f"no tolerance below {half:.4g} (half the narrowest set) is certified from this start (W0 = {W0:.4g})",
-                          "wider sets or a start nearer the manifold")
-    best = max(tried, key=lambda r: r["certified"])
-    if best["certified"] < 0:
-        worst = min(best["rob"].parts, key=best["rob"].parts.get)
-        short = best["rob"].parts[worst] - best["eps"] - best["margin"]
-        where = "xi leaves V on the plan" if not best["in_V"] else f"{worst} misses by {-short:.4g} (output units)"
-        raise DesignError(f"task.{worst}" if best["in_V"] else "task", f"no tolerance makes the plan meet the task: at the best, EPS = "
-                          f"{best['eps']:.4g} (v_max = {best['v_max']:.4g}), {where}",
-                          "a later deadline, a wider set or a shorter hold")
-    return _concrete(model, plant, up, task, xi0, x0, W0, refs, gain, best, tried)
+    plan = task_plan.plan_task(model, up, plant=plant)
+    res = sim.task_run(model, plant, up, plan)
+    plan, run = task_plan.on_the_plant(model, plant, plan, res)
+    return store(plan, run, up)
 
 
-def _concrete(model, plant, up, task, xi0, x0, W0, refs, gain, best, tried) -> Artefact:
-    """Run the plan on the plant (simulate's compiled closed loop, the plan's switching times) and store both."""
-    law = guaranteed.Law("setpoint", gain, best["v_max"])
-    switches = best["switches"] + [float(task.horizon)]
-    segments = [(t0, t1, sim.sample_times(t0, t1, sim.SAMPLE_DT * 10), k) for k, (t0, t1) in enumerate(zip(switches[:-1], switches[1:]))
-                if t1 > t0]
-    res = sim.closed_loop_run(model, plant, up, law, np.r_[xi0, x0, W0], segments, refs, sim.tracking_loop_for(model, up, law))
-    t, y = res["t"], res["y"]
-    psi = plant.kappa(*res["xi"])[:, 0, :]          # as simulate's tracking run records it
-    on_y, on_psi = robustness(task, t, y), best["rob"]
-    # The plan's RK4 against the run's adaptive integration of the same abstraction and law: what the plan's psi may be
-    # off by, taken from the margin (the switching times are the plan's, so the two follow the same references).
-    planned = np.stack([np.interp(t, best["t"], row) for row in best["psi"]])
-    deviation = float(np.abs(planned - psi).max())
-    best = {**best, "certified": best["certified"] - deviation}
-    art = Artefact(stage=NAME, meta={"eps_candidates": len(tried), "plan_steps": PLAN_STEPS})
+def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artefact:
+    """The synthesize artefact of a plan and its plant run.
+
+    Parameters
+    ----------
+    plan : TaskPlan
+        After :func:`ashc_cli.design.task_plan.on_the_plant`.
+    run : dict
+        Its values (t, y, psi, robustness, ...).
+    up : dict of str to Artefact
+        The design (for the certified start region).
+
+    Returns
+    -------
+    Artefact
+        ``tolerance`` (the EPS kept), ``v_max``, ``gain``, ``W0``, ``start_region_W0``, the plan (``plan/t``,
+        ``plan/xi``, ``plan/psi``, ``plan/v``, ``switch_times``, ``references``), the concrete run (``run/t``,
+        ``run/y``, ``run/psi``), the task's robustness on psi and on y with each part, the reach times; checks
+        ``task_certified`` (the plan's margin, sampled in time) and ``task_met_on_the_plant`` (simulated).
+    """
+    art = Artefact(stage=NAME, meta={"eps_candidates": len(plan.tried), "plan_steps": task_plan.PLAN_STEPS})
     art.values.update({
-        "tolerance": best["eps"], "v_max": best["v_max"], "gain": gain, "W0": W0, "sampling_margin": best["margin"],
-        "switch_times": np.array(best["switches"]), "references": np.stack(refs, axis=1),
-        "plan/t": best["t"], "plan/xi": best["xi"], "plan/psi": best["psi"], "plan/v": best["v"],
-        "plan_robustness": on_psi.robustness, "certified_margin": best["certified"], "plan_deviation": deviation,
-        "run/t": t, "run/y": y, "run/psi": psi, "run/max_abs_error": float(np.abs(psi - y).max()),
-        "task/robustness": on_y.robustness, "task/satisfied": on_y.satisfied,
-        "task/reach_times": np.array(on_y.reach_times, dtype=float), "task/best_hold_starts": np.array(on_y.best_times, dtype=float),
-        "eps_tried": np.array([r["eps"] for r in tried]), "margin_tried": np.array([r["certified"] for r in tried]),
+        "tolerance": plan.eps, "v_max": plan.v_max, "gain": plan.gain, "W0": plan.W0, "sampling_margin": plan.margin,
+        "start_region_W0": task_plan.start_region(plan, up),
+        "switch_times": np.array(plan.switches), "references": np.stack(plan.refs, axis=1), "xi0": plan.xi0,
+        "plan/t": plan.t, "plan/xi": plan.xi, "plan/psi": plan.psi, "plan/v": plan.v,
+        "plan_robustness": plan.rob.robustness, "certified_margin": plan.certified, "plan_deviation": run["deviation"],
+        "run/t": run["t"], "run/y": run["y"], "run/psi": run["psi"], "run/max_abs_error": run["max_abs_error"],
+        "task/robustness": run["robustness"], "task/satisfied": run["satisfied"],
+        "task/reach_times": run["reach_times"], "task/best_hold_starts": run["best_hold_starts"],
+        "eps_tried": np.array([e for e, _ in plan.tried]), "margin_tried": np.array([c for _, c in plan.tried]),
     })
-    for part, value in on_y.parts.items():
-        art.values[f"task/parts/{part}"] = value
-    art.checks["task_certified"] = Check(best["certified"], best["certified"] >= 0,
-                                         f"psi's robustness on the plan {on_psi.robustness:.4g} less EPS = {best['eps']:.4g} (budget mode, eq. (38)), "
-                                         f"the sampling margin {best['margin']:.3g} and the plan's deviation from the run's abstraction "
-                                         f"{deviation:.2g} (>= 0: every plant run meets the task; sampled in time)", SAMPLED)
-    art.checks["task_met_on_the_plant"] = Check(on_y.robustness, on_y.satisfied,
+    for key, value in run.items():
+        if key.startswith("parts/"):
+            art.values[f"task/{key}"] = value
+    art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
+                                         f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38)), "
+                                         f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction "
+                                         f"{run['deviation']:.2g} (>= 0: every plant run meets the task; sampled in time)", SAMPLED)
+    art.checks["task_met_on_the_plant"] = Check(run["robustness"], bool(run["satisfied"]),
                                                 f"the task's robustness on the plant's run of the plan (>= 0), max |psi - y| = "
-                                                f"{float(np.abs(psi - y).max()):.3g} <= EPS = {best['eps']:.4g}", SIMULATED)
+                                                f"{run['max_abs_error']:.3g} <= EPS = {plan.eps:.4g}", SIMULATED)
     return art
 
 
@@ -255,7 +131,7 @@ def run_synthesize(spec: Spec, out, *, on_stage: Callable | None = None, on_star
     folder = as_folder(out)
     arts = run(spec, folder, DESIGN, frozen=DESIGN if frozen else False, on_stage=on_stage, on_start=on_start)
     if on_start is not None:
-        on_start(NAME, f"{EPS_CANDIDATES} tolerances, a plan on the abstraction, its run on the plant")
+        on_start(NAME, f"{task_plan.EPS_CANDIDATES} tolerances, a plan on the abstraction, its run on the plant")
     start = time.perf_counter()
     art = synthesize(design_model(spec, arts), arts)
     write_artefact(artefact_path(folder.path, NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,

@@ -1,4 +1,4 @@
-"""Stage 7: closed-loop simulation of the two scenarios of Section V-D.
+"""Stage 7: closed-loop simulation of the two scenarios of Section V-D, and of the spec's task.
 
 **Tracking** (Figs. 7, 8).  The abstract system xi' = phi_bar(xi) + delta(xi) v is driven by
 the spec's set-point controller v = clip(delta^+(xi) (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max),
@@ -17,6 +17,11 @@ its speed-up over the budget (:func:`reach_times`).
 
 **m-relation** (Figs. 9, 10).  The concrete system runs open loop under the spec's u(t);
 the abstract system, started at xi0 = m(x0), receives v = b(x) + c(x) u (eq. (22)).  By Theorem 3 the outputs must coincide: the run records max |psi - y|.
+
+**Task** (``spec.task``, docs/guide.md "Tasks on the output").  The plan of ``ashc synthesize`` (:mod:`ashc_cli.design.task_plan`: the
+set-point law clipped at the budget's v_max, switching from one reach set to the next) drives the abstraction, the
+interface the plant; the run reports the task's robustness on y (:mod:`ashc_cli.closedloop.task_monitor`), whether it
+was met and when each reach was.
 
 Both run on the compiled closed loops (ashc_cli/closedloop/compiled.py) and the one Runge-Kutta engine
 (ashc_cli/closedloop/rk.py: DOP853 and solve_ivp's terminal event, step for step), at the tolerances recorded in the
@@ -41,6 +46,7 @@ from ashc_cli.errors import DesignError, NumericalError, ScenarioStopped
 from ashc_cli.problem.expr import parse_expression
 from ashc_cli.problem.model import TIME, Model
 from ashc_cli.problem.spec import TimedLevel
+from ashc_cli.design import task_plan
 from ashc_cli.design.simulate_m_relation import EDGE_MARGIN, M_RELATION_TOL, M_RELATION_TOL_ABS, SAMPLE_DT, MAX_RUN_SAMPLES, run_m_relation, sample_dt  # noqa: F401
 
 NAME = "simulate"
@@ -55,6 +61,9 @@ SETTLE_RTOL = 1e-4
 #: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
 REACH_HORIZON_DWELLS = 1000
 REACH_SAMPLE_DWELLS = 5e-4
+#: The task scenario is sampled every TASK_SAMPLE_DT, or every horizon / TASK_SAMPLES when that is longer.
+TASK_SAMPLE_DT = 10 * SAMPLE_DT
+TASK_SAMPLES = 20_000
 
 
 # --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
@@ -561,8 +570,68 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
     return values, checks
 
 
+def task_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], plan: task_plan.TaskPlan, x0: np.ndarray | None = None,
+             loop=None) -> dict:
+    """The task's plan (:mod:`ashc_cli.design.task_plan`) on the plant from x0 (the plan's own start by default): the
+    tracking closed loop under the plan's set-point law, switching references at the plan's switches.
+
+    Parameters
+    ----------
+    model, plant, up : Model, DesignTerms, dict of str to Artefact
+        The spec's systems and the design.
+    plan : TaskPlan
+    x0 : ndarray (n,), optional
+        The plant's start (the abstraction starts at the plan's xi0 whatever x0 is).
+    loop : TrackingLoop, optional
+        What integrates the loop (:func:`tracking_loop_for`; shared by the runs of an attack).
+
+    Returns
+    -------
+    dict
+        As :func:`closed_loop_run`.
+    """
+    x0 = plan.x0 if x0 is None else np.asarray(x0, dtype=float)
+    e0 = plant.p_map(*plan.xi0)[:, 0] - x0
+    w0 = float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
+    horizon = model.spec.task.horizon
+    segs = task_plan.segments(plan, horizon, max(TASK_SAMPLE_DT, horizon / TASK_SAMPLES), sample_times)
+    law = plan.law()
+    return closed_loop_run(model, plant, up, law, np.r_[plan.xi0, x0, w0], segs, plan.refs,
+                           loop if loop is not None else tracking_loop_for(model, up, law))
+
+
+def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:
+    """The task scenario: the synthesised abstract controller (``ashc synthesize``'s plan, recomputed: it is
+    deterministic) on the abstraction, the interface on the plant; returns (values, checks) under ``task/``.
+
+    Parameters
+    ----------
+    model, plant, up : Model, DesignTerms, dict of str to Artefact
+
+    Returns
+    -------
+    values : dict
+        ``task/robustness``, ``task/satisfied``, ``task/reach_times`` (NaN: not reached), the run (``task/t``,
+        ``task/y``, ``task/psi``), ``task/tolerance`` (EPS), ``task/v_max``, ``task/certified_margin``,
+        ``task/start_region_W0`` and each part's robustness (``task/parts/<part>``).
+    checks : dict
+        ``task_met_on_the_plant``.
+    """
+    plan = task_plan.plan_task(model, up, plant=plant)
+    res = task_run(model, plant, up, plan)
+    plan, values = task_plan.on_the_plant(model, plant, plan, res)
+    out = {f"task/{k}": v for k, v in values.items()}
+    out.update({"task/tolerance": plan.eps, "task/v_max": plan.v_max, "task/certified_margin": plan.certified,
+                "task/start_region_W0": task_plan.start_region(plan, up), "task/switch_times": np.array(plan.switches),
+                "task/plan_robustness": plan.rob.robustness, "task/compiled": res["compiled"]})
+    checks = {"task_met_on_the_plant": Check(values["robustness"], bool(values["satisfied"]),
+                                             f"the task's robustness on the plant's run of the synthesised plan (>= 0; max |psi - y| = "
+                                             f"{values['max_abs_error']:.3g} <= EPS = {plan.eps:.4g})", SIMULATED)}
+    return out, checks
+
+
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Run the spec's tracking and m-relation scenarios.
+    """Run the spec's tracking, m-relation and task scenarios.
 
     Parameters
     ----------
@@ -574,7 +643,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     Returns
     -------
     Artefact
-        Time series and metrics under ``tracking/`` and ``m_relation/``.
+        Time series and metrics under ``tracking/``, ``m_relation/`` and ``task/``.
 
     Raises
     ------
@@ -586,15 +655,17 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     NumericalError
         If an integration fails or blows up.
     """
-    sim = model.spec.simulate
-    if sim.tracking is None and sim.m_relation is None:
-        raise DesignError("simulate", "the spec has no scenario", "simulate.tracking and/or simulate.m_relation")
+    sim, task = model.spec.simulate, model.spec.task
+    if sim.tracking is None and sim.m_relation is None and task is None:
+        raise DesignError("simulate", "the spec has no scenario", "simulate.tracking, simulate.m_relation and/or a task")
     plant = DesignTerms(model, upstream)
-    art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL,
-                                      "sample_dt": max(sample_dt(getattr(sim, k).t_final) for k in ("tracking", "m_relation") if getattr(sim, k) is not None),
+    lengths = [getattr(sim, k).t_final for k in ("tracking", "m_relation") if getattr(sim, k) is not None] + ([task.horizon] if task else [])
+    art = Artefact(stage=NAME, meta={"tracking_integrator": TRACKING_TOL, "m_relation_integrator": M_RELATION_TOL, "task_integrator": TRACKING_TOL,
+                                      "sample_dt": max(sample_dt(t) for t in lengths),
                                       "interface_q": model.spec.interface.q,
                                       "saturate": model.spec.interface.saturate})
-    scenarios = [(name, runner) for name, runner in (("tracking", run_tracking), ("m_relation", run_m_relation)) if getattr(sim, name) is not None]
+    scenarios = [(name, runner) for name, runner, given in (("tracking", run_tracking, sim.tracking), ("m_relation", run_m_relation, sim.m_relation),
+                                                            ("task", run_task, task)) if given is not None]
     for scenario, runner in scenarios:
         try:
             values, checks = runner(model, plant, upstream)
@@ -638,6 +709,11 @@ def summarise(art: Artefact) -> dict:
     for scenario, keys in _METRICS.items():
         if f"{scenario}/t" in art.values:
             out[scenario] = {k: float(art.values[f"{scenario}/{k}"]) for k in keys}
+    if "task/t" in art.values:
+        v = art.values
+        out["task"] = {"robustness": float(v["task/robustness"]), "satisfied": bool(v["task/satisfied"]),
+                       "reach_times": np.asarray(v["task/reach_times"]).tolist(), "tolerance": float(v["task/tolerance"]),
+                       "max_abs_error": float(v["task/max_abs_error"]), "start_region_W0": float(v["task/start_region_W0"])}
     if "tracking" in out:
         v = art.values
         out["tracking"]["inside_certified_region"] = bool(v.get("tracking/inside_certified_region", True))
@@ -703,42 +779,15 @@ def headline(art: Artefact) -> str:
             parts.append(f"tracking max|psi - y| = {err:.4g} {relation}{post}{outside}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
+    if "task/t" in art.values:
+        v = art.values
+        met = "met" if bool(v["task/satisfied"]) else "NOT met"
+        parts.append(f"task {met}, robustness {float(v['task/robustness']):.4g} (EPS = {float(v['task/tolerance']):.4g})")
     failed = _failed_checks(art)
     if failed:
         parts.append("FAILED (simulated): " + "; ".join(f"{name} = {chk.value:.4g}" if np.isfinite(chk.value) else chk.description
                                                         for name, chk in failed.items()))
     return ", ".join(parts)
-
-
-#: The scenario checks that test a guarantee of the design (a bound, a tolerance, an invariant level, the m-relation's
-#: outputs, the state box of a region resting on it): one that fails on a run inside the certified region contradicts
-#: the design.  (``tracking_settled`` and the deadlines test the controller's choice, not a guarantee.)
-GUARANTEE_CHECKS = ("tracking_error_within_bound", "tracking_error_within_posterior_bound", "tracking_error_within_tolerance",
-                    "tracking_w_below_level", "tracking_x_in_state_box", "m_relation_outputs_match")
-
-
-def contradictions(art: Artefact) -> list[str]:
-    """The guarantee checks (:data:`GUARANTEE_CHECKS`) a simulate artefact fails where the design claims them: the
-    tracking ones only when the run started inside the certified region.
-
-    Parameters
-    ----------
-    art : Artefact
-        The simulate stage's artefact.
-
-    Returns
-    -------
-    list of str
-        "name = value" for each; empty when the runs agree with the design.
-    """
-    inside = bool(art.values.get("tracking/inside_certified_region", True))
-    out = []
-    for name in GUARANTEE_CHECKS:
-        chk = art.checks.get(name)
-        if chk is None or chk.passed or (name.startswith("tracking_") and not inside):
-            continue
-        out.append(f"{name} = {chk.value:.4g}" if np.isfinite(chk.value) else name)
-    return out
 
 
 def _failed_checks(art: Artefact) -> dict:
