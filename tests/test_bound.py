@@ -508,3 +508,61 @@ def test_the_boxed_region_of_a_state_dependent_disturbance_holds_under_attack(tm
                     bound = np.sqrt(c * np.exp(-(lam - eps) * t) / alpha_h) + v["gain"] * vmax + v["gain_w"] * 0.05
                     worst = max(worst, float(np.max(err / bound)))
     assert worst <= 1.0
+
+
+def test_a_state_dependent_g_and_nonlinear_h_keep_the_bound_under_attack_from_the_region_boundary(tmp_path):
+    # An outsider's attack on the bound's rows where g(x) and h(x) depend on the state: x' = -x + (1 + 0.3 sin x) u,
+    # y = x + 0.1 x^3 on the box [-2, 2].  Starts on the region's boundary (W0 = w0_max_certified) at V's ends and
+    # centre, v at the region's limit (constant, cosine, bang-bang) and 0; the closed loop written out here (p from a
+    # root solve, dp/dxi by implicit differentiation, the least-squares q = dp/dxi / g(x)), integrated by solve_ivp.
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import brentq
+
+    from ashc_cli.design.pipeline import DESIGN, run
+    from ashc_cli.problem.spec import parse_spec_text
+
+    text = (DISTURBED.replace('f_bar: ["-a*x"]', 'f_bar: ["-x"]').replace('g: [["1"]]', 'g: [["1 + 0.3*sin(x)"]]')
+            .replace('h: ["x"]', 'h: ["x + 0.1*x**3"]').replace("input_bounds: [[-4, 4]]", "input_bounds: [[-2, 2]]")
+            .replace("output_set: [[-1, 1]]", "output_set: [[-0.5, 0.5]]").replace("decay_rate: 2.0", "decay_rate: maximise")
+            .replace('l: ["a*xi"]', 'l: ["xi"]').replace("domain: [[-1.5, 1.5]]", "domain: [[-1, 1]]"))
+    text = "\n".join(line for line in text.splitlines() if "disturbance" not in line and line.strip() != 'e: [["1"]]')
+    text = text.replace("  input_bounds:", "  state_box: [[-2, 2]]\n  input_bounds:")
+    arts = run(parse_spec_text(text), tmp_path, DESIGN)
+    bd = arts["bound"].values
+    M, lam, eps, alpha_h, G = (float(np.ravel(bd[k])[0]) for k in ("M", "lambda", "epsilon", "alpha_h", "gain"))
+    c, v_max = float(bd["w0_max_certified"]), float(bd["v_max_certified"])
+    assert "state_box" in bd["region_limits"] and np.isfinite(c) and alpha_h == pytest.approx(1 / 2.2**2, rel=1e-6)
+
+    def g(x):
+        return 1 + 0.3 * np.sin(x)
+
+    def h(x):
+        return x + 0.1 * x**3
+
+    def p(xi):
+        return brentq(lambda s: s - g(s) * xi, -3, 3, xtol=1e-14)
+
+    def dp(xi):
+        return g(p(xi)) / (1 - 0.3 * np.cos(p(xi)) * xi)
+
+    worst = 0.0
+    inputs = (lambda t: 0.0, lambda t: v_max, lambda t: -v_max, lambda t: v_max * np.cos(2 * t), lambda t: v_max * np.sign(np.sin(3 * t)))
+    for xi0 in (-0.8, 0.0, 0.8):
+        for sign in (1.0, -1.0):
+            for vf in inputs:
+                x0 = p(xi0) + sign * np.sqrt(c / M) * (1 - 1e-9)
+
+                def rhs(t, z, vf=vf):
+                    xi, x = z
+                    return [vf(t), -x + g(x) * np.clip(xi + dp(xi) / g(x) * vf(t), -2, 2)]
+
+                def leaves_V(t, z):
+                    return min(z[0] + 1, 1 - z[0])
+
+                leaves_V.terminal = True
+                sol = solve_ivp(rhs, (0, 8), [xi0, x0], rtol=1e-10, atol=1e-12, max_step=0.01, events=leaves_V)
+                err = np.abs(np.array([h(p(s)) for s in sol.y[0]]) - h(sol.y[1]))
+                bound = np.sqrt(M * (p(xi0) - x0) ** 2 * np.exp(-(lam - eps) * sol.t) / alpha_h) + G * max(abs(vf(t)) for t in sol.t)
+                worst = max(worst, float(np.max(err / bound)))
+                assert np.all(np.abs(sol.y[1]) <= 2)               # the region keeps x in the box
+    assert 0 < worst <= 1
