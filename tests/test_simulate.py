@@ -629,6 +629,10 @@ def test_an_abstract_input_signal_drives_the_abstraction_and_the_plant_follows(t
     assert np.abs(np.asarray(v["tracking/x"]) - here).max() < 1e-7
     assert "tracking_settled" not in art.checks and "tracking/reference_levels" not in v
     assert v["tracking/v_inf"] == pytest.approx(0.1, rel=1e-6) and art.checks["tracking_error_within_bound"].passed
+    # `ashc summary` of such a run (a KeyError on tracking/settle_errors before: issue 39)
+    from ashc_cli.outputs.query import summary
+
+    assert "settle_errors" not in summary({"simulate": art})["simulate"]["tracking"]
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -720,7 +720,7 @@ def summarise(art: Artefact) -> dict:
         if "tracking/max_reference_error" in v:    # a reference signal: followed, not settled on
             out["tracking"]["reference_period"] = float(v["tracking/reference_period"])
             out["tracking"]["max_reference_error"] = float(v["tracking/max_reference_error"])
-        else:
+        elif "tracking/settle_errors" in v:        # set points held for a dwell (a signal v(t) has none)
             out["tracking"]["settle_errors"] = np.asarray(v["tracking/settle_errors"]).tolist()
         if "tracking/guaranteed_mode" in v:        # a guaranteed controller (docs/guaranteed.md)
             g = out["tracking"]
