@@ -40,6 +40,18 @@ W0_DECADES = (0.0, 2.0, 4.0)
 FLOOR_RTOL = 1e-7
 
 
+def _closed_loop(model: Model, plant: BatchPlant, e_fun, xi: np.ndarray, x: np.ndarray, v: np.ndarray, w: np.ndarray):
+    """The abstraction's maps at xi and the plant's x' = f(x, SAT(l + K (x - p) + q v)) + e(x) w at one point (the
+    interface of :func:`~ashc_cli.closedloop.batch.interface` with :func:`apply_saturation`); e_fun None: no w."""
+    terms = interface(model, plant, xi[:, None], x[:, None])
+    a, b = terms["a"], terms["b"]
+    u = apply_saturation(a["l"][0, :, 0], terms["kx"][0] + terms["q"][0] @ v, model.U, model.spec.interface.saturate)
+    dx = b["f_bar"][0, :, 0] + b["g"][0] @ u if model.affine else plant.at_x(x[:, None], u[:, None])["f_bar"][0, :, 0]
+    if e_fun is not None:
+        dx = dx + np.asarray(e_fun(*x), dtype=float).reshape(model.n, -1) @ w
+    return a, dx
+
+
 def wanted(model: Model, arts: dict) -> bool:
     """Whether the attack has anything to try: disturbances, or a global region beside a state box.
 
@@ -120,16 +132,8 @@ def attack_disturbances(model: Model, arts: dict, runs: int, t_final: float, v_l
             outside += 1
 
         def rhs(t, z, w=w, vv=v):
-            xi, x = z[:model.n_hat, None], z[model.n_hat:, None]
-            terms = interface(model, plant, xi, x)
-            a, b = terms["a"], terms["b"]
-            u = apply_saturation(a["l"][0, :, 0], terms["kx"][0] + terms["q"][0] @ vv, model.U, model.spec.interface.saturate)
-            if model.affine:
-                dx = b["f_bar"][0, :, 0] + b["g"][0] @ u
-            else:
-                dx = plant.at_x(x, u[:, None])["f_bar"][0, :, 0]
-            if e_fun is not None:
-                dx = dx + np.asarray(e_fun(*x[:, 0]), dtype=float).reshape(model.n, -1) @ w
+            xi, x = z[:model.n_hat], z[model.n_hat:]
+            a, dx = _closed_loop(model, plant, e_fun, xi, x, vv, w)
             return np.r_[a["phi"][0, :, 0] + a["delta"][0] @ vv, dx]
 
         def leaves_V(t, z):
@@ -185,13 +189,9 @@ def attack_task_disturbances(model: Model, arts: dict, plan, x0s: np.ndarray) ->
     runs = 0
     for x0, w in itertools.product(list(x0s), [np.array(w, dtype=float) for w in itertools.product(*model.W)]):
         def rhs(s, x, w=w):
-            xi = np.array([[np.interp(s, t, row)] for row in xi_plan])
+            xi = np.array([np.interp(s, t, row) for row in xi_plan])
             v = np.array([np.interp(s, t, row) for row in v_plan])
-            terms = interface(model, plant, xi, x[:, None])
-            a, b = terms["a"], terms["b"]
-            u = apply_saturation(a["l"][0, :, 0], terms["kx"][0] + terms["q"][0] @ v, model.U, model.spec.interface.saturate)
-            dx = b["f_bar"][0, :, 0] + b["g"][0] @ u if model.affine else plant.at_x(x[:, None], u[:, None])["f_bar"][0, :, 0]
-            return dx + np.asarray(e_fun(*x), dtype=float).reshape(model.n, -1) @ w
+            return _closed_loop(model, plant, e_fun, xi, x, v, w)[1]
 
         sol = solve_ivp(rhs, (0.0, float(t[-1])), np.asarray(x0, dtype=float), t_eval=t, rtol=RTOL, atol=ATOL, max_step=float(t[1] - t[0]) * 10)
         runs += 1
