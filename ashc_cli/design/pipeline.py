@@ -20,12 +20,13 @@ import numpy as np
 
 from ashc_cli.design.artefacts import SCHEMA_VERSION, Artefact, read_artefact, write_artefact
 from ashc_cli.errors import ArtefactError, DesignError
+from ashc_cli.numerics.boxsearch import work_budget
 from ashc_cli.problem.model import build_model
 from ashc_cli.problem.spec import Spec
 from ashc_cli.design.stages import DESIGN, ORDER
 
 __all__ = ["STAGES", "DESIGN", "PRODUCTS", "Folder", "default_out", "artefact_path", "needed", "staleness", "check_upstream",
-           "remove_leftovers", "register_product", "run", "run_for_verdict", "load_all", "StageReport", "frozen_stages"]
+           "remove_leftovers", "register_product", "run", "headline", "run_for_verdict", "load_all", "StageReport", "frozen_stages"]
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
@@ -388,7 +389,7 @@ def run(
                 on_start(name, reason)
             check_upstream(spec, name, arts)
             reads = _upstream_of(name, spec)
-            art = mod.run(model, {up: arts[up] for up in reads})
+            art = _computed(mod, model, {up: arts[up] for up in reads}, spec.proofs.max_boxes)
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in reads},
                            names=declared_names(spec))
@@ -398,8 +399,34 @@ def run(
         if name == "manifold":
             model = _with_domain(model, art)
         if on_stage is not None:
-            on_stage(StageReport(name, status, time.perf_counter() - start, mod.headline(art)))
+            on_stage(StageReport(name, status, time.perf_counter() - start, headline(mod, art)))
     return arts
+
+
+def _computed(mod, model, upstream: dict, max_boxes: int) -> Artefact:
+    """A stage's artefact, its proofs bounded by ``max_boxes`` boxes per search, their work in ``meta["proof_work"]``."""
+    with work_budget(max_boxes) as work:
+        art = mod.run(model, upstream)
+    art.meta["proof_work"] = {**work.as_meta(), **({"note": work.line()} if work.spent else {})}
+    return art
+
+
+def headline(mod, art: Artefact) -> str:
+    """A stage's one-line result, and where its proofs spent their box budget (``proofs.max_boxes``), the note saying so.
+
+    Parameters
+    ----------
+    mod : module
+        The stage's module (its ``headline``).
+    art : Artefact
+        Its artefact.
+
+    Returns
+    -------
+    str
+    """
+    note = (art.meta.get("proof_work") or {}).get("note")
+    return mod.headline(art) + (f"; {note}" if note else "")
 
 
 def load_all(out: str | Path) -> dict[str, Artefact]:

@@ -5,14 +5,20 @@ float matrix (:func:`psd_lower_bound`, :func:`prove_psd`) and the largest eigenv
 (:func:`lambda_max_upper`).  A bound this module calls rigorous truly holds for the exact real numbers, whatever the
 rounding.  The searches intersect the natural enclosure with the mean-value form f(c) + sum_i G_i (X_i - c_i), whose
 overestimate shrinks with the square of the box width: tight tolerances are reached in a few thousand boxes.
+
+Every search is bounded by work, never by the clock: a budget of boxes (``max_boxes``; by default the one
+:func:`work_budget` sets for the stage being computed, from the spec key ``proofs.max_boxes``), so the same spec
+gives the same bounds on an idle machine and on a loaded one.  :class:`ProofWork` adds up what the searches of one
+stage spent and which of them spent their whole budget short of their tolerance.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import heapq
 import math
-import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +28,107 @@ from ashc_cli.errors import NumericalError
 from ashc_cli.numerics.interval import IntervalFunction
 from ashc_cli.numerics._infsup import (INF, ZERO, ball_of, centre, check_box, fdn, from_ball, fup, iv_neg, midpoint)
 
-__all__ = ["SupResult", "InfResult", "sup_on_box", "inf_on_box", "prove_positive", "psd_lower_bound", "prove_psd", "lambda_max_upper"]
+__all__ = ["MAX_BOXES", "ProofWork", "work_budget", "box_budget", "SupResult", "InfResult", "sup_on_box", "inf_on_box", "prove_positive", "psd_lower_bound", "prove_psd", "lambda_max_upper"]
+
+
+#: Boxes one sup, inf or sign search may enclose unless the spec says otherwise (``proofs.max_boxes``).
+MAX_BOXES = 20000
+
+
+@dataclass
+class ProofWork:
+    """The branch-and-bound work of one stage: recorded in its artefact (``meta["proof_work"]``).
+
+    Attributes
+    ----------
+    max_boxes : int
+        The budget of one search (``proofs.max_boxes``).
+    searches : int
+        Searches run.
+    boxes : int
+        Boxes enclosed, summed over the searches.
+    spent : int
+        Searches that used their whole budget before reaching their tolerance (their claims stay "sampled", or
+        their bound is looser than the tolerance asked).
+    largest_gap : float
+        The widest ``upper - lower`` left by such a search (inf when an enclosure stayed unbounded).
+    """
+
+    max_boxes: int = MAX_BOXES
+    searches: int = 0
+    boxes: int = 0
+    spent: int = 0
+    largest_gap: float = 0.0
+
+    def record(self, boxes: int, budget: int, proved: bool, gap: float) -> None:
+        """Add one search: the boxes it enclosed, its budget, whether it reached its tolerance, its final gap."""
+        self.searches += 1
+        self.boxes += boxes
+        if not proved and boxes >= budget:
+            self.spent += 1
+            self.largest_gap = max(self.largest_gap, gap if math.isfinite(gap) else math.inf)
+
+    def as_meta(self) -> dict:
+        """The record as JSON-able facts (an unbounded gap as the string "inf")."""
+        gap = self.largest_gap if math.isfinite(self.largest_gap) else "inf"
+        return {"max_boxes": self.max_boxes, "searches": self.searches, "boxes": self.boxes, "budget_spent": self.spent,
+                "largest_gap": gap}
+
+    def line(self) -> str:
+        """One line for the stage's report when a search spent its budget, else ""."""
+        if not self.spent:
+            return ""
+        return (f"box budget {self.max_boxes} spent in {self.spent} of {self.searches} searches (largest gap "
+                f"{self.largest_gap:.3g}): the claims they serve are sampled or looser; raise proofs.max_boxes")
+
+
+_WORK: contextvars.ContextVar[ProofWork | None] = contextvars.ContextVar("ashc_proof_work", default=None)
+
+
+@contextlib.contextmanager
+def work_budget(max_boxes: int = MAX_BOXES) -> Iterator[ProofWork]:
+    """Within the block, searches default to ``max_boxes`` boxes and report their work to the yielded record.
+
+    Parameters
+    ----------
+    max_boxes : int
+        The budget of one search (the spec's ``proofs.max_boxes``).
+
+    Yields
+    ------
+    ProofWork
+        What the searches in the block spent.
+    """
+    if int(max_boxes) < 1:
+        raise ValueError(f"max_boxes must be >= 1, got {max_boxes}")
+    token = _WORK.set(ProofWork(max_boxes=int(max_boxes)))
+    try:
+        yield _WORK.get()
+    finally:
+        _WORK.reset(token)
+
+
+def box_budget(share: float = 1.0) -> int:
+    """The budget of one search: ``share`` of the current :func:`work_budget` (:data:`MAX_BOXES` outside one).
+
+    Parameters
+    ----------
+    share : float
+        The fraction wanted (a refinement that runs many small searches asks for less than a whole budget).
+
+    Returns
+    -------
+    int
+        At least 1.
+    """
+    work = _WORK.get()
+    return max(1, int((work.max_boxes if work is not None else MAX_BOXES) * share))
+
+
+def _record(boxes: int, budget: int, proved: bool, gap: float) -> None:
+    work = _WORK.get()
+    if work is not None:
+        work.record(boxes, budget, proved, gap)
 
 
 class _Evaluator:
@@ -148,7 +254,7 @@ class InfResult:
     proved: bool
 
 
-def _branch_and_bound(fun, box, index, negate, rtol, atol, max_boxes, time_budget, seeds):
+def _branch_and_bound(fun, box, index, negate, rtol, atol, max_boxes, seeds):
     """Maximise output ``index`` of fun (of -fun when negate); returns (upper, lower, argmax, boxes, proved)."""
     lo0, hi0 = check_box(box)
     d = len(lo0)
@@ -156,7 +262,7 @@ def _branch_and_bound(fun, box, index, negate, rtol, atol, max_boxes, time_budge
         raise ValueError("rtol and atol must be >= 0")
     ev = _Evaluator(fun, index, negate, d)
     scale = [(b - a) if b > a else 1.0 for a, b in zip(lo0, hi0)]
-    start = time.perf_counter()
+    max_boxes = box_budget() if max_boxes is None else int(max_boxes)
     best = -INF  # incumbent: a proved lower bound of the sup
     arg: list[float] | None = None
 
@@ -204,7 +310,7 @@ def _branch_and_bound(fun, box, index, negate, rtol, atol, max_boxes, time_budge
         if math.isfinite(upper) and best > -INF and upper - best <= rtol * abs(best) + atol:
             proved = True
             break
-        if not heap or counter >= max_boxes or time.perf_counter() - start > time_budget:
+        if not heap or counter >= max_boxes:
             break
         neg_up, _, lo, hi, smear = heapq.heappop(heap)
         if -neg_up <= best:
@@ -217,6 +323,7 @@ def _branch_and_bound(fun, box, index, negate, rtol, atol, max_boxes, time_budge
         k, m = cut
         push(lo, hi[:k] + [m] + hi[k + 1 :])
         push(lo[:k] + [m] + lo[k + 1 :], hi)
+    _record(counter, max_boxes, proved, upper - best if best > -INF else INF)
     if not math.isfinite(upper):
         upper = INF
     argv = np.array(arg, dtype=float) if arg is not None else np.full(d, math.nan)
@@ -230,8 +337,7 @@ def sup_on_box(
     index: int = 0,
     rtol: float = 1e-3,
     atol: float = 0.0,
-    max_boxes: int = 20000,
-    time_budget: float = 20.0,
+    max_boxes: int | None = None,
     seeds: np.ndarray | None = None,
 ) -> SupResult:
     """A rigorous upper bound of the supremum of one output of ``fun`` over a box (branch and bound).
@@ -247,10 +353,9 @@ def sup_on_box(
         Which output of ``fun`` to maximise.
     rtol, atol : float
         Stop once ``upper - lower <= rtol*|lower| + atol``.
-    max_boxes : int
-        Budget of box evaluations.
-    time_budget : float
-        Budget of wall time in seconds (checked between bisections).
+    max_boxes : int, optional
+        Budget of box evaluations (default: :func:`box_budget`).  Never a clock: the result is the same on any
+        machine and load.
     seeds : ndarray, shape (k, d), optional
         Points evaluated first to start the incumbent (e.g. a grid argmax); clipped into the box.
 
@@ -269,7 +374,7 @@ def sup_on_box(
     width; the widest relative to the original box without a gradient), and where the sign of a partial
     derivative is known the point on the matching face is evaluated too (boundary maxima).
     """
-    upper, lower, arg, boxes, proved = _branch_and_bound(fun, box, index, False, rtol, atol, max_boxes, time_budget, seeds)
+    upper, lower, arg, boxes, proved = _branch_and_bound(fun, box, index, False, rtol, atol, max_boxes, seeds)
     return SupResult(upper=upper, lower=lower, argmax=arg, boxes=boxes, proved=proved)
 
 
@@ -280,8 +385,7 @@ def inf_on_box(
     index: int = 0,
     rtol: float = 1e-3,
     atol: float = 0.0,
-    max_boxes: int = 20000,
-    time_budget: float = 20.0,
+    max_boxes: int | None = None,
     seeds: np.ndarray | None = None,
 ) -> InfResult:
     """A rigorous lower bound of the infimum of one output of ``fun`` over a box.
@@ -290,7 +394,7 @@ def inf_on_box(
 
     Parameters
     ----------
-    fun, box, index, rtol, atol, max_boxes, time_budget, seeds : as :func:`sup_on_box`
+    fun, box, index, rtol, atol, max_boxes, seeds : as :func:`sup_on_box`
         ``index`` is the output to minimise; ``rtol``, ``atol`` stop on ``upper - lower``.
 
     Returns
@@ -298,7 +402,7 @@ def inf_on_box(
     InfResult
         ``lower`` is rigorous whenever finite; ``upper`` is a value reached at ``argmin``.
     """
-    upper, lower, arg, boxes, proved = _branch_and_bound(fun, box, index, True, rtol, atol, max_boxes, time_budget, seeds)
+    upper, lower, arg, boxes, proved = _branch_and_bound(fun, box, index, True, rtol, atol, max_boxes, seeds)
     return InfResult(lower=-upper + 0.0, upper=-lower + 0.0, argmin=arg, boxes=boxes, proved=proved)  # (+0.0: no -0.0)
 
 
@@ -307,8 +411,7 @@ def prove_positive(
     box: np.ndarray,
     *,
     index: int = 0,
-    max_boxes: int = 20000,
-    time_budget: float = 20.0,
+    max_boxes: int | None = None,
 ) -> tuple[bool, float]:
     """Prove f > 0 on a whole box, or refute it at a point, by splitting the box.
 
@@ -319,8 +422,8 @@ def prove_positive(
     box : ndarray, shape (d, 2)
     index : int
         Which output of ``fun``.
-    max_boxes, time_budget
-        Budgets, as for :func:`sup_on_box`.
+    max_boxes : int, optional
+        Budget, as for :func:`sup_on_box`.
 
     Returns
     -------
@@ -335,7 +438,7 @@ def prove_positive(
     d = len(lo0)
     ev = _Evaluator(fun, index, False, d)
     scale = [(b - a) if b > a else 1.0 for a, b in zip(lo0, hi0)]
-    start = time.perf_counter()
+    max_boxes = box_budget() if max_boxes is None else int(max_boxes)
     heap: list = []
     counter = 0
     proved_min = None  # smallest lower end among boxes proved positive (an exact arb)
@@ -360,11 +463,15 @@ def prove_positive(
         heapq.heappush(heap, (low, counter, lo, hi, smear))
         return None
 
+    def refuted(v):
+        _record(counter, max_boxes, True, 0.0)       # a point where f <= 0 settles the question
+        return False, v
+
     v = visit(lo0, hi0)
     if v is not None:
-        return False, v
+        return refuted(v)
     while heap:
-        if counter >= max_boxes or time.perf_counter() - start > time_budget:
+        if counter >= max_boxes:
             break
         low, _, lo, hi, smear = heapq.heappop(heap)
         cut = _widest(lo, hi, scale, smear)
@@ -375,12 +482,14 @@ def prove_positive(
         for sub in ((lo, hi[:k] + [m] + hi[k + 1 :]), (lo[:k] + [m] + lo[k + 1 :], hi)):
             v = visit(*sub)
             if v is not None:
-                return False, v
+                return refuted(v)
     bounds = [stuck_min] + ([heap[0][0]] if heap else [])
     if proved_min is not None:
         bounds.append(fdn(proved_min))
     if not heap and stuck_min == INF:
+        _record(counter, max_boxes, True, 0.0)
         return True, fdn(proved_min)
+    _record(counter, max_boxes, False, -min(bounds))    # how far below 0 the lower bound was left
     return False, min(bounds)
 
 

@@ -16,7 +16,6 @@ upper bound, a little above the sampled maximum, and the stage uses it.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -37,11 +36,12 @@ PROVED, SAMPLED, SIMULATED = "proved", "sampled", "simulated"
 #: ("sampled"): an arb Cholesky in Python grows like n^3.
 MAX_PROOF_STATES = 64
 
-#: Seconds one sup or inf may spend in branch and bound before it gives up (the result is then "sampled").
-TIME_BUDGET = 20.0
+#: The work budget of the symbolic identities: operations (``count_ops``) simplified, summed over the expressions of
+#: one claim.  A claim over more is left "sampled"; work, not seconds, so the verdict is the same on any machine.
+SIMPLIFY_TOTAL_OPS = 10 * SIMPLIFY_MAX_OPS
 
 
-def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, time_limit: float = 10.0) -> bool:
+def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, total_ops: int = SIMPLIFY_TOTAL_OPS) -> bool:
     """True when sympy proves every expression identically zero (skipped for expressions above ``max_ops``).
 
     sympy's ``simplify`` never claims 0 for a non-zero expression; it may fail to find a true 0, which only
@@ -53,20 +53,23 @@ def symbolic_zero(exprs: Sequence[sp.Expr], max_ops: int = SIMPLIFY_MAX_OPS, tim
         The residuals (anything ``sympify`` takes).
     max_ops : int
         An expression with more operations (``count_ops``) is not simplified: the answer is then False.
-    time_limit : float
-        Seconds after which no further ``simplify`` is started (the answer is then False).
+    total_ops : int
+        Once the expressions simplified so far sum to more operations, no further ``simplify`` is started (the
+        answer is then False): a budget of work, so the answer does not depend on the machine's load.
 
     Returns
     -------
     bool
         True when every expression is proved 0; False when one is not, or was skipped.
     """
-    start = time.perf_counter()
+    spent = 0
     for e in exprs:
         e = sp.sympify(e)
         if e == 0:
             continue
-        if sp.count_ops(e) > max_ops or time.perf_counter() - start > time_limit:
+        ops = sp.count_ops(e)
+        spent += ops
+        if ops > max_ops or spent > total_ops:
             return False
         if sp.simplify(sp.together(e)) != 0:
             return False
@@ -209,7 +212,7 @@ def compile_claims(model: Model, exprs: Sequence[sp.Expr], args: Sequence[sp.Sym
 
 
 def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
-               time_budget: float = TIME_BUDGET) -> tuple[float, bool, np.ndarray]:
+               max_boxes: int | None = None) -> tuple[float, bool, np.ndarray]:
     """A proved upper bound of sup over the box of output ``index`` of fun, whether it is finite, and where the
     largest value found lies (:func:`boxsearch.sup_on_box`).
 
@@ -225,8 +228,9 @@ def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
         Points evaluated first (e.g. a grid's argmax); clipped into the box.
     rtol : float
         The search stops once the bound is within rtol (relative) of the largest value found.
-    time_budget : float
-        Seconds of branch and bound; when spent, the bound reached so far is returned (still rigorous).
+    max_boxes : int, optional
+        Boxes of branch and bound (default: the stage's ``proofs.max_boxes``, :func:`boxsearch.box_budget`); when
+        spent, the bound reached so far is returned (still rigorous) and the stage's proof work records it.
 
     Returns
     -------
@@ -237,17 +241,17 @@ def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
     argmax : ndarray (d,)
         Where the largest value found lies (nan if none).
     """
-    res = boxsearch.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    res = boxsearch.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, max_boxes=max_boxes, seeds=seeds)
     return float(res.upper), bool(np.isfinite(res.upper)), np.asarray(res.argmax, dtype=float)
 
 
 def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
-               time_budget: float = TIME_BUDGET) -> tuple[float, bool]:
+               max_boxes: int | None = None) -> tuple[float, bool]:
     """A proved lower bound of inf over the box of output ``index`` of fun and whether it is finite.
 
     Parameters
     ----------
-    fun, box, index, seeds, rtol, time_budget
+    fun, box, index, seeds, rtol, max_boxes
         As for :func:`sup_on_box`.
 
     Returns
@@ -257,7 +261,7 @@ def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
     finite : bool
         Whether ``lower`` is finite.
     """
-    res = boxsearch.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, time_budget=time_budget, seeds=seeds)
+    res = boxsearch.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, max_boxes=max_boxes, seeds=seeds)
     return float(res.lower), bool(np.isfinite(res.lower))
 
 
@@ -267,7 +271,7 @@ def range_on_box(fun, box: np.ndarray, index: int = 0, rtol: float = 1e-6) -> tu
     Parameters
     ----------
     fun, box, index, rtol
-        As for :func:`sup_on_box` (each end gets the default time budget).
+        As for :func:`sup_on_box` (each end gets the stage's box budget).
 
     Returns
     -------

@@ -195,6 +195,15 @@ class Interface(_Strict):
     saturate: bool | Literal["scale"] = True
 
 
+class Proofs(_Strict):
+    """The work budgets of the proofs (interval branch and bound), the same for every stage."""
+
+    #: Boxes one sup, inf or sign search may enclose (``numerics/boxsearch.py``).  When a search spends them short of
+    #: its tolerance, its bound is kept (still rigorous, looser) or its claim left "sampled", and the stage says so.  A
+    #: count, never a clock: the same spec gives the same numbers on an idle machine and on a loaded one.
+    max_boxes: Annotated[int, Field(ge=100, le=100_000_000)] = 20000
+
+
 class SetpointController(_Strict):
     """v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max), elementwise."""
 
@@ -349,6 +358,8 @@ class Spec(_Strict):
     stabilisability: Stabilisability
     abstract: Abstract
     interface: Interface = Field(default_factory=Interface)
+    #: Work budgets of the proofs (``proofs.max_boxes``).
+    proofs: Proofs = Field(default_factory=Proofs)
     simulate: Simulate = Field(default_factory=Simulate)
     #: An output task (reach, hold, avoid) for `ashc synthesize`; None: no task.
     task: Task | None = None
@@ -386,6 +397,8 @@ def spec_sha256(spec: Spec) -> str:
             data["concrete"].pop(key, None)
     if data.get("task") is None:          # added later: a spec without a task hashes as before
         data.pop("task", None)
+    if data.get("proofs") == Proofs().model_dump(mode="json"):     # added later: the default budgets hash as before
+        data.pop("proofs", None)
     tracking = (data.get("simulate") or {}).get("tracking") or {}
     for key in ("reference", "reference_period", "reference_levels", "dwell", "disturbance"):   # keys added later, or left out: absent, not null
         if key in tracking and tracking[key] is None:

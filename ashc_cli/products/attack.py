@@ -33,8 +33,9 @@ __all__ = ["attack", "lmi_counterexample", "second_equilibrium", "lipschitz_coun
 STARTS = 256
 #: Local searches run from the best of the starts.
 LOCAL_SEARCHES = 24
-#: Seconds the branch and bound may spend locating each Jacobian entry's extremes (seeds only: any point helps).
-SEED_BUDGET = 2.0
+#: Boxes the branch and bound may enclose locating each Jacobian entry's extremes (seeds only: any point helps;
+#: a count, not seconds, so the attack finds the same points on any machine).
+SEED_BOXES = 10000
 #: Inputs u at which the frozen plant's equilibria are sought, per axis of U (and as many points of V through l).
 INPUTS_PER_AXIS = 41
 
@@ -121,7 +122,7 @@ def _extremes(model: Model, exprs, args: list, box: np.ndarray) -> list[np.ndarr
         except proofs.interval.UnsupportedExpression:
             continue
         for search in (boxsearch.sup_on_box, boxsearch.inf_on_box):
-            res = search(fun, box, rtol=1e-9, time_budget=SEED_BUDGET)
+            res = search(fun, box, rtol=1e-9, max_boxes=SEED_BOXES)
             point = getattr(res, "argmax", getattr(res, "argmin", None))
             if point is not None and np.all(np.isfinite(point)):
                 seeds.append(np.asarray(point, dtype=float))

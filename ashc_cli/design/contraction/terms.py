@@ -26,9 +26,8 @@ MAX_VARYING_ENTRIES = 12
 RANGE_SAMPLES = 40000
 
 
-#: Seconds the branch and bound may spend enclosing one end of one Jacobian entry's range (then the range is
-#: only sampled, and the LMI row says so).
-ENCLOSURE_TIME_BUDGET = 20.0
+# Each end of one Jacobian entry's range is enclosed with the stage's box budget (proofs.max_boxes; when spent, the
+# range is only sampled, and the LMI row says so).
 
 
 #: Relative width at which that branch and bound stops (the enclosure is rigorous at any width; a tighter one
@@ -165,8 +164,8 @@ def _enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) ->
     except proofs.interval.UnsupportedExpression:
         return None
     sub = np.asarray(box, dtype=float)[used]
-    lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=ENCLOSURE_TIME_BUDGET)
-    hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=ENCLOSURE_TIME_BUDGET)
+    lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL)
+    hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL)
     return (lo, hi) if ok_lo and ok_hi else None
 
 
@@ -494,8 +493,8 @@ def term_polytope(model: Model, terms: Terms) -> Polytope:
 
 #: The most vertices a subdivided term polytope may have (sub-boxes x 2^K corners).
 MAX_SUBDIVIDED_VERTICES = 2048
-#: Seconds the branch and bound may spend on one end of one term's range on one sub-box.
-SUBBOX_TIME_BUDGET = 2.0
+# One end of one term's range on one sub-box is enclosed with the stage's box budget (proofs.max_boxes), as on the
+# whole box: a sub-box needs fewer boxes for the same tolerance, and no clock decides how many it gets.
 
 
 class SubBoxes:
@@ -527,8 +526,8 @@ class SubBoxes:
         if key not in self._ranges:
             out = []
             for fun in self.compiled:
-                lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
-                hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL, time_budget=SUBBOX_TIME_BUDGET)
+                lo, ok_lo = proofs.inf_on_box(fun, sub, rtol=ENCLOSURE_RTOL)
+                hi, ok_hi, _ = proofs.sup_on_box(fun, sub, rtol=ENCLOSURE_RTOL)
                 if not (ok_lo and ok_hi):
                     out = None
                     break
