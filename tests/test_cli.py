@@ -429,3 +429,23 @@ def test_example_does_not_overwrite_a_file_without_force(tmp_path):
     assert mine.read_text(encoding="utf-8") == "# my edits\n"
     ashc("example", "cuk", "--output", str(mine), "--force", check=True)
     assert mine.read_text(encoding="utf-8").startswith("# DC-to-DC Cuk converter")
+
+
+@pytest.mark.parametrize("where", ["file/out", "/dev/null/out", "/proc/ashc_no/out"])
+def test_an_out_that_cannot_be_a_folder_is_refused_before_anything_is_computed(tmp_path, where):
+    # It used to exit 1 "internal: NotADirectoryError" after the stabilise stage had computed (issue 39).
+    (tmp_path / "file").write_text("")
+    out = tmp_path / where if where.startswith("file") else Path(where)
+    proc = ashc("design", str(CUK), "--out", str(out))
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: --out: '{out}' ")
+    assert "expected a folder that exists or can be created" in lines[0]
+    assert "stabilise" not in proc.stderr and not out.exists()
+
+
+def test_a_missing_out_folder_is_probed_without_leaving_a_trace(tmp_path):
+    from ashc_cli.cli.common import usable_folder
+
+    usable_folder(tmp_path / "a" / "b" / "c", "--out")
+    assert list(tmp_path.iterdir()) == []

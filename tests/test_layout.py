@@ -215,3 +215,13 @@ def test_no_module_defines_a_name_twice():
         names = [n.name for n in ast.parse(text).body if isinstance(n, (ast.FunctionDef, ast.ClassDef))]
         twice += [f"{rel}: {name}" for name in sorted(set(names)) if names.count(name) > 1]
     assert not twice, twice
+
+
+def test_the_package_metadata_is_in_the_current_form():
+    # A table license and a licence classifier made setuptools print about 60 lines of deprecation warnings on every
+    # install (issue 39); PEP 639 wants an SPDX expression and the licence files.
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
+    assert not [c for c in project["classifiers"] if c.startswith("License ::")]

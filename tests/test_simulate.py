@@ -399,6 +399,9 @@ def test_a_start_off_the_manifold_is_held_to_the_whole_bound(tmp_path):
     whole = np.sqrt(v["tracking/W0"] * np.exp(-(bd["lambda"] - bd["epsilon"]) * t) / bd["alpha_h"]) + v["tracking/uniform_bound"]
     assert np.allclose(v["tracking/theorem_bound"], whole)
     assert np.all(np.linalg.norm(np.asarray(v["tracking/e_y"]), axis=0) <= whole)
+    # ... and the line printed says so (it used to print "G ||v||_inf exceeded" beside a passing check)
+    line = simulate.headline(sim)
+    assert "exceeded" not in line and "Theorem 2 with W0 = " in line and "the run starts off the manifold" in line
 
 
 def test_headline_prints_the_truth_when_a_bound_or_a_tolerance_is_exceeded():
@@ -407,7 +410,11 @@ def test_headline_prints_the_truth_when_a_bound_or_a_tolerance_is_exceeded():
     art = Artefact(stage="simulate")
     art.values.update({"tracking/t": np.zeros(2), "tracking/max_abs_error": 2.0, "tracking/uniform_bound": 1.0,
                        "tracking/inside_certified_region": True, "tracking/bound_evidence": "proved"})
-    assert "2 > 1 (G ||v||_inf exceeded)" in simulate.headline(art)
+    assert "2 > sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + 1 (Theorem 2's bound exceeded)" in simulate.headline(art)
+    art.checks["tracking_error_within_bound"] = Check(-0.1, True, "within Theorem 2's whole bound")
+    art.values["tracking/W0"] = 0.3
+    assert "2 <= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + 1 (Theorem 2 with W0 = 0.3" in simulate.headline(art)
+    del art.checks["tracking_error_within_bound"]
     art.values.update({"tracking/max_abs_error": 0.5})
     assert "0.5 <= 1" in simulate.headline(art) and "sampled" not in simulate.headline(art)
     art.values.update({"tracking/bound_evidence": "sampled", "tracking/inside_certified_region": False})

@@ -296,7 +296,55 @@ def load(spec_path: Path, out: Path | None):
     from ashc_cli.problem.spec import load_spec
 
     spec = load_spec(spec_path)
-    return spec, Path(out if out is not None else engine().default_out(spec))
+    folder = Path(out if out is not None else engine().default_out(spec))
+    usable_folder(folder, "--out" if out is not None else "name")
+    return spec, folder
+
+
+def usable_folder(folder: Path, field: str) -> None:
+    """Refuse, before anything is computed, an artefact folder that cannot exist: a file on the way, a path under
+    /proc or /dev/null, a folder that cannot be created.  A missing folder is created and removed again (the probe
+    leaves nothing behind; the stage that writes creates it for good).
+
+    Parameters
+    ----------
+    folder : Path
+        The artefact folder.
+    field : str
+        What the error names (``--out``, or ``name`` for the default ``outputs/<name>``).
+
+    Raises
+    ------
+    SpecError
+        Exit 2, one line naming the field, the path and why.
+    """
+    from ashc_cli.errors import SpecError
+
+    expected = "a folder that exists or can be created (--out PATH)"
+    if folder.exists():
+        if not folder.is_dir():
+            raise SpecError(field, f"'{folder}' is a file, not a folder", expected)
+        return
+    missing = []
+    p = folder
+    while not p.exists() and p.parent != p:
+        missing.append(p)
+        p = p.parent
+    if not p.is_dir():
+        raise SpecError(field, f"'{folder}' lies under '{p}', which is a file, not a folder", expected)
+    created = []
+    try:
+        for q in reversed(missing):
+            q.mkdir()
+            created.append(q)
+    except OSError as exc:
+        raise SpecError(field, f"'{folder}' cannot be created ({exc.strerror or type(exc).__name__})", expected) from None
+    finally:
+        for q in reversed(created):
+            try:
+                q.rmdir()
+            except OSError:
+                pass
 
 
 def run_targets(spec_path: Path, out: Path | None, targets, force: bool, progress: Progress, frozen=False, numeric: bool | None = None):
