@@ -775,15 +775,10 @@ def headline(art: Artefact) -> str:
                          f"({v['tracking/guaranteed_mode']}; {where}{faster}){outside}")
         else:
             bound = float(v["tracking/uniform_bound"])
-            whole = art.checks.get("tracking_error_within_bound")
-            if err <= bound:
-                relation = f"<= {bound:.5g}{sampled}"
-            elif whole is not None and whole.passed:
-                # off the manifold at the start (W0 > 0): Theorem 2's decaying W0 term carries the error, and it holds
-                relation = (f"<= sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + {bound:.5g}{sampled} (Theorem 2 with "
-                            f"W0 = {float(v['tracking/W0']):.3g}: the run starts off the manifold)")
-            else:
-                relation = f"> sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + {bound:.5g}{sampled} (Theorem 2's bound exceeded)"
+            whole, w0_term = art.checks.get("tracking_error_within_bound"), f"sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + {bound:.5g}{sampled}"
+            # off the manifold at the start (W0 > 0), Theorem 2's decaying W0 term carries the error; say so when it holds
+            relation = (f"<= {bound:.5g}{sampled}" if err <= bound else f"> {w0_term} (Theorem 2's bound exceeded)" if whole is None or not whole.passed
+                        else f"<= {w0_term} (Theorem 2 with W0 = {float(v['tracking/W0']):.3g}: the run starts off the manifold)")
             parts.append(f"tracking max|psi - y| = {err:.4g} {relation}{post}{outside}")
     if "m_relation/t" in art.values:
         parts.append(f"m-relation max|psi - y| = {art.values['m_relation/max_abs_error']:.2g}")
