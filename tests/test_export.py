@@ -464,8 +464,10 @@ def test_export_refuses_what_it_cannot_do(designs, tmp_path):
         write_export(d["spec"], d["arts"], "c", tmp_path / "design.py")
     with pytest.raises(SpecError, match="importable"):
         write_export(d["spec"], d["arts"], "python", tmp_path / "my-design.py")
-    # Artefacts of another spec (an edited gain changes the spec's SHA-256) are refused, naming the stage.
-    other = load_spec(edited(CUK, tmp_path, ("gain: 80.0", "gain: 81.0")))
+    # Artefacts of another plant (an edited decay rate changes what stabilise read) are refused, naming the stage;
+    # a scenario's gain is no key of the design (issue 39: each stage follows the keys it reads).
+    require_current(load_spec(edited(CUK, tmp_path, ("gain: 80.0", "gain: 81.0"), name="gain.yaml")), d["arts"])
+    other = load_spec(edited(CUK, tmp_path, ("decay_rate: 2.0", "decay_rate: 1.9")))
     with pytest.raises(ArtefactError, match="stabilise.h5: was made from another spec"):
         require_current(other, d["arts"])
     with pytest.raises(ArtefactError, match="another spec"):

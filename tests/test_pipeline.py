@@ -11,7 +11,7 @@ from ashc_cli.errors import ArtefactError
 from ashc_cli.design.pipeline import DESIGN, Folder, needed, run, run_for_verdict, staleness
 from ashc_cli.problem.spec import load_spec, parse_spec_text
 
-from .conftest import CUK_PAPER_M
+from .conftest import CUK, CUK_PAPER_M
 
 
 def test_needed_is_flow_chart_order():
@@ -29,13 +29,14 @@ def test_reruns_exactly_the_stale_stages(paper_out, tmp_path):
     run(spec, out, DESIGN, on_stage=lambda r: seen.append((r.stage, r.status)))
     assert {status for _, status in seen} == {"up to date"}
 
-    # A changed delta leaves stabilise..inverse alone and reruns delta and bound.
+    # A changed delta leaves stabilise alone (it reads the plant and the stabilisability keys) and reruns the rest.
     text = CUK_PAPER_M.read_text().replace('delta: "((xi - 1)**2 + G_L*R_i*xi**2)**2"', 'delta: "1"')
     spec2 = parse_spec_text(text)
-    assert staleness(spec2, out, "delta") == "made from another spec (SHA-256 differs)"
+    assert staleness(spec2, out, "delta").startswith("made from other values of the spec keys it reads (parameters, concrete, ")
+    assert staleness(spec2, out, "stabilise") is None
     seen.clear()
     arts = run(spec2, out, DESIGN, on_stage=lambda r: seen.append((r.stage, r.status)))
-    assert all(status == "ran" for _, status in seen)  # the spec hash is global: every stage reruns
+    assert seen == [("stabilise", "up to date")] + [(s, "ran") for s in DESIGN[1:]]
     assert abs(arts["bound"].values["dbar_q0_sampled"] - arts["bound"].values["dbar_q0_identity"]) < 1e-9
 
     # Rewriting an upstream artefact with other content makes its downstream stale, not its upstream.  (A rerun
@@ -45,12 +46,61 @@ def test_reruns_exactly_the_stale_stages(paper_out, tmp_path):
     man.meta["note"] = "rewritten by the test"
     prov = man.provenance
     write_artefact(out / "manifold.h5", man, spec_sha256=prov["spec_sha256"], spec_name=prov["spec_name"],
-                   parameters=prov["parameters"], upstream=prov["upstream"])
+                   parameters=prov["parameters"], upstream=prov["upstream"], inputs_sha256=prov["inputs_sha256"])
     assert staleness(spec2, out, "stabilise") is None
     assert staleness(spec2, out, "kappa") == "upstream artefact manifold.h5 changed since"
     assert staleness(spec2, out, "bound") == "upstream artefact manifold.h5 changed since"
     assert staleness(spec2, out, "delta") == "upstream artefact manifold.h5 changed since"
     assert staleness(spec2, out, "inverse") == "upstream artefact manifold.h5 changed since"
+
+
+def test_a_task_or_a_scenario_keeps_the_design_and_abstract_p_keeps_stabilise(paper_out, tmp_path):
+    # Issue 39: adding a task re-ran the whole design (a 45 s stabilise stage on a levitation plant); each stage now
+    # follows the spec keys it reads.
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    text = CUK_PAPER_M.read_text()
+    tasked = parse_spec_text(text.replace("t_final: 30.0", "t_final: 20.0").replace("units: {t: s, y: V}", "units: {t: s}")
+                             .replace("description: DC-to-DC", "description: another DC-to-DC")
+                             + "\ntask: {horizon: 30, always: [[-120, 0]], reach: [{set: [[-82, -78]], by: 25}]}\n")
+    assert tasked.sha256 != load_spec(CUK_PAPER_M).sha256
+    seen = []
+    run(tasked, out, DESIGN, on_stage=lambda r: seen.append((r.stage, r.status)))
+    assert seen == [(s, "up to date") for s in DESIGN]
+    assert staleness(tasked, out, "simulate") is not None          # the scenario and the task are what simulate reads
+    # abstract.p written out by hand: the abstraction reruns, the contraction certificate is kept
+    p_text = text.replace("  delta:", '  p: ["0", "0", "0", "xi"]\n  delta:', 1)
+    assert staleness(parse_spec_text(p_text), out, "stabilise") is None
+    assert staleness(parse_spec_text(p_text), out, "manifold").startswith("made from other values")
+    # a budget of the proofs, the plant or the stabilisability keys: stabilise reruns
+    for edit in ("\nproofs: {max_boxes: 30000}\n", None):
+        other = text + edit if edit else text.replace("decay_rate:", "decay_rate: 1.9 #", 1)
+        assert staleness(parse_spec_text(other), out, "stabilise") is not None, edit
+
+
+def test_an_artefact_without_the_inputs_digest_follows_the_whole_spec(paper_out, tmp_path):
+    # Artefacts written before the per-key digest existed are judged as before: by the whole spec's SHA-256.
+    out = tmp_path / "out"
+    shutil.copytree(paper_out, out)
+    spec = load_spec(CUK_PAPER_M)
+    art = read_artefact(out / "stabilise.h5")
+    prov = art.provenance
+    write_artefact(out / "stabilise.h5", art, spec_sha256=prov["spec_sha256"], spec_name=prov["spec_name"],
+                   parameters=prov["parameters"], upstream=prov["upstream"])
+    assert read_artefact(out / "stabilise.h5").provenance["inputs_sha256"] == ""
+    assert staleness(spec, out, "stabilise") is None
+    tasked = parse_spec_text(CUK_PAPER_M.read_text() + "\ntask: {horizon: 30, reach: [{set: [[-82, -78]], by: 25}]}\n")
+    assert staleness(tasked, out, "stabilise") == "made from other values of the spec keys it reads (parameters, concrete, stabilisability, proofs, abstract.states, abstract.inputs)"
+
+
+def test_min_gain_stabilise_reads_the_abstraction():
+    base = CUK_PAPER_M.read_text()
+    spec = parse_spec_text(base)
+    assert "abstract" not in pipeline.spec_keys("stabilise", spec)
+    gain = parse_spec_text(CUK.read_text().replace("decay_rate:", "objective: min_gain\n  decay_rate:", 1))
+    assert {"abstract", "interface"} <= set(pipeline.spec_keys("stabilise", gain))
+    assert pipeline.spec_keys("manifold", spec) == pipeline.DESIGN_KEYS
+    assert {"simulate", "task"} <= set(pipeline.spec_keys("simulate", spec))
 
 
 def test_corrupt_artefact_is_stale(paper_out, tmp_path):

@@ -529,7 +529,7 @@ def product_staleness(spec, folder, stage: str) -> str | None:
     if not artefact_path(folder.path, stage).exists():
         return "no artefact yet"
     art = folder.read(stage)
-    if art.provenance.get("spec_sha256") != spec.sha256:
+    if not engine().made_from(spec, stage, art.provenance):
         return "made from another spec"
     for up, sha in (art.provenance.get("upstream") or {}).items():
         if artefact_path(folder.path, up).exists() and folder.read(up).provenance.get("sha256") != sha:

@@ -50,8 +50,9 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
            numeric: NumericOpt = None) -> None:
     """Run the design stages stabilise..bound in order, skipping those already up to date.
 
-    A stage is up to date when its artefact was made from the same spec (SHA-256) and the same upstream
-    artefacts; --force redoes all. Prints one line per stage with its time and headline number (stderr),
+    A stage is up to date when the spec keys it reads have the values it was made from (a task, a scenario
+    or the units change no design stage; abstract.* leaves stabilise alone) and its upstream artefacts are
+    the same; --force redoes all. Prints one line per stage with its time and headline number (stderr),
     then the design's summary line (stdout).
     """
     from ashc_cli.design.stages.bound import disturbance_text, gain_text, region_text

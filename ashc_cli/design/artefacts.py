@@ -2,7 +2,7 @@
 
 Layout of ``<out>/<stage>.h5``::
 
-    /                 attrs: schema_version, stage, spec_sha256, spec_name, parameters (JSON), upstream (JSON {stage: sha256}),
+    /                 attrs: schema_version, stage, spec_sha256, inputs_sha256, spec_name, parameters (JSON), upstream (JSON {stage: sha256}),
                              names (JSON: the spec's declared states, inputs, abstract_states, abstract_inputs),
                              packages (JSON), created (UTC ISO 8601), ashc_version, meta (JSON: solver,
                              tolerances, integrator, ...)
@@ -245,7 +245,7 @@ def _user_mode() -> int:
 
 
 def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_name: str, parameters: dict[str, float],
-                   upstream: dict[str, str], names: dict[str, list[str]] | None = None) -> str:
+                   upstream: dict[str, str], names: dict[str, list[str]] | None = None, inputs_sha256: str = "") -> str:
     """Write an artefact atomically and return the new file's SHA-256.
 
     Parameters
@@ -263,6 +263,8 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     names : dict of str to list of str, optional
         The spec's declared names (states, inputs, abstract_states, abstract_inputs), so a query can tell a
         declared name that a formula happens not to use from a misspelt one.
+    inputs_sha256 : str, optional
+        SHA-256 of the values of the spec keys the stage read (its staleness follows them; "" for a product).
 
     Returns
     -------
@@ -272,7 +274,7 @@ def write_artefact(path: str | Path, art: Artefact, *, spec_sha256: str, spec_na
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     # The provenance read_artefact gives back (plus the file's sha256), so a written artefact needs no reading back.
-    provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "spec_name": spec_name, "parameters": parameters,
+    provenance = {"schema_version": SCHEMA_VERSION, "spec_sha256": spec_sha256, "inputs_sha256": inputs_sha256, "spec_name": spec_name, "parameters": parameters,
                   "upstream": upstream, "names": names or {}, "packages": package_versions(), "created": datetime.now(UTC).isoformat(timespec="seconds"),
                   "ashc_version": __version__}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -394,6 +396,7 @@ def read_artefact(path: str | Path) -> Artefact:
     art.provenance = {
         "schema_version": int(attrs.get("schema_version", -1)),
         "spec_sha256": str(attrs.get("spec_sha256", "")),
+        "inputs_sha256": str(attrs.get("inputs_sha256", "")),
         "spec_name": str(attrs.get("spec_name", "")),
         "parameters": json.loads(attrs.get("parameters", "{}")),
         "upstream": json.loads(attrs.get("upstream", "{}")),

@@ -1,8 +1,9 @@
 """Stage order, staleness and caching: what ``ashc design`` and every stage command run.
 
-A stage's artefact is *up to date* when it was written with the current schema version, from a spec with
-the same SHA-256, and from upstream artefacts whose files have the SHA-256s it recorded (and which are up
-to date themselves).  :func:`run` walks the stages a target needs in flow-chart order, reads those that are
+A stage's artefact is *up to date* when it was written with the current schema version, from a spec whose keys
+the stage reads (:func:`spec_keys`) have the same values (their SHA-256), and from upstream artefacts whose files
+have the SHA-256s it recorded (and which are up to date themselves): adding a task or editing a scenario keeps the
+design, editing ``abstract.p`` keeps the stabilise stage.  :func:`run` walks the stages a target needs in flow-chart order, reads those that are
 up to date and recomputes the rest, writing each artefact atomically before the next stage starts.
 A :class:`Folder` remembers what one command has read, written and judged, so that commands calling
 :func:`run` several times (``check``, ``report``, ``regress``, ``sweep``) read and parse each file once.
@@ -22,11 +23,11 @@ from ashc_cli.design.artefacts import SCHEMA_VERSION, Artefact, read_artefact, w
 from ashc_cli.errors import ArtefactError, DesignError
 from ashc_cli.numerics.boxsearch import work_budget
 from ashc_cli.problem.model import build_model
-from ashc_cli.problem.spec import Spec
+from ashc_cli.problem.spec import Spec, keys_sha256
 from ashc_cli.design.stages import DESIGN, ORDER
 
 __all__ = ["STAGES", "DESIGN", "PRODUCTS", "Folder", "default_out", "artefact_path", "needed", "staleness", "check_upstream",
-           "remove_leftovers", "register_product", "run", "headline", "run_for_verdict", "load_all", "StageReport", "frozen_stages"]
+           "remove_leftovers", "register_product", "run", "headline", "DESIGN_KEYS", "spec_keys", "inputs_sha256", "made_from", "run_for_verdict", "load_all", "StageReport", "frozen_stages"]
 
 #: Stage modules by name, in flow-chart order.
 STAGES = {mod.NAME: mod for mod in ORDER}
@@ -151,6 +152,72 @@ def _upstream_of(name: str, spec: Spec | None = None) -> tuple[str, ...]:
     return tuple(fun(spec)) if fun is not None and spec is not None else tuple(mod.UPSTREAM)
 
 
+#: The spec keys a design stage reads unless its module says otherwise (``reads(spec)`` or ``READS``): everything
+#: but the scenarios, the task, the description and the units.
+DESIGN_KEYS = ("parameters", "concrete", "stabilisability", "abstract", "interface", "proofs")
+
+
+def spec_keys(name: str, spec: Spec) -> tuple[str, ...]:
+    """The spec keys a stage reads: its module's ``reads(spec)``, else its ``READS``, else :data:`DESIGN_KEYS`.
+
+    Parameters
+    ----------
+    name : str
+        A stage.
+    spec : Spec
+        The spec (stabilise reads more for ``objective: min_gain``).
+
+    Returns
+    -------
+    tuple of str
+        Dotted spec keys.
+    """
+    mod = STAGES[name]
+    fun = getattr(mod, "reads", None)
+    return tuple(fun(spec)) if fun is not None else tuple(getattr(mod, "READS", DESIGN_KEYS))
+
+
+def inputs_sha256(name: str, spec: Spec) -> str:
+    """SHA-256 of the values of the spec keys a stage reads (stored with its artefact as ``inputs_sha256``).
+
+    Parameters
+    ----------
+    name : str
+        A stage.
+    spec : Spec
+        The spec.
+
+    Returns
+    -------
+    str
+    """
+    return keys_sha256(spec, spec_keys(name, spec))
+
+
+def made_from(spec: Spec, name: str, provenance: dict) -> bool:
+    """Whether an artefact was made from this spec, as far as its stage or product reads it.
+
+    A stage's artefact compares the keys it reads (``inputs_sha256``; one written before this digest existed, the
+    whole spec); a product's (falsify, synthesize, ...) compares the whole spec.
+
+    Parameters
+    ----------
+    spec : Spec
+        The current spec.
+    name : str
+        The stage or product.
+    provenance : dict
+        The artefact's provenance.
+
+    Returns
+    -------
+    bool
+    """
+    if name in STAGES and provenance.get("inputs_sha256"):
+        return provenance["inputs_sha256"] == inputs_sha256(name, spec)
+    return provenance.get("spec_sha256") == spec.sha256
+
+
 def needed(targets: Iterable[str], spec: Spec | None = None) -> list[str]:
     """The targets and every stage upstream of them, in flow-chart order (an upstream stage always first).
 
@@ -241,8 +308,9 @@ def staleness(spec: Spec, out: str | Path | Folder, stage: str) -> str | None:
         if prov is not None:
             if prov["schema_version"] != SCHEMA_VERSION:
                 reason = f"artefact has schema {prov['schema_version']}, this ashc writes {SCHEMA_VERSION}"
-            elif prov["spec_sha256"] != spec.sha256:
-                reason = "made from another spec (SHA-256 differs)"
+            elif not made_from(spec, stage, prov):
+                keys = ", ".join(spec_keys(stage, spec))
+                reason = f"made from other values of the spec keys it reads ({keys})"
             else:
                 for up in _upstream_of(stage, spec):
                     if staleness(spec, folder, up) is not None:
@@ -315,7 +383,7 @@ def check_upstream(spec: Spec, stage: str, arts: dict[str, Artefact]) -> None:
         prov = arts[up].provenance
         if prov.get("schema_version") != SCHEMA_VERSION:
             raise ArtefactError(f"{up}.h5", f"has schema {prov.get('schema_version')}, {stage} needs {SCHEMA_VERSION}", f"rerun `ashc {up} SPEC`")
-        if prov.get("spec_sha256") != spec.sha256:
+        if not made_from(spec, up, prov):
             raise ArtefactError(f"{up}.h5", f"was made from another spec than the one {stage} is run with", f"rerun `ashc {up} SPEC`")
 
 
@@ -390,7 +458,7 @@ def run(
             check_upstream(spec, name, arts)
             reads = _upstream_of(name, spec)
             art = _computed(mod, model, {up: arts[up] for up in reads}, spec.proofs.max_boxes)
-            write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, spec_name=spec.name,
+            write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, inputs_sha256=inputs_sha256(name, spec), spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in reads},
                            names=declared_names(spec))
             folder.wrote(name, art)

@@ -11,6 +11,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.design.artefacts import Artefact
+from ashc_cli.design.pipeline import made_from
 from ashc_cli.errors import ArtefactError
 from ashc_cli.problem.model import build_model
 from ashc_cli.problem.spec import Spec
@@ -136,7 +137,7 @@ def require_current(spec: Spec, arts: Mapping[str, Artefact]) -> None:
     """
     for stage in NEEDED:
         art = _stage(arts, stage)
-        if art.provenance.get("spec_sha256") != spec.sha256:
+        if not made_from(spec, stage, art.provenance):
             raise ArtefactError(f"{stage}.h5", f"was made from another spec than '{spec.name}' (SHA-256 differs)",
                                 "the folder designed from this spec (`ashc design SPEC --out DIR`)")
 

@@ -16,6 +16,7 @@ import keyword
 import re
 import types
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -26,7 +27,7 @@ from pydantic_core import PydanticCustomError
 from ashc_cli.errors import SpecError
 from ashc_cli.problem.expr import RESERVED_NAMES
 
-__all__ = ["Spec", "load_spec", "parse_spec_text", "spec_sha256", "MAX_SPEC_BYTES"]
+__all__ = ["Spec", "load_spec", "parse_spec_text", "canonical", "spec_sha256", "keys_sha256", "MAX_SPEC_BYTES"]
 
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000
@@ -372,12 +373,12 @@ class Spec(_Strict):
         return spec_sha256(self)
 
 
-def spec_sha256(spec: Spec) -> str:
-    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values).
+def canonical(spec: Spec) -> dict:
+    """A spec's canonical data: its validated values as JSON types, keys added in later versions left out when absent.
 
-    Bounds given as a map are stored as the list in name order, so both forms hash alike; ``abstract.m`` and the
-    tracking scenario's optional keys (``reference``, ``reference_period``) are left out when absent, so specs
-    without them hash as they did before the keys existed.
+    Bounds given as a map are stored as the list in name order, so both forms read alike; ``abstract.m``, the task, the
+    proofs' default budgets and the tracking scenario's optional keys are left out when absent, so specs without them
+    hash as they did before the keys existed.
 
     Parameters
     ----------
@@ -386,8 +387,8 @@ def spec_sha256(spec: Spec) -> str:
 
     Returns
     -------
-    str
-        The digest in hex (64 characters).
+    dict
+        JSON-able.
     """
     data = spec.model_dump(mode="json")
     if data["abstract"].get("m") is None:
@@ -403,7 +404,49 @@ def spec_sha256(spec: Spec) -> str:
     for key in ("reference", "reference_period", "reference_levels", "dwell", "disturbance"):   # keys added later, or left out: absent, not null
         if key in tracking and tracking[key] is None:
             tracking.pop(key)
-    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return data
+
+
+def spec_sha256(spec: Spec) -> str:
+    """SHA-256 of a spec's canonical JSON form (sorted keys, validated values; :func:`canonical`).
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    str
+        The digest in hex (64 characters).
+    """
+    text = json.dumps(canonical(spec), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def keys_sha256(spec: Spec, keys: Sequence[str]) -> str:
+    """SHA-256 of the values of some keys of a spec (what one stage reads): another key may change without changing it.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    keys : sequence of str
+        Dotted keys (``concrete``, ``abstract.states``); a key the spec leaves out reads as null.
+
+    Returns
+    -------
+    str
+        The digest in hex (64 characters).
+    """
+    data = canonical(spec)
+    picked = {}
+    for key in keys:
+        node = data
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        picked[key] = node
+    text = json.dumps(picked, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 

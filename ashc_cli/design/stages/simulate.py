@@ -51,6 +51,8 @@ from ashc_cli.design.simulate_m_relation import EDGE_MARGIN, M_RELATION_TOL, M_R
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
+#: The spec keys this stage reads: the design's, the scenarios and the task (all but the description and the units).
+READS = ("parameters", "concrete", "stabilisability", "abstract", "interface", "proofs", "simulate", "task")
 
 TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
 #: The measured error may exceed the a-posteriori bound by this fraction of the output span (integration error).

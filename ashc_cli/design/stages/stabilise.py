@@ -70,6 +70,25 @@ def upstream(spec) -> tuple[str, ...]:
     return ("manifold",) if spec.stabilisability.objective == "min_gain" else ()
 
 
+def reads(spec) -> tuple[str, ...]:
+    """The spec keys this stage reads: the concrete plant, the stabilisability keys and the proofs' budgets (and the
+    abstract names, stored for ``ashc eval``); the whole abstraction and interface for ``objective: min_gain``, which
+    measures dbar on V.  Editing anything else (abstract.p, a task, a scenario) keeps its artefact up to date.
+
+    Parameters
+    ----------
+    spec : Spec
+        The spec (``stabilisability.objective`` is read).
+
+    Returns
+    -------
+    tuple of str
+        Dotted spec keys.
+    """
+    base = ("parameters", "concrete", "stabilisability", "proofs", "abstract.states", "abstract.inputs")
+    return base + (("abstract", "interface") if spec.stabilisability.objective == "min_gain" else ())
+
+
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
     """Write f(x, u) = A(u) x + b(u) symbolically (eq. (27)).
 
