@@ -587,3 +587,44 @@ def test_the_collocation_for_two_abstract_states_stops_on_its_work_budget_and_na
     assert caught.value.where == "abstract.pde_work" and "a larger abstract.pde_work" in str(caught.value)
     spent = float(re.search(r"spent ([0-9.e+]+) of its work budget", str(caught.value)).group(1))
     assert 0 < spent <= budget * (1 + 1e-3)
+
+
+LEVITATED = """
+name: levitated
+concrete:
+  states: [gap, speed]
+  inputs: [u]
+  f_bar: ["speed", "-gap**2 - speed"]
+  g: [["0"], ["1"]]
+  h: ["gap"]
+  input_bounds: [[0, 5]]
+  output_set: [[1.1, 1.9]]
+  state_box: [[0.5, 3], [-2, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: 0.5}
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["xi"]
+  domain: [[1, 4]]
+"""
+
+
+def test_of_several_solutions_of_eq_14a_the_one_in_the_state_box_is_taken(tmp_path):
+    # gap^2 = xi has the roots +-sqrt(xi); a negative gap solves the equations too, and taking it used to be refused
+    # downstream as "kappa(V) does not cover Y", blaming abstract.domain (issue 39).
+    from ashc_cli.design.pipeline import run
+
+    art = run(parse_spec_text(LEVITATED), tmp_path, ("manifold",))["manifold"]
+    p = art.exprs["p"]
+    xi = next(iter(p[0].free_symbols))
+    assert float(p[0].subs(xi, 2.25)) == pytest.approx(1.5) and p[1] == 0
+
+
+def test_when_no_solution_of_eq_14a_lies_in_the_state_box_abstract_p_is_named(tmp_path):
+    from ashc_cli.design.pipeline import run
+
+    text = LEVITATED.replace("state_box: [[0.5, 3], [-2, 2]]", "state_box: [[-0.5, 0.5], [-2, 2]]")
+    with pytest.raises(DesignError, match=r"abstract\.p: eq\. \(14a\) has 2 solution\(s\) real on V, and none lies in "
+                                          r"concrete\.state_box: p = .* puts gap = -?2 at xi = 4, outside \[-0\.5, 0\.5\]"):
+        run(parse_spec_text(text), tmp_path, ("manifold",))

@@ -684,3 +684,23 @@ def test_a_jacobian_of_the_input_alone_is_certified_over_U_for_every_state(tmp_p
         psi = sol.y[0] * np.exp(-sol.y[0])
         bound = np.sqrt(M * (p0 - x0) ** 2 * np.exp(-(lam - eps) * sol.t) / alpha_h) + G * abs(v)
         assert np.all(np.abs(psi - sol.y[1]) <= bound)
+
+
+def test_a_refusal_suggests_only_what_the_tool_accepts_for_the_plant(tmp_path):
+    # Issue 39: too many nonlinear terms used to suggest method: given (refused with the same message), and an
+    # unstable plant written as f(x, u) was told to use feedback: linear_gain (refused: not input-affine).
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.errors import DesignError
+    from .bad_inputs import MANY_TERMS, UNSTABLE_GENERAL
+
+    for text in (MANY_TERMS, UNSTABLE_GENERAL):
+        with pytest.raises(DesignError) as exc:
+            run(parse_spec_text(text), tmp_path / text[6:16], ("stabilise",))
+        assert "method: given" not in exc.value.expected and "linear_gain" not in exc.value.expected, exc.value.line()
+    # the hints given are accepted: with linear_gain where it applies (input-affine, constant g), the plant is certified
+    text = UNSTABLE_GENERAL.replace('f: ["x + sin(u)"]', 'f_bar: ["x"], g: [["1"]]')
+    with pytest.raises(DesignError, match="feedback: linear_gain"):
+        run(parse_spec_text(text), tmp_path / "affine", ("stabilise",))
+    gain = text.replace("decay_rate: 0.5}", "decay_rate: 0.5, feedback: linear_gain}")
+    art = run(parse_spec_text(gain), tmp_path / "gain", ("stabilise",))["stabilise"]
+    assert art.values["lambda"] == 0.5

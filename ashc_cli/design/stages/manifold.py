@@ -76,7 +76,7 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         timed_out = False
     # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
     grid = domain_grid(model.V if model.V is not None else _auto_search_box(model), 201)
-    best, best_score = None, 0.0
+    best, best_score, real = None, 0.0, []
     for sol in solutions:
         if set(sol) != set(P):
             continue  # a family of solutions: p is not determined
@@ -84,15 +84,44 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         values = model.numeric(p, list(model.xi))(*grid)
         score = float(np.mean(np.all(np.isfinite(values), axis=(0, 1))))
         if score == 1.0 and model.V is not None:
-            return p, len(solutions)
+            real.append((p, values))
         if model.V is None and score > best_score:
             best, best_score = p, score
+    if real:
+        return _in_state_box(model, real, grid), len(solutions)
     if best is not None:
         return best, len(solutions)
     what = ("is not rational in x (sympy not tried)" if not rational else f"was not solved by sympy within {SYMBOLIC_BUDGET:g} s" if timed_out
             else f"has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)")
     raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 {what}",
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
+
+
+def _in_state_box(model: Model, real: list, grid: np.ndarray) -> sp.Matrix:
+    """Of the solutions of eq. (14a) real and finite on V, the first whose p(V) lies in ``concrete.state_box`` (all of
+    them qualify without a state box): a levitated ball's p = [-xi, ...] (a negative gap) solves the equations too.
+
+    Raises
+    ------
+    DesignError
+        Naming ``abstract.p`` when every solution leaves the state box (and where the first one does).
+    """
+    box = model.state_box
+    if box is None:
+        return real[0][0]
+    tol = 1e-9 * np.maximum(1.0, np.abs(box).max(axis=1))
+    for p, values in real:
+        v = values[:, 0, :]
+        if np.all((v >= box[:, :1] - tol[:, None]) & (v <= box[:, 1:] + tol[:, None])):
+            return p
+    p, values = real[0]
+    v = values[:, 0, :]
+    out = np.maximum(box[:, :1] - v, v - box[:, 1:])
+    i, k = np.unravel_index(int(np.argmax(out)), out.shape)
+    at = ", ".join(f"{s} = {c:.4g}" for s, c in zip(model.xi, grid[:, k]))
+    raise DesignError("abstract.p", f"eq. (14a) has {len(real)} solution(s) real on V, and none lies in concrete.state_box: "
+                      f"p = {list(p)} puts {model.x[i]} = {v[i, k]:.4g} at {at}, outside [{box[i, 0]:g}, {box[i, 1]:g}]",
+                      "abstract.p: the solution you mean (it is checked), or a state box (or a V) that holds one")
 
 
 def _solve_all(equations: list, unknowns: list) -> list[dict]:
@@ -389,7 +418,8 @@ def _solve(model: Model, plant: ManifoldPlant):
                 p, branches = _solve_algebraic(model)
                 method = "closed form (sympy.solve of f(p, l(xi)) = 0)"
             except DesignError as exc:
-                if model.V is None and model.n_hat != 1:
+                # every solution sympy found leaves the state box: Newton would find one of them, or nothing
+                if (model.V is None and model.n_hat != 1) or exc.where == "abstract.p":
                     raise
                 closed_form_failure = exc.what
         if p is None:

@@ -89,6 +89,17 @@ def reads(spec) -> tuple[str, ...]:
     return base + (("abstract", "interface") if spec.stabilisability.objective == "min_gain" else ())
 
 
+def _other_choices(model: Model, st, poly) -> str:
+    """What a spec may change when no M certifies the rate: only choices the tool accepts for this plant
+    (``feedback: linear_gain`` needs f affine in u with a constant g, and is no help once chosen)."""
+    varies = len({np.asarray(A, dtype=float).tobytes() for A in poly.matrices}) > 1     # one vertex: no set to shrink
+    choices = [] if not varies else ["a smaller concrete.input_bounds (A(u) is taken at the corners of U)" if poly.kind == "affine in u"
+                                     else "a smaller concrete.state_box (the ranges are taken over all of it, each independently)"]
+    if st.feedback != "linear_gain" and model.affine and not any(e.free_symbols & set(model.x) for e in model.g):
+        choices.append("feedback: linear_gain (g constant) to synthesise a stabilising K")
+    return "".join(f", or {c}" for c in choices)
+
+
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
     """Write f(x, u) = A(u) x + b(u) symbolically (eq. (27)).
 
@@ -204,7 +215,8 @@ def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp
     if not found:
         raise DesignError("concrete", f"df/dx has {len(decomposition)} distinct nonlinear terms and {entries} varying entries over the state box "
                           f"(at most {MAX_VERTEX_TERMS} terms or {MAX_VARYING_ENTRIES} entries are enumerated as vertices)",
-                          "fewer state-dependent terms, f affine in x, or a given M (method: given)", check="lmi_margin")
+                          "df/dx with fewer distinct state-dependent terms (a term that varies little written as a constant), or f affine "
+                          "in x", check="lmi_margin")
     return found, J, sp.zeros(model.n, 1)
 
 
@@ -532,8 +544,7 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
             meta.update(structure=structure, tried=tried, status=status, optimal_margin=t * scale, **_formulation_meta(info))
             return M, lam, meta
     worst = _worst_vertex_text(poly, A_vertices, scale)
-    other = ("feedback: linear_gain (g constant) to synthesise a stabilising K" if poly.kind == "affine in u"
-             else "a smaller concrete.state_box (the ranges are taken over all of it, each independently), or feedback: linear_gain")
+    other = _other_choices(model, st, poly)
     # The eigenvalues bound every rate from above (Re eig(A_k) <= -lambda / 2); below that bound the solver's
     # failure to find an M is not a proof that none exists (an M may have to be very ill-conditioned).
     eig_bound = min(-2.0 * float(np.linalg.eigvals(A).real.max()) for A in A_vertices) * scale
@@ -542,10 +553,10 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
     if st.decay_rate == "maximise":
         what = "no M certifies any decay rate lambda > 0" if eig_bound <= 0 else "the solver found no M certifying a decay rate lambda > 0"
         raise DesignError("stabilisability", f"{what} (eq. (28)){worst}{unproved}",
-                          f"a plant that is incrementally stable on the set, or {other}", check="lmi_margin")
+                          f"a plant that is incrementally stable on the set{other}", check="lmi_margin")
     best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
     hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies), or 'maximise'" if best > 0
-            else f"a plant that is incrementally stable on the set, or {other}")
+            else f"a plant that is incrementally stable on the set{other}")
     margin = f"best margin {t * scale:.3g}" if np.isfinite(t) else "no solution"
     raise DesignError("stabilisability.decay_rate", f"the LMI of eq. (28) is infeasible at lambda = {lam:g} ({margin}"
                       f"{'' if tried == ['full'] else ', M ' + ' or '.join(tried)}){worst if best <= 0 else ''}"
