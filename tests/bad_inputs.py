@@ -37,6 +37,8 @@ class Case:
     code: int = 2
     fragment: str = ""
     drop_tracking: bool = False
+    #: Run ``ashc synthesize`` on the design (a task that cannot be met).
+    synthesize: bool = False
 
     def text(self) -> str:
         if self.raw is not None:
@@ -199,7 +201,44 @@ stabilisability: {method: polytopic_lmi, decay_rate: 0.5}
 abstract: {states: [xi], inputs: [v], phi_bar: ["0"], l: ["xi"], domain: [[1, 4]]}
 """
 
+CART = """name: cart
+concrete:
+  states: [px, py, th, s]
+  inputs: [a, w]
+  f_bar: ["s*cos(th)", "s*sin(th)", "0", "0"]
+  g: [["0", "0"], ["0", "0"], ["0", "1"], ["1", "0"]]
+  h: ["px", "py"]
+  input_bounds: [[-1, 1], [-1, 1]]
+  output_set: [[-1, 1], [-1, 1]]
+  state_box: [[-2, 2], [-2, 2], [-3.1, 3.1], [0, 2]]
+stabilisability: {method: polytopic_lmi, decay_rate: 0.5}
+abstract: {states: [xi1, xi2], inputs: [v1, v2], phi_bar: ["0", "0"], l: ["0", "0"], domain: [[-1, 1], [-1, 1]]}
+"""
+
+LAG_TASK = """name: lag_task
+concrete: {states: [x], inputs: [u], f_bar: ["-2*x"], g: [["1"]], h: ["x"], input_bounds: [[-4, 4]], output_set: [[-1, 1]]}
+stabilisability: {method: polytopic_lmi, decay_rate: 2.0}
+abstract: {states: [xi], inputs: [v], phi_bar: ["0"], l: ["2*xi"], domain: [[-1.5, 1.5]]}
+task:
+  horizon: 12.0
+  always: [[-2, 2]]
+  reach:
+    - {set: [[0.5, 0.9]], by: 8.0, hold: 2.0}
+  xi0: [0.0]
+"""
+
 CASES += (
+    Case("task-avoid-across", "an avoid set across the route to reach[0] for its whole window", code=3, synthesize=True,
+         raw=LAG_TASK.replace("  xi0: [0.0]", "  avoid:\n    - {set: [[0.2, 0.3]], during: [0.0, 12.0]}\n  xi0: [0.0]"),
+         fragment="task.avoid[0]: lies across every route of psi = kappa(xi) from the start (psi = 0) to task.reach[0]"),
+    Case("task-reach-unreachable", "a reach set no output of the abstraction meets", code=3, synthesize=True,
+         raw=LAG_TASK.replace("[[0.5, 0.9]]", "[[1.6, 1.9]]"),
+         fragment="task.reach[0].set: lies outside every output the abstraction can produce: psi = kappa(xi) for xi in V spans [-1.5, 1.5]"),
+    Case("not-contracting", "a cart whose position does not contract (identity feedback)", raw=CART, targets=("stabilise",), code=3,
+         fragment="stabilisability: no M certifies any decay rate lambda > 0 (eq. (28)): at x = [0, 0, 0, 1] df/dx has the eigenvalue 0"),
+    Case("not-stabilisable", "the cart with linear_gain: speed 0 in the box", raw=CART.replace("decay_rate: 0.5}", "decay_rate: 0.5, feedback: linear_gain}"),
+         targets=("stabilise",), code=3, fragment="at x = [0, 0, 0, 0] the mode s = 0 of df/dx (Re s >= -lambda/2 = -0.25) is not reachable from the inputs"),
+
     Case("terms-too-many", "13 distinct nonlinear terms in df/dx", raw=MANY_TERMS, targets=("stabilise",), code=3,
          fragment="expected df/dx with fewer distinct state-dependent terms"),
     Case("unstable-not-affine", "an unstable plant written as f(x, u)", raw=UNSTABLE_GENERAL, targets=("stabilise",), code=3,
@@ -213,7 +252,12 @@ def diagnose(case: Case, out: Path) -> tuple[int, str]:
     """Run a case; return (exit code, the one-line message), or (0, '') if it unexpectedly succeeds."""
     try:
         spec = parse_spec_text(case.text(), "spec")
-        run(spec, out, case.targets)
+        arts = run(spec, out, case.targets)
+        if case.synthesize:
+            from ashc_cli.design.pipeline import design_model
+            from ashc_cli.products.synthesize import synthesize
+
+            synthesize(design_model(spec, arts), arts)
     except AshcError as exc:
         return exc.exit_code, exc.line()
     return 0, ""

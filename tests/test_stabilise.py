@@ -704,3 +704,33 @@ def test_a_refusal_suggests_only_what_the_tool_accepts_for_the_plant(tmp_path):
     gain = text.replace("decay_rate: 0.5}", "decay_rate: 0.5, feedback: linear_gain}")
     art = run(parse_spec_text(gain), tmp_path / "gain", ("stabilise",))["stabilise"]
     assert art.values["lambda"] == 0.5
+
+
+def test_a_plant_no_certificate_can_fit_is_refused_at_a_named_state_before_any_lmi(tmp_path, monkeypatch):
+    # Issue 39: a unicycle at rest was refused after 24 min, naming a corner of the term ranges no state reaches.  The
+    # precheck samples real states (and the centre with one coordinate at an end or at 0) before the enclosures.
+    from ashc_cli.design.pipeline import run
+    from .bad_inputs import CART
+
+    def no_polytope(*args, **kwargs):
+        raise AssertionError("the term polytope was built")
+
+    monkeypatch.setattr(stabilise, "polytopes", no_polytope)
+    with pytest.raises(DesignError, match=r"^stabilisability: no M certifies any decay rate lambda > 0 .* at x = \[0, 0, 0, 1\] df/dx has the eigenvalue 0") as exc:
+        run(parse_spec_text(CART), tmp_path / "identity", ("stabilise",))
+    assert exc.value.where == "stabilisability" and "feedback: linear_gain" in exc.value.expected     # g is constant: accepted
+    gain = CART.replace("decay_rate: 0.5}", "decay_rate: 0.5, feedback: linear_gain}")
+    with pytest.raises(DesignError, match=r"at x = \[0, 0, 0, 0\] the mode s = 0 of df/dx .* not reachable from the inputs \(rank \[A - s I, B\] < 4"):
+        run(parse_spec_text(gain), tmp_path / "gain", ("stabilise",))
+
+
+def test_the_precheck_refutes_nothing_a_certificate_exists_for():
+    # Necessary conditions only: every spec of specs/ that certifies passes it (the LMI decides); the Cuk converter's
+    # df/dx has eigenvalues with negative real parts everywhere, and with linear_gain the unstable linear plant's mode
+    # is reachable.
+    from ashc_cli.design.contraction.precheck import refute_rate
+    from ashc_cli.problem.model import sparse_jacobian
+
+    for spec in (CUK, CUK.parent / "unstable_linear.yaml", CUK.parent / "quarter_car.yaml"):
+        model = build_model(load_spec(spec))
+        refute_rate(model, sparse_jacobian(model.f, model.x), 0.0)

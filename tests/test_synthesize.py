@@ -203,3 +203,27 @@ def test_simulate_runs_the_task_scenario_with_the_synthesised_plan(tmp_path):
     assert float(v["task/tolerance"]) == pytest.approx(float(syn.values["tolerance"]), rel=1e-12)
     assert float(v["task/robustness"]) == pytest.approx(float(syn.values["task/robustness"]), abs=1e-6)
     assert "task met, robustness" in simulate.headline(sim)
+
+
+def test_a_task_that_cannot_be_met_names_the_part_that_blocks_it(tmp_path):
+    # Issue 39: an avoid set across the route was never named (reach[0] was blamed, with "a later deadline"), and a reach
+    # set outside every output of the abstraction was told "a later deadline", which cannot help.
+    from ashc_cli.errors import DesignError
+
+    from .bad_inputs import LAG_TASK
+
+    across = LAG_TASK.replace("  xi0: [0.0]", "  avoid:\n    - {set: [[0.2, 0.3]], during: [0.0, 12.0]}\n  xi0: [0.0]")
+    with pytest.raises(DesignError, match=r"^task\.avoid\[0\]: lies across every route .* all of \[0, 8\] s in which reach\[0\] must be entered") as exc:
+        _synthesized(across, tmp_path / "across")
+    assert "deadline" not in exc.value.expected
+    # a window that opens after the start: a plan that crossed in time could exist; the planner's route is named instead
+    late = across.replace("during: [0.0, 12.0]", "during: [1.0, 12.0]")
+    with pytest.raises(DesignError, match=r"^task\.avoid\[0\]: no tolerance makes the plan meet the task") as exc:
+        _synthesized(late, tmp_path / "late")
+    assert "straight route" in exc.value.expected and "deadline" not in exc.value.expected
+    with pytest.raises(DesignError, match=r"^task\.reach\[0\]\.set: lies outside every output the abstraction can produce") as exc:
+        _synthesized(LAG_TASK.replace("[[0.5, 0.9]]", "[[1.6, 1.9]]"), tmp_path / "outside")
+    assert "deadline" not in exc.value.expected and "kappa(V)" in exc.value.expected
+    # a set that meets kappa(V) only in part is aimed at where it does (its centre, 1.55, is off the curve)
+    spec, _, art = _synthesized(LAG_TASK.replace("[[0.5, 0.9]]", "[[1.0, 2.1]]").replace("by: 8.0", "by: 9.0"), tmp_path / "part")
+    assert art.checks["task_certified"].passed

@@ -129,7 +129,46 @@ def _reference(model, plant: DesignTerms, box, where: str) -> np.ndarray:
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
     best = minimize_scalar(lambda x: float(np.linalg.norm(np.ravel(plant.kappa(x)) - target)), bounds=(a, b), method="bounded",
                            options={"xatol": 1e-12})
-    return np.array([best.x])
+    if _depth(plant, box, best.x) >= 0:
+        return np.array([best.x])
+    # the centre is off the curve psi = kappa(xi): aim at the point of the curve deepest in the set, if it meets it
+    depth = np.array([_depth(plant, box, x) for x in grid])
+    if depth.max() < 0:
+        psi = np.array([np.ravel(plant.kappa(x)) for x in grid])
+        span = ", ".join(f"[{lo_:.4g}, {hi_:.4g}]" for lo_, hi_ in zip(psi.min(axis=0), psi.max(axis=0)))
+        raise DesignError(where, f"lies outside every output the abstraction can produce: psi = kappa(xi) for xi in V spans {span} and "
+                          f"comes no nearer than {-depth.max():.4g} to the set", "a set that meets kappa(V) (or a wider abstract.domain)")
+    k = int(np.argmax(depth))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    deep = minimize_scalar(lambda x: -_depth(plant, box, x), bounds=(a, b), method="bounded", options={"xatol": 1e-12})
+    return np.array([deep.x if -deep.fun >= depth[k] else grid[k]])
+
+
+def _depth(plant: DesignTerms, box, x: float) -> float:
+    """How deep psi = kappa(x) lies in the box: the smallest distance to its faces, negative outside (the largest miss)."""
+    psi = np.ravel(plant.kappa(x))
+    b = np.asarray(box, dtype=float)
+    return float(np.min(np.minimum(psi - b[:, 0], b[:, 1] - psi)))
+
+
+def _blocking_avoid(model, plant: DesignTerms, xi0: np.ndarray, task) -> tuple[int, float] | None:
+    """(j, psi0) of an avoid set no plan can get past: with one abstract state psi = kappa(xi) moves along a curve, and
+    xi from xi0 to any point whose psi is in reach[0] passes every point between; if each such route meets avoid[j]
+    and its window covers [0, reach[0].by], psi must be in it while it is forbidden.  None when no avoid set does that."""
+    if not task.reach or not task.avoid or model.n_hat != 1:
+        return None
+    grid = np.unique(np.r_[np.linspace(model.V[0, 0], model.V[0, 1], 801), xi0[0]])
+    start = int(np.searchsorted(grid, xi0[0]))
+    inside = lambda box: np.array([_depth(plant, box, x) >= 0 for x in grid])      # noqa: E731
+    target = np.flatnonzero(inside(task.reach[0].set))
+    by = task.reach[0].by
+    for j, av in enumerate(task.avoid):
+        if not (av.during[0] <= 0.0 and av.during[1] >= by) or target.size == 0:
+            continue
+        hit = inside(av.set)
+        if all(hit[min(start, k):max(start, k) + 1].any() for k in target):
+            return j, float(np.ravel(plant.kappa(xi0[0]))[0])
+    return None
 
 
 def _integrate(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.ndarray], v_max: float, gain: float, shrink: float):
@@ -228,6 +267,14 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
     plant = DesignTerms(model, up) if plant is None else plant
     start = _start(model, plant, up)
     refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
+    blocked = _blocking_avoid(model, plant, start[0], task)
+    if blocked is not None:
+        j, psi0 = blocked
+        av = task.avoid[j]
+        raise DesignError(f"task.avoid[{j}]", f"lies across every route of psi = kappa(xi) from the start (psi = {psi0:.4g}) to "
+                          f"task.reach[0] and is forbidden during [{av.during[0]:g}, {av.during[1]:g}] s, all of [0, {task.reach[0].by:g}] s "
+                          "in which reach[0] must be entered: no plan meets the task",
+                          "an avoid window that leaves time to cross, an avoid set off the route, or a start on reach[0]'s side")
     tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
     gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
     half = min(float(np.min(np.diff(np.asarray(r.set, dtype=float), axis=1))) / 2 for r in task.reach)
@@ -243,9 +290,10 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
         worst = min(best.rob.parts, key=best.rob.parts.get)
         short = best.rob.parts[worst] - best.eps - best.margin
         where = "xi leaves V on the plan" if not best.in_V else f"{worst} misses by {-short:.4g} (output units)"
+        hint = ("an avoid set or window the straight route to the next reach set does not cross (the plan neither waits nor goes "
+                "around)" if worst.startswith("avoid") else "a later deadline, a wider set or a shorter hold")
         raise DesignError(f"task.{worst}" if best.in_V else "task", f"no tolerance makes the plan meet the task: at the best, EPS = "
-                          f"{best.eps:.4g} (v_max = {best.v_max:.4g}), {where}",
-                          "a later deadline, a wider set or a shorter hold")
+                          f"{best.eps:.4g} (v_max = {best.v_max:.4g}), {where}", hint)
     if not deflate:
         # the planted controller keeps the synthesised one's tolerance and v_max: only its switches differ
         kept = plan_task(model, up, deflate=True, plant=plant)

@@ -4,7 +4,8 @@
   distinct scalar nonlinear terms, each theta_k enclosed by ball arithmetic;
 * :mod:`.vertex`: the LMI at a finite set of matrices (vertices of U, or corners of the box of term values);
 * :mod:`.feedback`: the same with a synthesised gain K, the smallest the rate allows;
-* :mod:`.proof`: the vertex argument in ball arithmetic (an arb Cholesky per vertex).
+* :mod:`.proof`: the vertex argument in ball arithmetic (an arb Cholesky per vertex);
+* :mod:`.precheck`: before any LMI, a sampled state where no M (no K) can work refutes the rate in seconds.
 
 The stage :mod:`ashc_cli.design.stages.stabilise` chooses among them and records which it used.
 """

@@ -169,7 +169,8 @@ def _enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) ->
     return (lo, hi) if ok_lo and ok_hi else None
 
 
-def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed: int = 2) -> tuple[list[np.ndarray], np.ndarray]:
+def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed: int = 2,
+                     points: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
     """df/dx at random points of state_box x U (the numpy re-check of the Jacobian LMI), and the points (rows of (x, u)).
 
     2000 points up to 64 states, fewer above (each is a dense n x n matrix and an eigenvalue problem).
@@ -184,6 +185,8 @@ def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed:
         The number of points (default 2000 up to 64 states, max(4, 2000 (64 / n)^2) above).
     seed : int
         Seed of numpy's ``default_rng``.
+    points : ndarray (k, n + m), optional
+        Points of (x, u) taken before the random ones (where a plant is singular: a speed of 0, the centre).
 
     Returns
     -------
@@ -197,6 +200,9 @@ def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed:
     rng = np.random.default_rng(seed)
     box = np.r_[model.state_box, model.U]
     pts = rng.uniform(box[:, 0:1], box[:, 1:2], size=(len(box), count))
+    if points is not None:
+        pts = np.c_[np.asarray(points, dtype=float).T, pts]
+        count = pts.shape[1]
     # Only the non-zero entries are compiled (a network's Jacobian has 3 n of n^2).
     nonzero = [(i, j, e) for (i, j), e in J.todok().items() if e != 0]
     values = np.zeros(J.shape + (count,))

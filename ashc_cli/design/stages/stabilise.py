@@ -39,6 +39,7 @@ from ashc_cli.design.contraction.network import largest_rate as network_largest_
 from ashc_cli.design.contraction.network import network_polytope
 from ashc_cli.design.contraction.network import prove as prove_network
 from ashc_cli.design.contraction.proof import prove_lmi
+from ashc_cli.design.contraction.precheck import refute_rate
 from ashc_cli.design.contraction.terms import (MAX_VARYING_ENTRIES, MAX_VERTEX_TERMS, Polytope, affine_polytope, decompose, entry_polytope,
                                  jacobian_samples, refuse_jumps, SubBoxes, term_polytope)
 from ashc_cli.design.contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES, M_MIN_EIG, MARGIN_TOL, SCALE_FREE_MARGIN, certify_rate,  # noqa: F401
@@ -95,9 +96,14 @@ def _other_choices(model: Model, st, poly) -> str:
     varies = len({np.asarray(A, dtype=float).tobytes() for A in poly.matrices}) > 1     # one vertex: no set to shrink
     choices = [] if not varies else ["a smaller concrete.input_bounds (A(u) is taken at the corners of U)" if poly.kind == "affine in u"
                                      else "a smaller concrete.state_box (the ranges are taken over all of it, each independently)"]
+    return "".join(f", or {c}" for c in choices) + _linear_gain_choice(model, st)
+
+
+def _linear_gain_choice(model: Model, st) -> str:
+    """", or feedback: linear_gain ..." where the tool accepts it (f input-affine with a constant g, not chosen yet)."""
     if st.feedback != "linear_gain" and model.affine and not any(e.free_symbols & set(model.x) for e in model.g):
-        choices.append("feedback: linear_gain (g constant) to synthesise a stabilising K")
-    return "".join(f", or {c}" for c in choices)
+        return ", or feedback: linear_gain (g constant) to synthesise a stabilising K"
+    return ""
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
@@ -249,6 +255,10 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if u_only and model.state_box is None:
         # df/dx reads u alone: its terms are enclosed over U, the (absent) state box any point
         model = dataclasses.replace(model, state_box=np.zeros((model.n, 2)))
+    gain_ok = model.affine and not any(e.free_symbols & set(model.x) for e in model.g)
+    if st.feedback == "identity" or gain_ok:
+        # a sampled state where no M (no K) can work: refused in seconds, before the enclosures and the SDP
+        refute_rate(model, J, 0.0 if st.decay_rate == "maximise" else float(st.decay_rate), _linear_gain_choice(model, st))
     candidates, A_sym, b_sym = polytopes(model, J)
     if st.feedback == "linear_gain" and not model.affine:
         raise DesignError("stabilisability.feedback", "linear_gain needs an input-affine plant with a constant g, and concrete.f is not affine in the inputs",
