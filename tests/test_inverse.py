@@ -439,9 +439,11 @@ def test_a_closed_form_inverse_of_two_outputs_is_proved(tmp_path):
         assert inv.checks[name].evidence == "proved", name
 
 
-def test_a_transcendental_kappa_gets_a_time_budget_and_a_message_that_names_abstract_m(tmp_path, monkeypatch):
-    # kappa = xi + 0.0009 tanh(1e5 (xi - 0.123456)): sympy.solve searched for over 20 minutes; now it has a budget, the
-    # numeric interpolant cannot follow the steep band, and the message says kappa is monotone and names abstract.m.
+def test_a_transcendental_kappa_stops_loudly_at_the_safety_stop_and_the_numeric_path_names_abstract_m(tmp_path, monkeypatch):
+    # kappa = xi + 0.0009 tanh(1e5 (xi - 0.123456)): sympy.solve searched for over 20 minutes; now it runs under a safety
+    # stop that fails loudly, naming --numeric (issue 39: a clock must never switch paths silently, or the design would
+    # depend on the machine's load).  With --numeric the interpolant cannot follow the steep band, and the message says
+    # kappa is monotone and names abstract.m.
     import time
 
     from ashc_cli.problem import model as model_mod
@@ -467,9 +469,18 @@ abstract:
   domain: [[-0.9, 0.9]]
 """
     start = time.perf_counter()
-    with pytest.raises(DesignError, match=r"abstract\.m: kappa is strictly monotone on V .* \(so p is injective\), but sympy finds no closed form"):
-        run(parse_spec_text(text), tmp_path, DESIGN)
+    with pytest.raises(DesignError, match=r"abstract\.m: sympy\.solve of kappa\(xi\) = y stopped \(symbolic work took longer than 1 s\), a safety stop .*; expected --numeric"):
+        run(parse_spec_text(text), tmp_path / "symbolic", DESIGN)
     assert time.perf_counter() - start < 60
+    # when sympy gives up (here: made to), the interpolant is tried, and its failure says kappa is monotone, naming abstract.m
+    from ashc_cli.design import inverse_construct
+
+    def gives_up(*args, **kwargs):
+        raise NotImplementedError("no closed form")
+
+    monkeypatch.setattr(inverse_construct, "within_budget", gives_up)
+    with pytest.raises(DesignError, match=r"abstract\.m: kappa is strictly monotone on V .* \(so p is injective\), but sympy finds no closed form"):
+        run(parse_spec_text(text), tmp_path / "numeric", DESIGN)
 
 
 def test_within_budget_returns_the_result_or_times_out():

@@ -51,21 +51,25 @@ def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) ->
         # A fitted (float) kappa: only a polynomial of low degree; sympy.solve stalls on the rest.
         return e.is_polynomial(*model.xi) and sp.Poly(e, *model.xi).total_degree() <= 4
 
-    if not all(solvable(e) for e in kappa):
-        return []
+    if model.numeric_paths is True or not all(solvable(e) for e in kappa):
+        return []               # --numeric: the interpolant of kappa^-1, no sympy
     mus = [sp.Dummy(f"mu{k}", real=True) for k in range(model.n_hat)]
     equations = [sp.Eq(e.xreplace(dict(zip(model.xi, mus))), yk) for e, yk in zip(kappa, ys)]
     rational = all(sp.sympify(e).is_rational_function(*model.xi) for e in kappa)
     try:
         # check=False: every branch is verified numerically below (m(p(xi)) = xi on V), and sympy's own
         # check (checksol) took 0.7 of the 0.8 s of this stage on the Cuk converter.  A transcendental kappa
-        # (tanh, exp of xi) gets a time budget: sympy may search for minutes without an answer.
+        # (tanh, exp of xi) runs under a safety stop: sympy may search for minutes without an answer.
         if rational:
             solutions = sp.solve(equations, mus, dict=True, check=False)
         else:
             solutions = within_budget(_solve_all, equations, mus)
-    except (NotImplementedError, ValueError, TypeError, TimeoutError):
+    except (NotImplementedError, ValueError, TypeError):
         return []
+    except TimeoutError as exc:
+        raise DesignError("abstract.m", f"sympy.solve of kappa(xi) = y stopped ({exc}), a safety stop (a clock: the "
+                          "numeric path is not taken silently, or the design would depend on the machine's load)",
+                          "--numeric (an interpolant of kappa^-1, no sympy), or abstract.m written by hand (it is checked)") from None
     return [[sol[mu] for mu in mus] for sol in solutions if set(sol) == set(mus)]
 
 

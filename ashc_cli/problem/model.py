@@ -132,8 +132,10 @@ def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Ma
 SPARSE_JACOBIAN_ENTRIES = 64 * 64
 
 
-#: Seconds a symbolic search (sympy.solve of a transcendental equation) may take before its numeric path is used.
-SYMBOLIC_BUDGET = 10.0
+#: The safety stop of a symbolic search (sympy.solve of eq. (14a) or of kappa(m) = y), in seconds: past it the
+#: design fails loudly, naming --numeric (the numeric path, no sympy) and the key to write by hand.  A clock, so it is
+#: never a silent switch to the numeric path (that would make the design depend on the machine's load).
+SYMBOLIC_BUDGET = 60.0
 
 
 def within_budget(fn, *args, seconds: float | None = None):
@@ -141,7 +143,7 @@ def within_budget(fn, *args, seconds: float | None = None):
     :data:`SYMBOLIC_BUDGET`).
 
     sympy cannot be interrupted from a thread, and on a transcendental equation (x + 0.0009 tanh(1e5 (x - c)) = y)
-    sympy.solve may search for minutes; the child is killed at the budget and the caller takes its numeric path.
+    sympy.solve may search for minutes; the child is killed at the budget and the caller fails loudly (a safety stop).
     The result comes back pickled (sympy expressions pickle).  Where fork is not available, or in a daemonic process (a
     sweep's worker, which may not have children), the call runs inline.
 

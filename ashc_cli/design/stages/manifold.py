@@ -34,7 +34,7 @@ from ashc_cli.numerics import proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import SYMBOLIC_BUDGET, Model, within_budget
+from ashc_cli.problem.model import Model, within_budget
 from ashc_cli.design.manifold_numeric import ManifoldPlant, equilibrium_error, manifold_field, resonance, solve_collocation, solve_numeric_equilibria
 
 NAME = "manifold"
@@ -68,12 +68,12 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
     try:
         # under a budget: a cubic with a tanh(xi) coefficient kept sympy's gcd busy for minutes
         solutions = within_budget(_solve_all, list(equations), list(P)) if rational else []
-    except TimeoutError:
-        timed_out, solutions = True, []
+    except TimeoutError as exc:
+        raise DesignError("abstract.p", f"sympy.solve of eq. (14a) stopped ({exc}), a safety stop (a clock: the numeric "
+                          "path is not taken silently, or the design would depend on the machine's load)",
+                          "--numeric with abstract.domain given (Newton continuation, no sympy), or abstract.p written by hand (it is checked)") from None
     except (NotImplementedError, ValueError):
         solutions = []
-    else:
-        timed_out = False
     # With domain: auto, V is not known yet: keep the branch real and finite on most of the search interval.
     grid = domain_grid(model.V if model.V is not None else _auto_search_box(model), 201)
     best, best_score, real = None, 0.0, []
@@ -91,7 +91,7 @@ def _solve_algebraic(model: Model) -> tuple[sp.Matrix, int]:
         return _in_state_box(model, real, grid), len(solutions)
     if best is not None:
         return best, len(solutions)
-    what = ("is not rational in x (sympy not tried)" if not rational else f"was not solved by sympy within {SYMBOLIC_BUDGET:g} s" if timed_out
+    what = ("is not rational in x (sympy not tried)" if not rational
             else f"has no closed-form solution p(xi) real and finite on V ({len(solutions)} found)")
     raise DesignError("abstract.l", f"f_bar(p) + g(p) l(xi) = 0 {what}",
                       "l(xi) giving an isolated equilibrium for every xi in V (or a different V)")
