@@ -313,7 +313,7 @@ def _refine(model: Model, st, decomposition, results: list) -> list:
         if poly is None:
             return found
         try:
-            last = (poly, *_certify(model, st, poly))
+            last = (poly, *_certify(model, st, poly, explain=False))
             found.append(last)
         except DesignError:
             last = None
@@ -329,8 +329,10 @@ def _refine(model: Model, st, decomposition, results: list) -> list:
             return found
 
 
-def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, float, dict]:
-    """M, K and lambda on one polytope (M given, searched, or with a synthesised gain), and what was done."""
+def _certify(model: Model, st, poly: Polytope, explain: bool = True) -> tuple[np.ndarray, np.ndarray, float, dict]:
+    """M, K and lambda on one polytope (M given, searched, or with a synthesised gain), and what was done.  Without
+    ``explain`` (a refinement round, whose failure only means "refine further") a failure skips the bisection for the
+    largest certifiable rate that only the hint of a final refusal needs."""
     meta: dict = {}
     K = np.zeros((model.m, model.n))
     if "_network" in poly.meta:
@@ -346,7 +348,7 @@ def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, 
     scaled = [A / scale for A in poly.matrices]
     meta["lmi_scale"] = scale
     if st.feedback == "linear_gain":
-        M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, poly, scale)
+        M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, poly, scale, explain)
     elif st.method == "given":
         M = np.array(st.M, dtype=float)
         if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
@@ -369,7 +371,7 @@ def _certify(model: Model, st, poly: Polytope) -> tuple[np.ndarray, np.ndarray, 
                     margin_tol=MARGIN_TOL,
                     fallback=f"when that does not certify lambda: minimise kappa subject to I <= M <= kappa I and A_k^T M + M A_k + lambda M "
                              f"<= -{SCALE_FREE_MARGIN:g} kappa I, accepted when the numpy margin over ||M|| is below -{MARGIN_TOL:g}; M scaled to trace(M) = n")
-        M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, poly, scale)
+        M, lam, meta = _search(scaled, st, structures(st.structure, model.n), meta, model, poly, scale, explain)
     return M, K, lam, meta
 
 
@@ -528,7 +530,8 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
     return art
 
 
-def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, poly: Polytope, scale: float = 1.0) -> tuple[np.ndarray, float, dict]:
+def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, model: Model, poly: Polytope, scale: float = 1.0,
+            explain: bool = True) -> tuple[np.ndarray, float, dict]:
     """M and lambda of eq. (28) (identity feedback), trying each structure of M in turn.
 
     ``A_vertices`` are divided by ``scale`` (so are the rates inside; the lambda returned is in the plant's units).
@@ -564,6 +567,8 @@ def _search(A_vertices: list[np.ndarray], st, tries: list[str], meta: dict, mode
         what = "no M certifies any decay rate lambda > 0" if eig_bound <= 0 else "the solver found no M certifying a decay rate lambda > 0"
         raise DesignError("stabilisability", f"{what} (eq. (28)){worst}{unproved}",
                           f"a plant that is incrementally stable on the set{other}", check="lmi_margin")
+    if not explain:
+        raise DesignError("stabilisability.decay_rate", f"the LMI of eq. (28) is infeasible at lambda = {lam:g} on this polytope", "a finer one")
     best, _ = largest_decay_rate(A_vertices, structure=tries[-1])
     hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies), or 'maximise'" if best > 0
             else f"a plant that is incrementally stable on the set{other}")
@@ -585,7 +590,7 @@ def _formulation_meta(info: dict) -> dict:
     return out
 
 
-def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict, poly: Polytope, scale: float = 1.0):
+def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: dict, poly: Polytope, scale: float = 1.0, explain: bool = True):
     """M, K and lambda for ``feedback: linear_gain`` (g constant), by the LMI in X = M^-1, Y = K X with the smallest
     gain (:func:`solve_lmi_feedback`).  ``A_vertices`` are divided by ``scale`` (rates too; K is unchanged)."""
     if st.method != "polytopic_lmi":
@@ -612,6 +617,8 @@ def _synthesise_feedback(model: Model, st, A_vertices: list[np.ndarray], meta: d
         lam = float(st.decay_rate)
         M, K, mu, status = solve_lmi_feedback(A_vertices, B, lam / scale, structure, weights)
         meta.update(status=status, weighted_gain=mu)
+        if M is None and not explain:
+            raise DesignError("stabilisability.decay_rate", f"no feedback gain makes eq. (28) feasible at lambda = {lam:g} on this polytope", "a finer one")
         if M is None:
             best, _ = largest_feedback_rate(A_vertices, B, structure, weights)
             hint = (f"decay_rate below {best * scale:.6g} (the largest the solver certifies with feedback), or 'maximise'" if best > 0 else
