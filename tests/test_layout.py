@@ -51,6 +51,69 @@ def test_a_broken_floor_is_caught(tmp_path):
     assert proc.returncode != 0 and "ashc_cli.design._layout_probe -> ashc_cli.cli" in proc.stdout
 
 
+def _cycles(package: str) -> list[list[str]]:
+    """The import cycles among a package's modules (strongly connected components of grimp's graph, imports inside
+    functions included, those under ``if TYPE_CHECKING`` left out), each sorted."""
+    import grimp
+
+    graph = grimp.build_graph(package, exclude_type_checking_imports=True, cache_dir=None)
+    index: dict = {}
+    low: dict = {}
+    stack: list = []
+    on: set = set()
+    found = []
+    for root in sorted(graph.modules):          # Tarjan's algorithm, iterative (the graph has hundreds of modules)
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, children = work[-1]
+            for w in children:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph.find_modules_directly_imported_by(w)))))
+                    break
+                if w in on:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        found.append(sorted(comp))
+    return found
+
+
+def test_no_import_cycle():
+    # The floors contract cannot see a cycle inside one floor (problem/spec.py <-> problem/spec_checks.py was one).
+    assert _cycles("ashc_cli") == []
+
+
+def test_a_cycle_is_caught(tmp_path, monkeypatch):
+    pkg = tmp_path / "cyclepkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from cyclepkg import b\n")
+    (pkg / "b.py").write_text("def f():\n    from cyclepkg import a\n    return a\n")
+    (pkg / "c.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from cyclepkg import d\n")
+    (pkg / "d.py").write_text("from cyclepkg import c\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert _cycles("cyclepkg") == [["cyclepkg.a", "cyclepkg.b"]]
+
+
 def test_ruff_passes():
     proc = subprocess.run([_tool("ruff"), "check", "--no-cache", "ashc_cli", "tests", "bench", "docs"], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-4000:]

@@ -24,6 +24,7 @@ import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 
+from ashc_cli.problem.spec_checks import check_shapes
 from ashc_cli.errors import SpecError
 from ashc_cli.problem.expr import RESERVED_NAMES
 
@@ -719,8 +720,6 @@ def parse_spec_text(text: str, source: str = "spec") -> Spec:
         spec = Spec.model_validate(data)
     except ValidationError as exc:
         raise _validation_to_spec_error(exc) from None
-    from ashc_cli.problem.spec_checks import check_shapes   # (it reads this module's classes)
-
     check_shapes(spec)
     if spec.concrete.f is not None and "q" not in spec.interface.model_fields_set:
         # q = least_squares needs g(x); a plant written as f(x, u) is designed with q = 0 (Proposition 1) unless

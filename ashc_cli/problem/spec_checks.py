@@ -3,8 +3,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from ashc_cli.errors import SpecError
-from ashc_cli.problem.spec import Concrete, Spec, TimedLevel, Tracking
+
+if TYPE_CHECKING:     # the classes are spec.py's, which imports this module: annotations only, no import cycle
+    from ashc_cli.problem.spec import Concrete, Spec, Tracking
 
 __all__ = ["check_shapes", "MAX_REFERENCE_SAMPLES"]
 
@@ -246,11 +250,12 @@ def _check_simulate(spec: Spec, n: int, m: int, p: int, nh: int, mh: int) -> Non
         if tr.abstract_controller.kind == "signal":
             _check_len("simulate.tracking.abstract_controller.v", tr.abstract_controller.texts(), mh, "one expression in t per abstract input")
         for i, (entry, level) in enumerate(zip(tr.reference_levels or [], tr.level_values())):
-            where = f"simulate.tracking.reference_levels[{i}]" + (".level" if isinstance(entry, TimedLevel) else "")
+            timed = hasattr(entry, "by")         # a TimedLevel (level, by, hold), not a plain number or list
+            where = f"simulate.tracking.reference_levels[{i}]" + (".level" if timed else "")
             size = len(level) if isinstance(level, list) else 1
             if size != p:
                 raise SpecError(where, f"has {size} values", f"{p} (one per output)")
-            if isinstance(entry, TimedLevel):
+            if timed:
                 if tr.abstract_controller.kind != "guaranteed":
                     raise SpecError(f"simulate.tracking.reference_levels[{i}]", f"has a deadline (by, hold) but the controller is '{tr.abstract_controller.kind}', which guarantees no tolerance",
                                     "abstract_controller.kind: guaranteed, or a plain level")
