@@ -367,6 +367,10 @@ class MRelationOracle:
 
 def use_oracles(monkeypatch, simulate, method: str = "DOP853"):
     """Make ``simulate`` run its scenarios on the oracles (solve_ivp) instead of the compiled loops."""
-    monkeypatch.setattr(simulate, "tracking_loop_for", lambda model, up, law: TrackingOracle(model, simulate.DesignTerms(model, up), up, law, method))
+    from ashc_cli.closedloop import runner
+
+    oracle = lambda model, up, law: TrackingOracle(model, simulate.DesignTerms(model, up), up, law, method)     # noqa: E731
+    monkeypatch.setattr(simulate, "tracking_loop_for", oracle)
+    monkeypatch.setattr(runner, "tracking_loop_for", oracle)       # the task's run and the products call it there
     monkeypatch.setattr(simulate.compiled, "m_relation_loop",
                         lambda model, up, u: MRelationOracle(model, simulate.DesignTerms(model, up), u, method))

@@ -8,6 +8,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.closedloop import compiled
+from ashc_cli.closedloop.runner import MAX_RUN_SAMPLES, SAMPLE_DT, sample_dt  # noqa: F401  (the run's sampling, re-exported)
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, outside_certified_set
@@ -23,25 +24,7 @@ M_RELATION_TOL_ABS = 1e-6
 #: The m-relation run stops when y comes this close (fraction of the certified interval) to an end where m
 #: stops being real (there dm/dx blows up); at the other ends of the certified set it stops on the end.
 EDGE_MARGIN = 1e-3
-SAMPLE_DT = 1e-3
-#: A run is sampled every SAMPLE_DT, or every t_final / MAX_RUN_SAMPLES when that is longer (a process plant over
-#: hours: 12000 s at 1 ms were 12 million samples and 3.4 GB).
-MAX_RUN_SAMPLES = 200_000
 
-
-def sample_dt(t_final: float) -> float:
-    """The sampling interval of a run of length t_final: SAMPLE_DT, or t_final / MAX_RUN_SAMPLES if longer.
-
-    Parameters
-    ----------
-    t_final : float
-        The run's length (s).
-
-    Returns
-    -------
-    float
-    """
-    return max(SAMPLE_DT, float(t_final) / MAX_RUN_SAMPLES)
 
 
 def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:

@@ -33,12 +33,13 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ashc_cli.closedloop import plan as guaranteed
+from ashc_cli.closedloop import runner
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import DesignError, SpecError
 
-__all__ = ["TaskPlan", "plan_task", "start_region", "segments", "on_the_plant", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
+__all__ = ["TaskPlan", "plan_task", "start_region", "segments", "on_the_plant", "task_run", "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
 
 #: Tolerances EPS tried, spread geometrically below the largest that leaves every reach set non-empty.
 EPS_CANDIDATES = 12
@@ -46,6 +47,9 @@ EPS_CANDIDATES = 12
 PLAN_STEPS = 5000
 #: The set-point gain of the plan when neither the task nor the tracking scenario gives one.
 DEFAULT_GAIN = 10.0
+#: The task's run on the plant is sampled every TASK_SAMPLE_DT, or every horizon / TASK_SAMPLES when that is longer.
+TASK_SAMPLE_DT = 10 * runner.SAMPLE_DT
+TASK_SAMPLES = 20_000
 
 
 @dataclass
@@ -377,3 +381,33 @@ def start_region(plan: TaskPlan, up: dict[str, Artefact]) -> float:
     if not room > 0:
         return 0.0
     return float(min(float(bd.get("w0_max_certified", np.inf)), alpha_h * room ** 2))
+
+
+def task_run(model, plant: DesignTerms, up: dict[str, Artefact], plan: TaskPlan, x0: np.ndarray | None = None,
+             loop=None) -> dict:
+    """The task's plan (:mod:`ashc_cli.design.task_plan`) on the plant from x0 (the plan's own start by default): the
+    tracking closed loop under the plan's set-point law, switching references at the plan's switches.
+
+    Parameters
+    ----------
+    model, plant, up : Model, DesignTerms, dict of str to Artefact
+        The spec's systems and the design.
+    plan : TaskPlan
+    x0 : ndarray (n,), optional
+        The plant's start (the abstraction starts at the plan's xi0 whatever x0 is).
+    loop : TrackingLoop, optional
+        What integrates the loop (:func:`ashc_cli.closedloop.runner.tracking_loop_for`; shared by the runs of an attack).
+
+    Returns
+    -------
+    dict
+        As :func:`ashc_cli.closedloop.runner.closed_loop_run`.
+    """
+    x0 = plan.x0 if x0 is None else np.asarray(x0, dtype=float)
+    e0 = plant.p_map(*plan.xi0)[:, 0] - x0
+    w0 = float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
+    horizon = model.spec.task.horizon
+    segs = segments(plan, horizon, max(TASK_SAMPLE_DT, horizon / TASK_SAMPLES), runner.sample_times)
+    law = plan.law()
+    return runner.closed_loop_run(model, plant, up, law, np.r_[plan.xi0, x0, w0], segs, plan.refs,
+                           loop if loop is not None else runner.tracking_loop_for(model, up, law))

@@ -298,3 +298,46 @@ def signal_levels(model: Model, plant: DesignTerms, kappa: sp.Matrix) -> tuple[l
         levels.append(np.array(level))
         refs.append(solved[key])
     return levels, refs
+
+
+def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
+    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
+
+    Parameters
+    ----------
+    model : Model
+        The spec's systems (``simulate.tracking``: xi0, x0, the reference levels).
+    plant : DesignTerms
+        The design's compiled terms (p and kappa).
+    up : dict of str to Artefact
+        The design's artefacts (``kappa`` and ``stabilise``'s M are read).
+
+    Returns
+    -------
+    xi0, x0 : ndarray (n_hat,), (n,)
+        The start; x0 = p(xi0) for ``x0: on_manifold``.
+    W0 : float
+        (p(xi0) - x0)^T M (p(xi0) - x0).
+    levels, refs : list of ndarray (p,), list of ndarray (n_hat,)
+        The reference levels and the reference state of each (:func:`reference_state`).
+
+    Raises
+    ------
+    DesignError
+        If xi0 is outside V or a level is out of kappa's reach.
+    """
+    tr = model.spec.simulate.tracking
+    xi0 = np.array(tr.xi0, dtype=float)
+    if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
+        raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
+    x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
+    if tr.abstract_controller.kind == "signal":
+        levels, refs = [np.ravel(plant.kappa(*xi0))], [xi0]      # v(t) drives xi: nothing is tracked (one segment)
+    elif tr.reference is not None:
+        levels, refs = signal_levels(model, plant, up["kappa"].expr("kappa"))
+    else:
+        levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
+        refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
+    M = np.asarray(up["stabilise"].value("M"))
+    e0 = plant.p_map(*xi0)[:, 0] - x0
+    return xi0, x0, float(e0 @ M @ e0), levels, refs

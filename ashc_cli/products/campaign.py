@@ -136,7 +136,7 @@ def run_falsify(spec: Spec, out: str | Path | Folder, runs: int, seed: int = 0, 
             on_start(falsify_mod.NAME, f"the task: {runs} plant runs of the synthesised plan across its certified start region")
         from ashc_cli.closedloop.terms import DesignTerms
         from ashc_cli.design import task_plan
-        from ashc_cli.design.stages.simulate import task_run
+        from ashc_cli.design.task_plan import task_run
 
         plant = DesignTerms(model, arts)
         plan = task_plan.plan_task(model, arts, plant=plant)

@@ -17,7 +17,6 @@ import numpy as np
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design import task_plan
 from ashc_cli.design.artefacts import Artefact, Check, write_artefact
-from ashc_cli.design.stages import simulate as sim
 from ashc_cli.errors import SpecError
 from ashc_cli.numerics.proofs import SAMPLED, SIMULATED
 from ashc_cli.problem.spec import Spec
@@ -52,7 +51,7 @@ def synthesize(model, up: dict[str, Artefact]) -> Artefact:
     """
     plant = DesignTerms(model, up)
     plan = task_plan.plan_task(model, up, plant=plant)
-    res = sim.task_run(model, plant, up, plan)
+    res = task_plan.task_run(model, plant, up, plan)
     plan, run = task_plan.on_the_plant(model, plant, plan, res)
     return store(plan, run, up)
 

@@ -17,10 +17,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ashc_cli.closedloop import runner
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design import task_plan
 from ashc_cli.design.artefacts import Artefact, Check
-from ashc_cli.design.stages import simulate as sim
 from ashc_cli.errors import SpecError
 from ashc_cli.numerics.proofs import SIMULATED
 
@@ -83,10 +83,10 @@ def robustness_of_runs(model, up: dict[str, Artefact], plan: task_plan.TaskPlan,
     ndarray (runs,)
     """
     plant = DesignTerms(model, up)
-    loop = sim.tracking_loop_for(model, up, plan.law())
+    loop = runner.tracking_loop_for(model, up, plan.law())
 
     def one(x0):
-        res = sim.task_run(model, plant, up, plan, x0=x0, loop=loop)
+        res = task_plan.task_run(model, plant, up, plan, x0=x0, loop=loop)
         return task_plan.on_the_plant(model, plant, plan, res)[1]["robustness"]
 
     with ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1) as pool:
@@ -132,7 +132,7 @@ def attack_task(model, up: dict[str, Artefact], runs: int, seed: int = 0, schedu
     plant = DesignTerms(model, up)
     if plan is None:
         plan = task_plan.plan_task(model, up, plant=plant)
-        plan, _ = task_plan.on_the_plant(model, plant, plan, sim.task_run(model, plant, up, plan))
+        plan, _ = task_plan.on_the_plant(model, plant, plan, task_plan.task_run(model, plant, up, plan))
     W0_max = task_plan.start_region(plan, up)
     M = np.asarray(up["stabilise"].value("M"))
     p0 = plant.p_map(*plan.xi0)[:, 0]

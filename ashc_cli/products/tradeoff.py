@@ -26,8 +26,9 @@ from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.spec import Spec
 from ashc_cli.closedloop import plan as guaranteed
 from ashc_cli.closedloop.falsify_loop import threads
+from ashc_cli.closedloop import runner
 from ashc_cli.closedloop.terms import DesignTerms
-from ashc_cli.design.stages import simulate as sim
+from ashc_cli.design.upstream import tracking_start
 
 __all__ = ["NAME", "UPSTREAM", "MODES", "parse_tolerances", "tradeoff", "table", "plot", "summarise", "headline", "run_tradeoff"]
 
@@ -73,7 +74,7 @@ def parse_tolerances(text: str) -> list[float]:
     return values
 
 
-def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_dwells: int = sim.REACH_HORIZON_DWELLS) -> Artefact:
+def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_dwells: int = runner.REACH_HORIZON_DWELLS) -> Artefact:
     """Time to reach every reference level, per tolerance, for the budget and the governor.
 
     Parameters
@@ -112,7 +113,7 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         raise DesignError("simulate.tracking.abstract_controller.kind", "signal: an abstract input v(t) reaches no levels (the trade-off times reaching each level)",
                           "kind setpoint or guaranteed, with reference_levels and dwell")
     plant = DesignTerms(model, arts)
-    xi0, x0, W0, levels, refs = sim.tracking_start(model, plant, arts)
+    xi0, x0, W0, levels, refs = tracking_start(model, plant, arts)
     z0 = np.r_[xi0, x0, W0]
     lam, eps = float(arts["bound"].value("lambda")), float(arts["bound"].value("epsilon"))
     v_cert = float(arts["bound"].values.get("v_max_certified", np.inf))
@@ -137,13 +138,13 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
                 continue
             law = plan.law(mode, ctl.gain, model.m_hat, v_cert, lam, eps)
             if law.kind not in loops:
-                loops[law.kind] = sim.tracking_loop_for(model, arts, law)
+                loops[law.kind] = runner.tracking_loop_for(model, arts, law)
             tasks.append((k, mode, law, float(tol)))
             proved[mode][k] = plan.budget_tolerance if mode == "budget" else plan.governor_tolerance
 
     def reach(task):
         k, mode, law, tol = task
-        return sim.reach_times(model, plant, arts, law, z0, levels, refs, tol, tr.dwell, horizon_dwells=horizon_dwells, loop=loops[law.kind])
+        return runner.reach_times(model, plant, arts, law, z0, levels, refs, tol, tr.dwell, horizon_dwells=horizon_dwells, loop=loops[law.kind])
 
     # The runs are independent and the compiled loop runs without the GIL: one thread per core, the same numbers.
     with ThreadPoolExecutor(max_workers=max(1, min(threads(), len(tasks)))) as pool:
@@ -161,8 +162,8 @@ def tradeoff(model, arts: dict[str, Artefact], tolerances: list[float], horizon_
         values[f"total_time/{mode}"] = times[mode].sum(axis=1)
         values[f"proved_tolerance/{mode}"] = proved[mode]
         values[f"refusal/{mode}"] = refusal[mode]
-    meta = {"dwell": float(tr.dwell), "horizon_dwells": int(horizon_dwells), "sample_dt": max(sim.SAMPLE_DT, sim.REACH_SAMPLE_DWELLS * tr.dwell),
-            "integrator": sim.TRACKING_TOL, "governor_rate": guaranteed.GOVERNOR_RATE, "governor_margin": guaranteed.GOVERNOR_MARGIN,
+    meta = {"dwell": float(tr.dwell), "horizon_dwells": int(horizon_dwells), "sample_dt": max(runner.SAMPLE_DT, runner.REACH_SAMPLE_DWELLS * tr.dwell),
+            "integrator": runner.TRACKING_TOL, "governor_rate": guaranteed.GOVERNOR_RATE, "governor_margin": guaranteed.GOVERNOR_MARGIN,
             "implementation": {kind: "ashc_cli.closedloop.compiled (numba)" if getattr(loop, "compiled", True) else "scipy.integrate.solve_ivp"
                                for kind, loop in loops.items()}}
     return Artefact(stage=NAME, values=values, meta=meta)

@@ -34,312 +34,33 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import sympy as sp
 
-from ashc_cli.closedloop import compiled
-from ashc_cli.closedloop.plan import (GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan)
+from ashc_cli.closedloop import compiled  # noqa: F401  (the tests' oracles replace its loops through this name)
+from ashc_cli.closedloop.plan import GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
-from ashc_cli.design.upstream import reference_signal, reference_state, signal_levels
+from ashc_cli.design.upstream import reference_signal, reference_state, signal_levels, tracking_start  # noqa: F401
 from ashc_cli.numerics.proofs import SIMULATED
-from ashc_cli.errors import DesignError, NumericalError, ScenarioStopped
-from ashc_cli.problem.expr import parse_expression
-from ashc_cli.problem.model import TIME, Model
+from ashc_cli.errors import DesignError, ScenarioStopped
+from ashc_cli.problem.model import Model
 from ashc_cli.problem.spec import TimedLevel
 from ashc_cli.design import task_plan
-from ashc_cli.design.simulate_m_relation import EDGE_MARGIN, M_RELATION_TOL, M_RELATION_TOL_ABS, SAMPLE_DT, MAX_RUN_SAMPLES, run_m_relation, sample_dt  # noqa: F401
+from ashc_cli.design.task_plan import TASK_SAMPLE_DT, TASK_SAMPLES, task_run  # noqa: F401
+from ashc_cli.closedloop.runner import (MAX_RUN_SAMPLES, REACH_HORIZON_DWELLS, REACH_SAMPLE_DWELLS, SAMPLE_DT, SETTLE_RTOL, TRACKING_TOL,  # noqa: F401
+                                        abstract_input, closed_loop_run, reach_time, reach_times, sample_dt, sample_times, tracking_loop_for,
+                                        tracking_segments)
+from ashc_cli.design.simulate_m_relation import EDGE_MARGIN, M_RELATION_TOL, M_RELATION_TOL_ABS, run_m_relation  # noqa: F401
 
 NAME = "simulate"
 UPSTREAM = ("stabilise", "manifold", "kappa", "inverse", "delta", "bound")
 #: The spec keys this stage reads: the design's, the scenarios and the task (all but the description and the units).
 READS = ("parameters", "concrete", "stabilisability", "abstract", "interface", "proofs", "simulate", "task")
 
-TRACKING_TOL = {"method": "DOP853", "rtol": 1e-9, "atol": 1e-9}
 #: The measured error may exceed the a-posteriori bound by this fraction of the output span (integration error).
 POSTERIOR_FLOOR_RTOL = 1e-7
-#: psi must end each dwell within this fraction of the output span of its level.
-SETTLE_RTOL = 1e-4
-#: Reach-time runs (``reach_times``): a level is held in chunks of the spec's dwell until it is reached, at most
-#: this many dwells; sampled every REACH_SAMPLE_DWELLS dwell (at least SAMPLE_DT).
-REACH_HORIZON_DWELLS = 1000
-REACH_SAMPLE_DWELLS = 5e-4
-#: The task scenario is sampled every TASK_SAMPLE_DT, or every horizon / TASK_SAMPLES when that is longer.
-TASK_SAMPLE_DT = 10 * SAMPLE_DT
-TASK_SAMPLES = 20_000
 
 
 # --- the guaranteed controller (docs/guaranteed.md) ------------------------------------------------------------
-
-
-def sample_times(t0: float, t1: float, dt: float) -> np.ndarray:
-    """Sample times t0, t0 + dt, ... strictly below t1, then t1: increasing, never outside [t0, t1].
-
-    (np.arange can overshoot t1 by rounding, which solve_ivp refuses as "not within t_span".)
-
-    Parameters
-    ----------
-    t0, t1, dt : float
-        The interval and the sample spacing (s).
-
-    Returns
-    -------
-    ndarray (N,)
-    """
-    n = int(np.floor((t1 - t0) / dt)) + 1
-    inner = t0 + dt * np.arange(max(n, 1))
-    inner = inner[inner < t1 - 1e-12 * max(1.0, abs(t1))]
-    return np.r_[inner, t1]
-
-
-def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
-    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems (``simulate.tracking``: xi0, x0, the reference levels).
-    plant : DesignTerms
-        The design's compiled terms (p and kappa).
-    up : dict of str to Artefact
-        The design's artefacts (``kappa`` and ``stabilise``'s M are read).
-
-    Returns
-    -------
-    xi0, x0 : ndarray (n_hat,), (n,)
-        The start; x0 = p(xi0) for ``x0: on_manifold``.
-    W0 : float
-        (p(xi0) - x0)^T M (p(xi0) - x0).
-    levels, refs : list of ndarray (p,), list of ndarray (n_hat,)
-        The reference levels and the reference state of each (:func:`reference_state`).
-
-    Raises
-    ------
-    DesignError
-        If xi0 is outside V or a level is out of kappa's reach.
-    """
-    tr = model.spec.simulate.tracking
-    xi0 = np.array(tr.xi0, dtype=float)
-    if model.V is not None and not np.all((model.V[:, 0] <= xi0) & (xi0 <= model.V[:, 1])):
-        raise DesignError("simulate.tracking.xi0", f"xi0 = {xi0.tolist()} is outside V = {model.V.tolist()}", "xi0 in V")
-    x0 = plant.p_map(*xi0)[:, 0] if tr.x0 == "on_manifold" else np.array(tr.x0, dtype=float)
-    if tr.abstract_controller.kind == "signal":
-        levels, refs = [np.ravel(plant.kappa(*xi0))], [xi0]      # v(t) drives xi: nothing is tracked (one segment)
-    elif tr.reference is not None:
-        levels, refs = signal_levels(model, plant, up["kappa"].expr("kappa"))
-    else:
-        levels = [np.atleast_1d(np.asarray(level, dtype=float)) for level in tr.level_values()]
-        refs = [reference_state(model, plant, level, i, up["kappa"].expr("kappa")) for i, level in enumerate(levels)]
-    M = np.asarray(up["stabilise"].value("M"))
-    e0 = plant.p_map(*xi0)[:, 0] - x0
-    return xi0, x0, float(e0 @ M @ e0), levels, refs
-
-
-def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = SAMPLE_DT) -> list[tuple[float, float, np.ndarray, int]]:
-    """(t0, t1, sample times, level index), one per dwell: level k from k dwell, the last one to t_final.
-
-    Parameters
-    ----------
-    t_final, dwell : float
-        The run's end and how long each level is held (s); the last level is held to t_final.
-    n_levels : int
-        The number of reference levels.
-    dt : float
-        The sample spacing (s).
-
-    Returns
-    -------
-    list of (float, float, ndarray, int)
-    """
-    segments = []
-    t0, k = 0.0, 0
-    while t0 < t_final - 1e-12:
-        i = min(k, n_levels - 1)
-        # Segment ends as multiples of the dwell (not sums, which drift by rounding).
-        t1 = t_final if k >= n_levels - 1 else min(t_final, (k + 1) * dwell)
-        segments.append((t0, t1, sample_times(t0, t1, dt), i))
-        t0, k = t1, k + 1
-    return segments
-
-
-def tracking_loop_for(model: Model, up: dict[str, Artefact], law: Law):
-    """The compiled tracking loop for ``law`` (:func:`ashc_cli.closedloop.compiled.tracking_loop`): the set-point law
-    (the budget mode is that law) or the governor (:mod:`ashc_cli.closedloop.governor`).
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems.
-    up : dict of str to Artefact
-        The artefacts of stabilise .. bound, by stage.
-    law : Law
-        The law the loop will run (not read here: the compiled loop takes the law's numbers at each run; the tests'
-        oracle, which replaces this function, uses it).
-
-    Returns
-    -------
-    TrackingLoop
-
-    Raises
-    ------
-    NumericalError
-        The loop cannot be compiled (numba missing, ``ASHC_COMPILED=0``, an expression with no numba form).
-    """
-    try:
-        return compiled.tracking_loop(model, up)
-    except compiled.Unsupported as exc:
-        raise NumericalError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
-
-
-def abstract_input(model: Model) -> sp.Matrix:
-    """The tracking scenario's abstract input v(t) (``abstract_controller.kind: signal``), parsed: one expression in t
-    and the parameters per abstract input (the time signals triangle, square, step allowed).
-
-    Parameters
-    ----------
-    model : Model
-
-    Returns
-    -------
-    sympy Matrix (m_hat, 1)
-
-    Raises
-    ------
-    SpecError
-        Naming ``simulate.tracking.abstract_controller.v[i]``.
-    """
-    names = {**model.params, "t": TIME}
-    texts = model.spec.simulate.tracking.abstract_controller.texts()
-    return sp.Matrix([parse_expression(s, names, f"simulate.tracking.abstract_controller.v[{i}]", signal=True) for i, s in enumerate(texts)])
-
-
-def closed_loop_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray,
-                    segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop) -> dict:
-    """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0], with
-    ``loop`` (:func:`tracking_loop_for`; the tests hand it scipy's oracle).
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems (``interface.q`` and ``interface.saturate`` are read).
-    plant, up : DesignTerms, dict of str to Artefact
-        The design's compiled terms and artefacts (not read here: ``loop`` holds the design).
-    law : Law
-        The abstract controller (gain, v_max and, for the governor, its level and rate).
-    z0 : ndarray (n_hat + n + 1,)
-        [xi0, x0, w0].
-    segments, refs : list of (float, float, ndarray, int), list of ndarray (n_hat,)
-        (t0, t1, sample times, level index) per segment (:func:`tracking_segments`); the reference state of each level.
-    loop : TrackingLoop
-        What integrates the loop (:func:`tracking_loop_for`).
-
-    Returns
-    -------
-    dict
-        t, xi, x, w (the comparison system), reference_index, v, u, y at the samples; psi_end (psi at the end of
-        each segment); z_end; compiled (whether the compiled loop ran); for the governor also scale (s) and slack
-        (the margin of its invariance condition) at the samples.
-    """
-    governor = (law.w_level, law.rate, GOVERNOR_GRID, GOVERNOR_BISECTIONS, GOVERNOR_BACKOFF) if law.kind == "governor" else None
-    more = {}
-    if law.kind == "signal":
-        try:
-            more["signal"] = compiled.abstract_signal(model, abstract_input(model))
-        except compiled.Unsupported as exc:
-            raise NumericalError("simulate", str(exc), "an abstract input v(t) the compiled closed loop can run") from exc
-    res = loop.run(np.asarray(z0, dtype=float), segments, refs, gain=law.gain, v_max=law.v_max, q_kind=model.spec.interface.q,
-                   saturate=model.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor, **more)
-    out: dict = {"compiled": getattr(loop, "compiled", True)}
-    if governor is not None:
-        out.update(scale=res.scale, slack=res.slack)
-    out.update(t=res.t, xi=res.xi, x=res.x, w=res.w, reference_index=res.reference_index, v=res.v, u=res.u, y=res.y,
-               psi_end=[res.psi_end[j] for j in range(len(segments))], z_end=np.r_[res.xi[:, -1], res.x[:, -1], res.w[-1]])
-    return out
-
-
-def reach_time(t: np.ndarray, y: np.ndarray, level: np.ndarray, tolerance: float, t_start: float) -> float:
-    """The time after ``t_start`` from which |y - level| <= tolerance holds at every sample to the last; NaN if it
-    does not hold at the last sample.
-
-    Parameters
-    ----------
-    t : ndarray (N,)
-        Sample times of the level's dwell.
-    y : ndarray (p, N)
-        The plant's output there.
-    level : ndarray (p,)
-    tolerance : float
-    t_start : float
-        When the level was asked for.
-    """
-    inside = np.linalg.norm(np.asarray(y) - np.asarray(level, dtype=float).reshape(-1, 1), axis=0) <= tolerance
-    if not inside.size or not inside[-1]:
-        return float("nan")
-    out = np.flatnonzero(~inside)
-    return float((t[out[-1] + 1] if out.size else t[0]) - t_start)
-
-
-def reach_times(model: Model, plant: DesignTerms, up: dict[str, Artefact], law: Law, z0: np.ndarray, levels: list[np.ndarray],
-                refs: list[np.ndarray], tolerance: float, dwell: float, horizon_dwells: int = REACH_HORIZON_DWELLS, *,
-                loop) -> np.ndarray:
-    """The time to reach each level within ``tolerance`` when each is held until it is reached.
-
-    The levels are asked for in turn from z0; each is held in chunks of ``dwell`` until, at the end of a chunk,
-    |y - level| <= tolerance and psi has settled on the level (|psi - level| <= SETTLE_RTOL x output span), or psi
-    has stopped elsewhere (it moved less than that over the last chunk), at most ``horizon_dwells`` chunks; its
-    time is :func:`reach_time` over all its chunks (NaN if never reached).  With a
-    guaranteed controller, once psi sits on the level |y - level| <= |y - psi| stays within the tolerance, so the
-    time does not depend on how long the level is held after that.  Samples every REACH_SAMPLE_DWELLS dwell.
-
-    Parameters
-    ----------
-    model : Model
-        The spec's systems (Y sets the output span).
-    plant, up : DesignTerms, dict of str to Artefact
-        Passed on to :func:`closed_loop_run`.
-    law : Law
-        The abstract controller.
-    z0 : ndarray (n_hat + n + 1,)
-        [xi0, x0, w0] at the switch to the first level.
-    levels : list of ndarray (p,)
-        The levels, asked for in turn.
-    refs : list of ndarray (n_hat,)
-        The reference state of each level.
-    tolerance, dwell : float
-        |y - level| that counts as reached; the length of a chunk (s).
-    horizon_dwells : int
-        The most chunks a level is held.
-    loop : TrackingLoop
-        What integrates the loop (:func:`tracking_loop_for`).
-
-    Returns
-    -------
-    ndarray (len(levels),)
-        Seconds from the switch to each level; NaN where it is not reached within the horizon.
-    """
-    span = float(np.ptp(model.Y, axis=1).max())
-    settle_tol = SETTLE_RTOL * span
-    dt = max(SAMPLE_DT, REACH_SAMPLE_DWELLS * dwell)
-    z = np.asarray(z0, dtype=float)
-    t = 0.0
-    times = []
-    for i, level in enumerate(levels):
-        t_start, ts, ys, psi_before = t, [], [], None
-        for _ in range(max(1, int(horizon_dwells))):
-            seg = [(t, t + dwell, sample_times(t, t + dwell, dt), i)]
-            res = closed_loop_run(model, plant, up, law, z, seg, refs, loop)
-            keep = slice(None) if not ts else slice(1, None)
-            ts.append(res["t"][keep])
-            ys.append(res["y"][:, keep])
-            z, t = res["z_end"], t + dwell
-            psi_now = np.asarray(res["psi_end"][-1], dtype=float)
-            at_level = np.linalg.norm(res["y"][:, -1] - level) <= tolerance
-            if at_level and float(np.abs(psi_now - level).max()) <= settle_tol:
-                break
-            if psi_before is not None and float(np.abs(psi_now - psi_before).max()) <= settle_tol:
-                break           # psi has stopped short of the level (e.g. a drift phi_bar the allowed v cannot hold against)
-            psi_before = psi_now
-        times.append(reach_time(np.concatenate(ts), np.concatenate(ys, axis=1), level, tolerance, t_start))
-    return np.array(times, dtype=float)
 
 
 def _deadline_report(entry, i: int, level: np.ndarray, seg: tuple[float, float], t: np.ndarray, psi: np.ndarray, y: np.ndarray,
@@ -570,36 +291,6 @@ def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact
         values["tracking/deadline_observed"] = np.array([o for *_, o, _ in rows], dtype=float)
         values["tracking/deadline_reasons"] = [why for *_, why in rows]
     return values, checks
-
-
-def task_run(model: Model, plant: DesignTerms, up: dict[str, Artefact], plan: task_plan.TaskPlan, x0: np.ndarray | None = None,
-             loop=None) -> dict:
-    """The task's plan (:mod:`ashc_cli.design.task_plan`) on the plant from x0 (the plan's own start by default): the
-    tracking closed loop under the plan's set-point law, switching references at the plan's switches.
-
-    Parameters
-    ----------
-    model, plant, up : Model, DesignTerms, dict of str to Artefact
-        The spec's systems and the design.
-    plan : TaskPlan
-    x0 : ndarray (n,), optional
-        The plant's start (the abstraction starts at the plan's xi0 whatever x0 is).
-    loop : TrackingLoop, optional
-        What integrates the loop (:func:`tracking_loop_for`; shared by the runs of an attack).
-
-    Returns
-    -------
-    dict
-        As :func:`closed_loop_run`.
-    """
-    x0 = plan.x0 if x0 is None else np.asarray(x0, dtype=float)
-    e0 = plant.p_map(*plan.xi0)[:, 0] - x0
-    w0 = float(e0 @ np.asarray(up["stabilise"].value("M")) @ e0)
-    horizon = model.spec.task.horizon
-    segs = task_plan.segments(plan, horizon, max(TASK_SAMPLE_DT, horizon / TASK_SAMPLES), sample_times)
-    law = plan.law()
-    return closed_loop_run(model, plant, up, law, np.r_[plan.xi0, x0, w0], segs, plan.refs,
-                           loop if loop is not None else tracking_loop_for(model, up, law))
 
 
 def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[dict, dict]:
