@@ -116,16 +116,17 @@ def test_srepr_round_trip_and_refusal():
      "x" + "+x" * 900, "sin(" * 500 + "x" + ")" * 500, "-" * 1999 + "x", "(" * 1000 + "x" + ")" * 1000, "max(" + "x," * 900 + "x)"],
 )
 def test_hostile_expressions_refused_quickly(text, tmp_path, monkeypatch):
-    # The issue asks for refusal in well under a second, without running anything.
+    # The issue asks for refusal in well under a second, without running anything.  The work is measured as this
+    # process's CPU time, not the wall clock: a loaded machine (CI with a hog per core) must not fail the test.
     import time
 
     monkeypatch.chdir(tmp_path)
-    start = time.perf_counter()
+    start = time.process_time()
     try:
         parse(text)
     except SpecError:
         pass
-    assert time.perf_counter() - start < 1.0
+    assert time.process_time() - start < 1.0
     assert not (tmp_path / "pwned").exists()
 
 
