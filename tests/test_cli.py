@@ -341,9 +341,14 @@ def test_ctrl_c_while_the_libraries_load_is_one_line_and_exit_130():
 
     exe = Path(sys.executable).with_name("ashc")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ashc_cli"]
-    # 0.1 s in: still importing sympy, scipy and the stages (the whole import takes over a second)
+    # Once numpy's extension is mapped into the process (/proc/PID/maps), the console script is inside main(),
+    # importing the command line, and the import of sympy, scipy and the stages is still ahead (over a second).  A fixed
+    # 0.1 s sleep failed on a loaded machine: the signal came before the interpreter had started, and killed it.
     proc = subprocess.Popen(cmd + ["summary", "nowhere"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(0.1)
+    maps = Path(f"/proc/{proc.pid}/maps")
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and proc.poll() is None and "_multiarray_umath" not in maps.read_text():
+        time.sleep(0.002)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err == "error: interrupted; artefacts written before the interruption are intact\n" and out == ""
