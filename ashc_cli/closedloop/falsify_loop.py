@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 import sympy as sp
 
-from ashc_cli.closedloop.compiled import Unsupported, emit_kernel, available, load_source
+from ashc_cli.closedloop.compiled import Unsupported, emit_kernel, available, interface_codes, load_source
 from ashc_cli.problem.model import sparse_jacobian
 
 __all__ = ["FalsifyLoop", "falsify_loop", "threads"]
@@ -160,9 +160,6 @@ def threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-_SATURATE = {False: 0, True: 1, "scale": 2}
-
-
 class FalsifyLoop:
     """The compiled runs of one design (build it with :func:`falsify_loop`)."""
 
@@ -174,9 +171,10 @@ class FalsifyLoop:
         self.U = np.ascontiguousarray(np.asarray(model.U, dtype=float).reshape(model.m, 2))
         q = model.spec.interface.q
         sat = model.spec.interface.saturate
-        if q not in ("least_squares", "zero") or not isinstance(sat, (bool, np.bool_, str)) or sat not in _SATURATE:
-            raise Unsupported(f"interface q = {q!r}, saturate = {sat!r}")
-        self.iprm = np.array([int(q == "least_squares"), _SATURATE[sat]], dtype=np.int64)
+        try:
+            self.iprm = np.array(interface_codes(q, sat), dtype=np.int64)
+        except ValueError as exc:
+            raise Unsupported(str(exc)) from None
         self.threads = threads()
 
     def run(self, st, b, tol: dict, cand: np.ndarray, W0: np.ndarray, divergence: float, lookahead: float,
