@@ -10,6 +10,7 @@ from ashc_cli.problem.spec import parse_spec_text
 from ashc_cli.design import manifold_numeric
 from ashc_cli.design.stages import manifold
 
+from .bad_inputs import LEVITATED as BAD_LEVITATED
 from .conftest import CUK
 
 
@@ -589,25 +590,8 @@ def test_the_collocation_for_two_abstract_states_stops_on_its_work_budget_and_na
     assert 0 < spent <= budget * (1 + 1e-3)
 
 
-LEVITATED = """
-name: levitated
-concrete:
-  states: [gap, speed]
-  inputs: [u]
-  f_bar: ["speed", "-gap**2 - speed"]
-  g: [["0"], ["1"]]
-  h: ["gap"]
-  input_bounds: [[0, 5]]
-  output_set: [[1.1, 1.9]]
-  state_box: [[0.5, 3], [-2, 2]]
-stabilisability: {method: polytopic_lmi, decay_rate: 0.5}
-abstract:
-  states: [xi]
-  inputs: [v]
-  phi_bar: ["0"]
-  l: ["xi"]
-  domain: [[1, 4]]
-"""
+# tests/bad_inputs.py's levitated gap has a state box no solution lies in; here one with a positive gap
+LEVITATED = BAD_LEVITATED.replace("state_box: [[-0.5, 0.5], [-2, 2]]", "state_box: [[0.5, 3], [-2, 2]]")
 
 
 def test_of_several_solutions_of_eq_14a_the_one_in_the_state_box_is_taken(tmp_path):
@@ -624,7 +608,7 @@ def test_of_several_solutions_of_eq_14a_the_one_in_the_state_box_is_taken(tmp_pa
 def test_when_no_solution_of_eq_14a_lies_in_the_state_box_abstract_p_is_named(tmp_path):
     from ashc_cli.design.pipeline import run
 
-    text = LEVITATED.replace("state_box: [[0.5, 3], [-2, 2]]", "state_box: [[-0.5, 0.5], [-2, 2]]")
+    text = BAD_LEVITATED
     with pytest.raises(DesignError, match=r"abstract\.p: eq\. \(14a\) has 2 solution\(s\) real on V, and none lies in "
                                           r"concrete\.state_box: p = .* puts gap = -?2 at xi = 4, outside \[-0\.5, 0\.5\]"):
         run(parse_spec_text(text), tmp_path, ("manifold",))
