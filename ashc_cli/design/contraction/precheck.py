@@ -46,7 +46,7 @@ def refute_rate(model: Model, J, lam: float, choices: str = "") -> None:
     Raises
     ------
     DesignError
-        At the first sampled point (in order of the worst mode) that refutes every certificate.
+        At the sampled point whose refuting mode is worst (largest real part).
     """
     if model.n > MAX_PRECHECK_STATES:
         return

@@ -101,9 +101,14 @@ def _other_choices(model: Model, st, poly) -> str:
 
 def _linear_gain_choice(model: Model, st) -> str:
     """", or feedback: linear_gain ..." where the tool accepts it (f input-affine with a constant g, not chosen yet)."""
-    if st.feedback != "linear_gain" and model.affine and not any(e.free_symbols & set(model.x) for e in model.g):
+    if st.feedback != "linear_gain" and _gain_accepted(model):
         return ", or feedback: linear_gain (g constant) to synthesise a stabilising K"
     return ""
+
+
+def _gain_accepted(model: Model) -> bool:
+    """Whether ``feedback: linear_gain`` applies: f input-affine with a g that does not depend on x."""
+    return model.affine and not any(e.free_symbols & set(model.x) for e in model.g)
 
 
 def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp.Matrix]:
@@ -255,8 +260,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if u_only and model.state_box is None:
         # df/dx reads u alone: its terms are enclosed over U, the (absent) state box any point
         model = dataclasses.replace(model, state_box=np.zeros((model.n, 2)))
-    gain_ok = model.affine and not any(e.free_symbols & set(model.x) for e in model.g)
-    if st.feedback == "identity" or gain_ok:
+    if st.feedback == "identity" or _gain_accepted(model):
         # a sampled state where no M (no K) can work: refused in seconds, before the enclosures and the SDP
         refute_rate(model, J, 0.0 if st.decay_rate == "maximise" else float(st.decay_rate), _linear_gain_choice(model, st))
     candidates, A_sym, b_sym = polytopes(model, J)
