@@ -52,10 +52,11 @@ fuzz: install
 	  status=$${PIPESTATUS[0]}; echo "fuzz: $(FUZZ_EXAMPLES) cases per property, exit $$status"; exit $$status
 
 # Regenerate docs/bad-inputs.md (every bad input of tests/bad_inputs.py and the message it gets) and
-# docs/cli.md (the command-line reference, from the typer app).
+# docs/cli.md (the command-line reference, from the typer app) and the equation table of docs/theory.md.
 docs: install
 	$(BIN)/python -m tests.bad_inputs docs/bad-inputs.md
 	$(BIN)/python docs/generate_cli.py docs/cli.md
+	$(BIN)/python docs/generate_theory.py docs/theory.md
 
 # Refresh constraints.txt: a fresh venv with the newest releases pyproject.toml's ranges admit, frozen; then
 # run `make test` on the new pins before committing them (README, "Pinned dependencies").

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
-from ashc_cli.numerics.linalg import pinv
+from ashc_cli.numerics.linalg import least_squares_q
 from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
 
 
@@ -73,9 +73,7 @@ def interface(model: Model, plant: BatchPlant, xi: np.ndarray, x: np.ndarray) ->
     a, b = plant.at_xi(xi), plant.at_x(x)
     kx = (x.T - a["p"][:, :, 0]) @ plant.K.T
     if model.spec.interface.q == "least_squares":
-        A = plant.L.T @ a["dpd"]
-        B = plant.L.T @ b["g"]
-        q = pinv(B) @ A                                                          # (N, m, m_hat)
+        q = least_squares_q(plant.L, b["g"], a["dpd"])                           # (N, m, m_hat), eq. (43)
     else:
         q = np.zeros((xi.shape[1], model.m, model.m_hat))
     return {"a": a, "b": b, "kx": kx, "q": q}

@@ -1,14 +1,22 @@
 """The runs of ``ashc falsify`` in numba: the batch's laws and adversaries, integrated hold by hold by the engine's
 Dormand-Prince 5(4) (:mod:`ashc_cli.closedloop.rk`).
 
+The interface is :mod:`ashc_cli.closedloop.interface`'s; the kernels fill one flat buffer each, which every run
+views as the design's terms once (:class:`Terms`).  The arguments travel in three named bundles: :class:`Design`
+(the same for every run of a batch), :class:`Starts` (one row per run) and :class:`Outputs` (written).
+
 Design-independent: the per-design kernels reach these functions as numba first-class functions
 (:mod:`ashc_cli.closedloop.compiled` prints and caches them); numba caches this module's machine code
 (``cache=True``)."""
 import math
-import numpy as np
-from numba import njit, types
+from collections import namedtuple
 
-from ashc_cli.closedloop.laws import pinv_flat, saturate
+import numpy as np
+from numba import carray, njit, types
+from numba.extending import intrinsic
+
+from ashc_cli.closedloop.interface import apply, feedback_of, q_of, times
+from ashc_cli.closedloop.laws import pinv_into
 from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, error_norm, stage_input, step_factor
 
 F1 = types.float64[::1]
@@ -27,6 +35,71 @@ SETPOINT, TABLE, GREEDY = 0, 1, 2
 #: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
 #: kernel's, wk the loop's work (row-major matrices).
 O_PHI, O_DEL, O_L, O_DPD, O_KAP, O_PM, O_DP, O_FB, O_G, O_H, O_DH, O_KX, O_Q, O_LTG, O_LTD, O_PG, O_DPLUS, O_CORR, O_VIN = range(19)
+
+#: What every run of a batch shares.  dims = [n_hat, n, m, m_hat, p, H (holds), S (reference segments), record,
+#: keep_v]; off: falsify_loop.layout; fprm = [dt (a hold), v_limit, lambda, eps, alpha_h, G, floor, rtol, divergence,
+#: lookahead (in holds)]; iprm = [q_ls, sat] (:mod:`~ashc_cli.closedloop.interface`); M, L, K, U: the metric, its
+#: Cholesky factor, the feedback gain, the input box; atol and scale per state (a run diverges where |z_i| >
+#: divergence scale_i); lo, hi, centre: V's bounds and centre; cand: the greedy adversary's unit inputs (C, m_hat);
+#: tgrid: the hold boundaries (H + 1,).
+Design = namedtuple("Design", "dims off fprm iprm M L K U atol scale lo hi centre cand tgrid")
+DESIGN = types.NamedTuple((I1, I1, F1, I1, F2, F2, F2, F2, F1, F1, F1, F1, F1, F2, F1), Design)
+#: One row per run (N runs): the start xi0 (N, n_hat), x0 (N, n) and W0 = W(xi0, x0) (N,); mode SETPOINT, TABLE or
+#: GREEDY; vtab (N, H, m_hat) the input held at each hold (TABLE); the greedy adversary's weight rho (it maximises
+#: rho e^T M e / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x a hold ahead), the fewest holds between its switches
+#: (dwell, int) and its input norm (and the guard's) as a fraction of v_limit (amp); guard != 0: a held input that
+#: would carry xi out of V is reversed, else turned to V's centre; refs (N, S, n_hat), gains (N,), noise (N, S, m_hat):
+#: the set-point law's reference of each segment, its gain and the noise added to v (SETPOINT).
+Starts = namedtuple("Starts", "xi0 x0 mode vtab rho dwell amp guard refs gains noise W0")
+STARTS = types.NamedTuple((F2, F2, I1, F3, F1, I1, F1, I1, F3, F1, F3, F1), Starts)
+#: Written at each run's row: fout (N, 6) = [ratio, ratio_late, max_error, vsup, at_limit, largest_bound], iout (N, 6)
+#: = [k_at, left_V, diverged, forced, accepted steps, rejected steps]; with keep_v, vused (N, H, m_hat) the input of
+#: each hold; with record, recZ (N, H + 1, n_hat + n), recE, recB (N, H + 1), recV (N, H + 1, m_hat): z, the error
+#: |kappa(xi) - h(x)|, the bound and v at each hold boundary (N = 0 in the arrays not kept).
+Outputs = namedtuple("Outputs", "fout iout vused recZ recE recB recV")
+OUTPUTS = types.NamedTuple((F2, I2, F3, F3, F2, F2, F3), Outputs)
+#: A run's view of the kernels' buffers A, B and its work buffer as the design's terms (made once per run); ``owners``
+#: holds the buffers themselves, so that they live as long as the views (which carry no reference count).
+Terms = namedtuple("Terms", "phi delta l dpd kap pm dp fb g h dh kx q ltg ltd pg dplus corr vin qv owners")
+#: A run's scratch arrays.
+Work = namedtuple("Work", "u dxi dxi_r dx ee vc choice plan0 neg")
+
+
+@intrinsic
+def _address(typingctx, buf, o):
+    """The address of buf[o] (a pointer numba's ``carray`` can view)."""
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.gep(ary.data, [args[1]])
+    return types.CPointer(buf.dtype)(buf, o), codegen
+
+
+@njit(inline="always", **OPTIONS)
+def _vec(buf, o, r):
+    """buf[o:o + r] as a view that carries no reference count: ``buf`` must outlive it (:class:`Terms` holds the
+    run's buffers for its views; numba frees an array after the last use of its variable, not at the end of the scope).
+    Views of the buffer itself cost falsify's 3000 Cuk runs 2.2x the time: every call that binds one pays an
+    atomic increment and decrement of the buffer's count, and the interface's calls bind twenty."""
+    return carray(_address(buf, o), r)
+
+
+@njit(inline="always", **OPTIONS)
+def _mat(buf, o, r, c):
+    """The r x c matrix stored row after row at buf[o:], as a view without a reference count (as :func:`_vec`)."""
+    return carray(_address(buf, o), (r, c))
+
+
+@njit(**OPTIONS)
+def _views(D, A, B, wk, qv):
+    """The run's :class:`Terms`: A, B and wk viewed at the offsets of ``D.off`` (qv: the run's own q v)."""
+    nh, n, m, mh, p = D.dims[0], D.dims[1], D.dims[2], D.dims[3], D.dims[4]
+    o = D.off
+    return Terms(_vec(A, o[O_PHI], nh), _mat(A, o[O_DEL], nh, mh), _vec(A, o[O_L], m), _mat(A, o[O_DPD], n, mh),
+                 _vec(A, o[O_KAP], p), _vec(A, o[O_PM], n), _mat(A, o[O_DP], n, nh),
+                 _vec(B, o[O_FB], n), _mat(B, o[O_G], n, m), _vec(B, o[O_H], p), _mat(B, o[O_DH], p, n),
+                 _vec(wk, o[O_KX], m), _mat(wk, o[O_Q], m, mh), _mat(wk, o[O_LTG], n, m), _mat(wk, o[O_LTD], n, mh),
+                 _mat(wk, o[O_PG], m, n), _mat(wk, o[O_DPLUS], mh, nh), _vec(wk, o[O_CORR], m),
+                 _vec(wk, o[O_VIN], mh), _vec(qv, 0, m), (A, B, wk, qv))
 
 
 @njit(**OPTIONS)
@@ -47,83 +120,40 @@ def _stays(z, dxi, step, lo, hi):
     return True
 
 
-@njit(**OPTIONS)
-def _terms(exi, ex, z, dims, off, A, B, wk, K, L, q_ls):
-    """The closed loop at z = [xi, x] that does not depend on v (strategies._interface): the kernels into A and B;
-    kx = K (x - p) and q = pinv(L^T g) L^T dp/dxi delta (eq. (43)) or 0 into wk."""
-    nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
+@njit(inline="always", **OPTIONS)
+def _terms(exi, ex, z, x, A, B, T, D):
+    """The closed loop at z = [xi, x] (x the view z[n_hat:]) that does not depend on v (strategies._interface): the
+    kernels into A and B; K (x - p) and q (eq. (43), or 0) into T.kx and T.q."""
     exi(z, A)
     ex(z, B)
-    o_pm, o_g, o_dpd = off[O_PM], off[O_G], off[O_DPD]
-    o_kx, o_q, o_ltg, o_ltd, o_pg = off[O_KX], off[O_Q], off[O_LTG], off[O_LTD], off[O_PG]
-    for j in range(m):
-        s = 0.0
-        for i in range(n):
-            s += (z[nh + i] - A[o_pm + i]) * K[j, i]
-        wk[o_kx + j] = s
-    if q_ls == 1:
-        for i in range(n):
-            for j in range(m):
-                s = 0.0
-                for k in range(n):
-                    s += L[k, i] * B[o_g + k * m + j]
-                wk[o_ltg + i * m + j] = s
-            for a in range(mh):
-                s = 0.0
-                for k in range(n):
-                    s += L[k, i] * A[o_dpd + k * mh + a]
-                wk[o_ltd + i * mh + a] = s
-        pinv_flat(wk, o_ltg, n, m, wk, o_pg)
-        for j in range(m):
-            for a in range(mh):
-                s = 0.0
-                for i in range(n):
-                    s += wk[o_pg + j * n + i] * wk[o_ltd + i * mh + a]
-                wk[o_q + j * mh + a] = s
-    else:
-        for k in range(m * mh):
-            wk[o_q + k] = 0.0
+    feedback_of(D.K, x, T.pm, T.kx)
+    q_of(D.L, T.g, T.dpd, D.iprm[0], T.q, T.ltg, T.ltd, T.pg)
 
 
-@njit(**OPTIONS)
-def _apply(dims, off, A, B, wk, U, sat, v, u, dxi, dx):
-    """u = SAT(l + K (x - p) + q v) (model.apply_saturation), xi' = phi_bar + delta v, x' = f_bar + g u."""
-    nh, n, m, mh = dims[0], dims[1], dims[2], dims[3]
-    o_l, o_kx, o_q, o_c = off[O_L], off[O_KX], off[O_Q], off[O_CORR]
-    for j in range(m):
-        s = 0.0
-        for a in range(mh):
-            s += wk[o_q + j * mh + a] * v[a]
-        wk[o_c + j] = wk[o_kx + j] + s
-    saturate(A, o_l, wk, o_c, U, sat, u, m)
-    o_phi, o_del = off[O_PHI], off[O_DEL]
-    for i in range(nh):
-        s = 0.0
-        for a in range(mh):
-            s += A[o_del + i * mh + a] * v[a]
-        dxi[i] = A[o_phi + i] + s
-    o_fb, o_g = off[O_FB], off[O_G]
-    for i in range(n):
-        s = 0.0
-        for j in range(m):
-            s += B[o_g + i * m + j] * u[j]
-        dx[i] = B[o_fb + i] + s
+@njit(inline="always", **OPTIONS)
+def _apply(T, D, v, u, dxi, dx):
+    """u = SAT(l + K (x - p) + q v) (the interface), xi' = phi_bar + delta v, x' = f_bar + g u."""
+    times(T.q, v, T.qv)
+    apply(T.l, T.kx, T.qv, 1.0, D.U, D.iprm[1], T.corr, u)
+    times(T.delta, v, dxi)
+    for i in range(dxi.size):
+        dxi[i] = T.phi[i] + dxi[i]
+    times(T.g, u, dx)
+    for i in range(dx.size):
+        dx[i] = T.fb[i] + dx[i]
 
 
-@njit(**OPTIONS)
-def _setpoint_v(z, dims, off, A, wk, ref, gain, noise, v_limit, v):
+@njit(inline="always", **OPTIONS)
+def _setpoint_v(z, T, ref, gain, noise, v_limit, v):
     """The random strategy's law: v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped to v_limit."""
-    nh, mh = dims[0], dims[3]
-    o_dp = off[O_DPLUS]
-    pinv_flat(A, off[O_DEL], nh, mh, wk, o_dp)
-    o_phi = off[O_PHI]
-    for a in range(mh):
+    pinv_into(T.delta, T.dplus)
+    for a in range(v.size):
         s = 0.0
-        for i in range(nh):
-            s += wk[o_dp + a * nh + i] * (gain * (ref[i] - z[i]) - A[o_phi + i])
+        for i in range(ref.size):
+            s += T.dplus[a, i] * (gain * (ref[i] - z[i]) - T.phi[i])
         v[a] = s + noise[a]
     shrink = min(1.0, v_limit / max(_norm(v), 1e-300))
-    for a in range(mh):
+    for a in range(v.size):
         v[a] *= shrink
 
 
@@ -150,26 +180,26 @@ def _nan_to_num(v):
 
 
 @njit(**OPTIONS)
-def _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, amp, rho, alpha_h, dt, lookahead, guarded, k, last_switch, prev, vc, u, dxi, dx,
-            ee, choice, v_plan):
-    """The greedy adversary at hold k (the terms of A and B at Z): among the candidates of norm ``amp`` (those that
-    keep xi in V when ``guarded``), the one that maximises the one-hold look-ahead of rho W / alpha_h +
-    (1 - rho) |dh/dx e|^2, e = p - x, into v_plan (NaN when none is allowed); ties keep the previous input.
-    Returns the hold of the last switch."""
-    nh, n, mh, p = dims[0], dims[1], dims[3], dims[4]
-    o_pm, o_dp, o_dh = off[O_PM], off[O_DP], off[O_DH]
+def _greedy(T, D, W, Z, amp, rho, guarded, k, last_switch, prev, v_plan):
+    """The greedy adversary at hold k (the terms T at Z): among the candidates of norm ``amp`` (those that keep xi in
+    V when ``guarded``), the one that maximises the one-hold look-ahead of rho W / alpha_h + (1 - rho) |dh/dx e|^2,
+    e = p - x, into v_plan (NaN when none is allowed); ties keep the previous input.  Returns the hold of the last
+    switch."""
+    nh, n, mh, p = D.dims[0], D.dims[1], D.dims[3], D.dims[4]
+    M, cand, alpha_h, dt, lookahead = D.M, D.cand, D.fprm[4], D.fprm[0], D.fprm[9]
+    vc, u, dxi, dx, ee, choice = W.vc, W.u, W.dxi, W.dx, W.ee, W.choice
     best = -np.inf
     for a in range(mh):
         choice[a] = 0.0
     for c in range(cand.shape[0]):
         for a in range(mh):
             vc[a] = cand[c, a] * amp
-        _apply(dims, off, A, B, wk, U, sat, vc, u, dxi, dx)
+        _apply(T, D, vc, u, dxi, dx)
         for i in range(n):
             s = 0.0
             for j in range(nh):
-                s += A[o_dp + i * nh + j] * dxi[j]
-            ee[i] = (A[o_pm + i] - Z[nh + i]) + dt * (s - dx[i])
+                s += T.dp[i, j] * dxi[j]
+            ee[i] = (T.pm[i] - Z[nh + i]) + dt * (s - dx[i])
         quad = 0.0
         for i in range(n):
             s = 0.0
@@ -180,10 +210,10 @@ def _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, amp, rho, alpha_h, 
         for i in range(p):
             s = 0.0
             for j in range(n):
-                s += B[o_dh + i * n + j] * ee[j]
+                s += T.dh[i, j] * ee[j]
             out2 += s * s
         J = rho * quad / alpha_h + (1 - rho) * out2
-        if guarded and not _stays(Z, dxi, lookahead * dt, lo, hi):
+        if guarded and not _stays(Z, dxi, lookahead * dt, D.lo, D.hi):
             J = -np.inf
         thr = best
         if math.isfinite(best):
@@ -210,11 +240,11 @@ def _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, amp, rho, alpha_h, 
 
 
 @njit(inline="always", **OPTIONS)
-def _output_error(A, B, o_kap, o_h, p):
-    """|psi - y| = |kappa(xi) - h(x)| from the kernels' buffers."""
+def _output_error(T):
+    """|psi - y| = |kappa(xi) - h(x)| from the run's terms."""
     err = 0.0
-    for i in range(p):
-        err += (A[o_kap + i] - B[o_h + i]) ** 2
+    for i in range(T.kap.size):
+        err += (T.kap[i] - T.h[i]) ** 2
     return math.sqrt(err)
 
 
@@ -263,72 +293,73 @@ def _record(r, k, Z, err, bound, v_now, recZ, recE, recB, recV):
 
 
 @njit(inline="always", **OPTIONS)
-def _guard(dims, off, A, B, wk, U, sat, Z, lo, hi, centre, step, v_max, v_plan, plan0, neg, u, dxi, dxi_r, dx):
+def _guard(T, D, W, Z, step, v_max, v_plan):
     """The guard of a held input: v_plan is kept if it keeps xi in V over ``step``, else reversed, else turned to
     V's centre at |v| = v_max (NaN entries count as 0)."""
-    nh, mh = dims[0], dims[3]
+    nh, mh = D.dims[0], D.dims[3]
+    plan0, neg = W.plan0, W.neg
     any_nan = False
     for a in range(mh):
         plan0[a] = v_plan[a]
         if v_plan[a] != v_plan[a]:
             any_nan = True
     _nan_to_num(plan0)
-    _apply(dims, off, A, B, wk, U, sat, plan0, u, dxi, dx)
-    if not any_nan and _stays(Z, dxi, step, lo, hi):
+    _apply(T, D, plan0, W.u, W.dxi, W.dx)
+    if not any_nan and _stays(Z, W.dxi, step, D.lo, D.hi):
         return
     nonzero = False
     for a in range(mh):
         neg[a] = -plan0[a]
         if plan0[a] != 0:
             nonzero = True
-    _apply(dims, off, A, B, wk, U, sat, neg, u, dxi_r, dx)
-    if nonzero and _stays(Z, dxi_r, step, lo, hi):
+    _apply(T, D, neg, W.u, W.dxi_r, W.dx)
+    if nonzero and _stays(Z, W.dxi_r, step, D.lo, D.hi):
         for a in range(mh):
             v_plan[a] = neg[a]
         return
-    o_dplus, o_del, o_vin = off[O_DPLUS], off[O_DEL], off[O_VIN]
-    pinv_flat(A, o_del, nh, mh, wk, o_dplus)
+    pinv_into(T.delta, T.dplus)
     nin = 0.0
     for a in range(mh):
         s = 0.0
         for i in range(nh):
-            s += wk[o_dplus + a * nh + i] * (centre[i] - Z[i])
-        wk[o_vin + a] = s
+            s += T.dplus[a, i] * (D.centre[i] - Z[i])
+        T.vin[a] = s
         nin += s * s
     nin = math.sqrt(nin)
     for a in range(mh):
-        v_plan[a] = wk[o_vin + a] * (v_max / max(nin, 1e-300))
+        v_plan[a] = T.vin[a] * (v_max / max(nin, 1e-300))
 
 
 @njit(**OPTIONS)
-def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
-            xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
-            fout, iout, vused, recZ, recE, recB, recV):
+def run_one(exi, ex, r, D, S, O):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
 
     Parameters
     ----------
     r : int, the run: its row of the per-run arrays and of the outputs; the other arguments as :func:`run_batch`."""
-    nh, n, m, mh, p, H, S, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7], dims[8]
-    q_ls, sat = iprm[0], iprm[1]
+    dims, fprm = D.dims, D.fprm
+    nh, n, m, mh, H, SEG, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[5], dims[6], dims[7], dims[8]
     dt, v_limit, lam, eps, alpha_h, G, floor, diverge, lookahead = fprm[0], fprm[1], fprm[2], fprm[3], fprm[4], fprm[5], fprm[6], fprm[8], fprm[9]
     d = nh + n
-    A, B, wk = np.empty(off[19]), np.empty(off[20]), np.empty(off[21])     # the kernels' buffers and the loop's work
-    v, v_plan, plan0, neg, vc, choice = np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh)
+    A, B, wk = np.empty(D.off[19]), np.empty(D.off[20]), np.empty(D.off[21])     # the kernels' buffers and the loop's work
+    T = _views(D, A, B, wk, np.empty(m))
+    W = Work(np.empty(m), np.empty(nh), np.empty(nh), np.empty(n), np.empty(n), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh))
+    u, dxi, dx = W.u, W.dxi, W.dx
+    v, v_plan = np.empty(mh), np.empty(mh)
     v_now, prev = np.zeros(mh), np.zeros(mh)
-    u, dxi, dxi_r, dx, ee = np.empty(m), np.empty(nh), np.empty(nh), np.empty(n), np.empty(n)
     Z, Zs, zs, ks = np.empty(d), np.empty(d), np.empty(d), np.empty((DP54[0].shape[0], d))
+    xs, xzs = Zs[nh:], zs[nh:]                # x of the hold start and of a stage (views made once)
     for i in range(nh):
-        Z[i] = xi0[r, i]
+        Z[i] = S.xi0[r, i]
     for i in range(n):
-        Z[nh + i] = x0[r, i]
-    md = mode[r]
+        Z[nh + i] = S.x0[r, i]
+    md = S.mode[r]
     held = md != SETPOINT
     greedy = md == GREEDY
     setpoint = md == SETPOINT
-    guarded = guard[r] != 0
-    w0 = W0[r]
-    gain = gains[r]
+    guarded = S.guard[r] != 0
+    w0 = S.W0[r]
+    gain = S.gains[r]
     active = True
     left = 0
     diverged = 0
@@ -344,10 +375,10 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
     k_at = 0
     h_step = dt
     for k in range(H + 1):
-        seg = min(k * S // H, S - 1)
-        ref = refs[r, seg]
-        nz = noise[r, seg]
-        finite, inside = _state_checks(Z, nh, scale, diverge, lo, hi)
+        seg = min(k * SEG // H, SEG - 1)
+        ref = S.refs[r, seg]
+        nz = S.noise[r, seg]
+        finite, inside = _state_checks(Z, nh, D.scale, diverge, D.lo, D.hi)
         if active and not finite:
             diverged = 1
         active = active and finite
@@ -356,47 +387,46 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
         active = active and inside
         for i in range(d):
             Zs[i] = Z[i] if math.isfinite(Z[i]) else 0.0
-        _terms(exi, ex, Zs, dims, off, A, B, wk, K, L, q_ls)
-        err = _output_error(A, B, off[O_KAP], off[O_H], p)
+        _terms(exi, ex, Zs, xs, A, B, T, D)
+        err = _output_error(T)
 
         v_now[:] = 0.0
         if k < H:
             if held:
-                v_plan[:] = vtab[r, k]
-                if greedy and not (active and k - last_switch >= dwell[r]):
+                v_plan[:] = S.vtab[r, k]
+                if greedy and not (active and k - last_switch >= S.dwell[r]):
                     v_plan[:] = prev                      # the adversary keeps its choice for dwell holds after a switch
                 elif greedy:
-                    last_switch = _greedy(dims, off, A, B, wk, M, U, sat, cand, Z, lo, hi, v_limit * amp[r], rho[r], alpha_h, dt, lookahead,
-                                          guarded, k, last_switch, prev, vc, u, dxi, dx, ee, choice, v_plan)
+                    last_switch = _greedy(T, D, W, Z, v_limit * S.amp[r], S.rho[r], guarded, k, last_switch, prev, v_plan)
                 if guarded and active:                    # out of V: the input reversed, else turned to V's centre
-                    _guard(dims, off, A, B, wk, U, sat, Z, lo, hi, centre, lookahead * dt, v_limit * amp[r], v_plan, plan0, neg, u, dxi, dxi_r, dx)
+                    _guard(T, D, W, Z, lookahead * dt, v_limit * S.amp[r], v_plan)
                 _nan_to_num(v_plan)
                 if greedy:
                     prev[:] = v_plan
                 v_now[:] = v_plan
             if setpoint:
-                _setpoint_v(Zs, dims, off, A, wk, ref, gain, nz, v_limit, v_now)
+                _setpoint_v(Zs, T, ref, gain, nz, v_limit, v_now)
             if keep_v:
                 for a in range(mh):
-                    vused[r, k, a] = v_now[a]
+                    O.vused[r, k, a] = v_now[a]
         elif setpoint:
-            _setpoint_v(Zs, dims, off, A, wk, ref, gain, nz, v_limit, v_now)
+            _setpoint_v(Zs, T, ref, gain, nz, v_limit, v_now)
         vn = _norm(v_now)
         if active:
             vsup = max(vsup, vn)
             if vn >= v_limit * (1 - 1e-9):
                 at_limit += 1.0
-        bound = math.sqrt(w0 * math.exp(-(lam - eps) * tgrid[k]) / alpha_h) + G * vsup
+        bound = math.sqrt(w0 * math.exp(-(lam - eps) * D.tgrid[k]) / alpha_h) + G * vsup
         k_at = _account(k, k_at, active, err, floor, bound, acc)
         if record:
-            _record(r, k, Z, err, bound, v_now, recZ, recE, recB, recV)
+            _record(r, k, Z, err, bound, v_now, O.recZ, O.recE, O.recB, O.recV)
         if k == H:
             break
         if not active:
             continue
 
-        t = tgrid[k]
-        t_end = tgrid[k + 1]
+        t = D.tgrid[k]
+        t_end = D.tgrid[k + 1]
         tab = DP54
         ns = tab[1].size
         first = 0
@@ -410,19 +440,19 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                     zs[:] = Z
                 else:
                     stage_input(tab, s, h_step, Z, ks, zs)
-                    _terms(exi, ex, zs, dims, off, A, B, wk, K, L, q_ls)
+                    _terms(exi, ex, zs, xzs, A, B, T, D)
                 if setpoint:
-                    _setpoint_v(zs, dims, off, A, wk, ref, gain, nz, v_limit, v)
+                    _setpoint_v(zs, T, ref, gain, nz, v_limit, v)
                 else:
                     for a in range(mh):
                         v[a] = v_now[a]
-                _apply(dims, off, A, B, wk, U, sat, v, u, dxi, dx)
+                _apply(T, D, v, u, dxi, dx)
                 for i in range(nh):
                     ks[s, i] = dxi[i] if math.isfinite(dxi[i]) else 0.0
                 for i in range(n):
                     ks[s, nh + i] = dx[i] if math.isfinite(dx[i]) else 0.0
             first = 1
-            E = error_norm(tab, ks, h_step, Z, zs, atol, rtol)
+            E = error_norm(tab, ks, h_step, Z, zs, D.atol, rtol)
             if not math.isfinite(E):
                 E = 0.0
             if E <= 1.0 or h_step <= h_min:
@@ -440,66 +470,31 @@ def run_one(exi, ex, r, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, 
                 rejected += 1
                 h_step = max(h_min, h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0))
     acc[3], acc[4] = vsup, at_limit
-    fout[r, :6] = acc
-    iout[r, 0] = k_at
-    iout[r, 1] = left
-    iout[r, 2] = diverged
-    iout[r, 3] = forced
-    iout[r, 4] = accepted
-    iout[r, 5] = rejected
+    O.fout[r, :6] = acc
+    O.iout[r, 0] = k_at
+    O.iout[r, 1] = left
+    O.iout[r, 2] = diverged
+    O.iout[r, 3] = forced
+    O.iout[r, 4] = accepted
+    O.iout[r, 5] = rejected
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, I1, F1, I1, F2, F2, F2, F2, F1, F1, F1, F1, F1, F2, F1, I1,
-                 F2, F2, I1, F3, F1, I1, F1, I1, F3, F1, F3, F1,
-                 F2, I2, F3, F3, F2, F2, F3), nogil=True, **OPTIONS)
-def run_batch(exi, ex, dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid, rows,
-              xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
-              fout, iout, vused, recZ, recE, recB, recV):
+@njit(types.void(XI_KERNEL, X_KERNEL, DESIGN, STARTS, I1, OUTPUTS), nogil=True, **OPTIONS)
+def run_batch(exi, ex, design, starts, rows, outputs):
     """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs.
 
     Parameters
     ----------
     exi, ex : XI_KERNEL, X_KERNEL
         The design's falsify_xi(z, A) and falsify_x(z, B) (:mod:`ashc_cli.closedloop.falsify_loop`).
-    dims : 1-D int64 array (9,)
-        [n_hat, n, m, m_hat, p, H (holds), S (reference segments), record, keep_v] (the last two 0 or 1).
-    off : 1-D int64 array (22,)
-        falsify_loop.layout: the terms' offsets in A, B and wk (indexed by the O_* constants), then the lengths of A, B, wk.
-    fprm : 1-D float array (10,)
-        [dt (a hold), v_limit, lambda, eps, alpha_h, G, floor, rtol, divergence, lookahead (in holds)].
-    iprm : 1-D int64 array (2,)
-        [q_ls, sat]: 1 for the least-squares q of eq. (43), else 0; sat as :func:`~ashc_cli.closedloop.laws.saturate`.
-    M, L, K, U : 2-D float arrays (n, n), (n, n), (m, n), (m, 2)
-        The metric, its Cholesky factor, the feedback gain and the input box.
-    atol, scale : 1-D float arrays (n_hat + n,)
-        The absolute tolerance per state; the states' scale (a run diverges where |z_i| > divergence scale_i).
-    lo, hi, centre : 1-D float arrays (n_hat,)
-        V's bounds and its centre.
-    cand : 2-D float array (C, m_hat)
-        The greedy adversary's unit inputs.
-    tgrid : 1-D float array (H + 1,)
-        The hold boundaries.
+    design : Design
+        What every run shares (:class:`Design`).
+    starts : Starts
+        Per run: its start, its law and its adversary (:class:`Starts`).
     rows : 1-D int64 array
         The runs to integrate.
-    xi0, x0, W0 : float arrays (N, n_hat), (N, n), (N,)
-        Per run: the start and W(xi0, x0).
-    mode, vtab : int64 array (N,), float array (N, H, m_hat)
-        Per run: SETPOINT, TABLE or GREEDY; the input held at each hold (TABLE).
-    rho, dwell, amp, guard : arrays (N,), float, int64, float, int64
-        Per run: the greedy adversary's weight (rho e^T M e / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x a hold ahead),
-        the fewest holds between its switches, its input norm (and the guard's) as a fraction of v_limit; guard != 0:
-        a held input that would carry xi out of V is reversed, else turned to V's centre.
-    refs, gains, noise : float arrays (N, S, n_hat), (N,), (N, S, m_hat)
-        Per run: the set-point law's reference of each segment, its gain and the noise added to v (SETPOINT).
-    fout, iout : 2-D float array (N, 6), 2-D int64 array (N, 6)
-        Written at the rows ``rows``: [ratio, ratio_late, max_error, vsup, at_limit, largest_bound] and
-        [k_at, left_V, diverged, forced, accepted steps, rejected steps].
-    vused : 3-D float array (N, H, m_hat), or (0, H, m_hat) without keep_v
-        Written with keep_v: the input of each hold.
-    recZ, recE, recB, recV : float arrays (N, H + 1, n_hat + n), (N, H + 1), (N, H + 1), (N, H + 1, m_hat), N = 0 without record
-        Written with record: z, the error |kappa(xi) - h(x)|, the bound and v at each hold boundary.
+    outputs : Outputs
+        Written at the rows ``rows`` (:class:`Outputs`).
     """
     for j in range(rows.size):
-        run_one(exi, ex, rows[j], dims, off, fprm, iprm, M, L, K, U, atol, scale, lo, hi, centre, cand, tgrid,
-                xi0, x0, mode, vtab, rho, dwell, amp, guard, refs, gains, noise, W0,
-                fout, iout, vused, recZ, recE, recB, recV)
+        run_one(exi, ex, rows[j], design, starts, outputs)

@@ -223,27 +223,29 @@ class FalsifyLoop:
         scale = c(st.scale, dtype=float)
         lo, hi = c(model.V[:, 0], dtype=float), c(model.V[:, 1], dtype=float)
         centre = c(model.V.mean(axis=1), dtype=float)
-        per_run = dict(xi0=c(b.xi0, dtype=float).reshape(N, nh), x0=c(b.x0, dtype=float).reshape(N, n),
-                       mode=c(b.mode, dtype=np.int64), vtab=c(b.vtab, dtype=float).reshape(N, H, mh),
-                       rho=c(b.rho, dtype=float), dwell=c(b.dwell, dtype=np.int64), amp=c(b.amp, dtype=float),
-                       guard=c(b.guard, dtype=np.int64), refs=c(np.swapaxes(b.refs, 0, 1), dtype=float).reshape(N, S, nh),
-                       gains=c(b.gains, dtype=float), noise=c(np.swapaxes(b.noise, 0, 1), dtype=float).reshape(N, S, mh),
-                       W0=c(W0, dtype=float))
-        fout, iout = np.zeros((N, 6)), np.zeros((N, 6), dtype=np.int64)
-        vused = np.zeros((N if keep_inputs else 0, H, mh))
+        core = self.core
+        starts = core.Starts(xi0=c(b.xi0, dtype=float).reshape(N, nh), x0=c(b.x0, dtype=float).reshape(N, n),
+                             mode=c(b.mode, dtype=np.int64), vtab=c(b.vtab, dtype=float).reshape(N, H, mh),
+                             rho=c(b.rho, dtype=float), dwell=c(b.dwell, dtype=np.int64), amp=c(b.amp, dtype=float),
+                             guard=c(b.guard, dtype=np.int64), refs=c(np.swapaxes(b.refs, 0, 1), dtype=float).reshape(N, S, nh),
+                             gains=c(b.gains, dtype=float), noise=c(np.swapaxes(b.noise, 0, 1), dtype=float).reshape(N, S, mh),
+                             W0=c(W0, dtype=float))
         R = N if record else 0
-        recZ, recE, recB, recV = np.zeros((R, H + 1, nh + n)), np.zeros((R, H + 1)), np.zeros((R, H + 1)), np.zeros((R, H + 1, mh))
+        outputs = core.Outputs(fout=np.zeros((N, 6)), iout=np.zeros((N, 6), dtype=np.int64),
+                               vused=np.zeros((N if keep_inputs else 0, H, mh)), recZ=np.zeros((R, H + 1, nh + n)),
+                               recE=np.zeros((R, H + 1)), recB=np.zeros((R, H + 1)), recV=np.zeros((R, H + 1, mh)))
+        fout, iout, vused = outputs.fout, outputs.iout, outputs.vused
+        recZ, recE, recB, recV = outputs.recZ, outputs.recE, outputs.recB, outputs.recV
         # Small pieces handed to a pool of threads (the compiled batch runs without the GIL): each thread takes
         # the next piece when it is done, so a stiff run holds up one thread only.
         step = int(chunk) if chunk else int(np.clip(N // (8 * self.threads), 1, 64))
         pieces = [np.arange(a, min(N, a + step), dtype=np.int64) for a in range(0, N, step)]
-        shared = (self.kernels.falsify_xi, self.kernels.falsify_x, dims, off, fprm, self.iprm, self.M, self.L, self.K, self.U,
-                  atol, scale, lo, hi, centre, c(cand, dtype=float), c(st.t, dtype=float))
-        tail = (per_run["xi0"], per_run["x0"], per_run["mode"], per_run["vtab"], per_run["rho"], per_run["dwell"], per_run["amp"],
-                per_run["guard"], per_run["refs"], per_run["gains"], per_run["noise"], per_run["W0"], fout, iout, vused, recZ, recE, recB, recV)
+        design = core.Design(dims=dims, off=off, fprm=fprm, iprm=self.iprm, M=self.M, L=self.L, K=self.K, U=self.U, atol=atol,
+                             scale=scale, lo=lo, hi=hi, centre=centre, cand=c(cand, dtype=float), tgrid=c(st.t, dtype=float))
+        exi, ex = self.kernels.falsify_xi, self.kernels.falsify_x
 
         def work(rows):
-            self.core.run_batch(*shared, rows, *tail)
+            core.run_batch(exi, ex, design, starts, rows, outputs)
             return rows.size
 
         start = time.perf_counter()

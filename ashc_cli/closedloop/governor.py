@@ -11,7 +11,8 @@ closedloop/plan.py).
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
+from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
+from ashc_cli.closedloop.laws import setpoint, state_derivatives, weighted_norm2
 from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at, store_sample
 
 OPTIONS = dict(cache=True, error_model="numpy")
@@ -34,7 +35,7 @@ def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
     g, U : 2-D float arrays (n, m), (m, 2)
         g(x) and the input box.
     sat : int
-        As :func:`~ashc_cli.closedloop.laws.saturate`.
+        As :func:`~ashc_cli.closedloop.interface.saturate`.
     u, r : 1-D float arrays (m,), (n,)
         Written: u(s) and r(s).
     corr : 1-D float array (m,)
@@ -45,15 +46,8 @@ def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
     float
         |L^T r(s)|^2.
     """
-    M, N = l.size, dv.size
-    for j in range(M):
-        corr[j] = feedback[j] + s * qv[j]
-    saturate(l, 0, corr, 0, U, sat, u, M)
-    for i in range(N):
-        acc = 0.0
-        for j in range(M):
-            acc += (u[j] - l[j] - feedback[j]) * g[i, j]
-        r[i] = s * dv[i] - acc
+    apply(l, feedback, qv, s, U, sat, corr, u)
+    residual(dv, s, g, u, l, feedback, np.zeros(dv.size), r)
     return weighted_norm2(L, r)
 
 
@@ -231,11 +225,12 @@ def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q
     setpoint(delta, phi, xi, xi_ref, gain, v_max, v_sp)
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
-    qv = np.zeros(M)
-    if q_ls == 1:
-        Ltg = L.T @ g
-        qv = pinv(Ltg) @ (L.T @ dpd) @ v_sp          # q v_sp, q of eq. (43)
-    dv = dpd @ v_sp
+    q = np.empty((M, MH))
+    q_of(L, g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
+    qv = np.empty(M)
+    times(q, v_sp, qv)
+    dv = np.empty(N)
+    times(dpd, v_sp, dv)
     room = (lam - eps) * w_level + rate * (w_level - w)
     r = np.empty(N)
     scale, _ = governor_scale(L, l, feedback, qv, dv, g, U, sat, eps * room, prm, u, r)

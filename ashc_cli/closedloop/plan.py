@@ -125,7 +125,7 @@ class GuaranteedPlan:
 def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> GuaranteedPlan:
     """Budget and governor of a guaranteed controller for a start with W(xi0, x0) = W0.
 
-    Budget (eq. (9) with the uniform bound of Theorem 2, eq. (38)): the largest v_max with
+    Budget (eq. (9) with the uniform bound of Theorem 2, eqs. (8) and (38)): the largest v_max with
     sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max <= EPS for all t >= 0; the left side is largest at t = 0,
     so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).  With
     disturbances (``concrete.disturbances``) every w in their box is admitted: v_max = (EPS - sqrt(W0 / alpha_h) -

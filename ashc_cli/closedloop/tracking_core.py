@@ -7,7 +7,8 @@ Design-independent: the per-design kernels reach these functions as numba first-
 import numpy as np
 from numba import njit, types
 
-from ashc_cli.closedloop.laws import feedback_of, pinv, saturate, setpoint, state_derivatives, weighted_norm2
+from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
+from ashc_cli.closedloop.laws import setpoint, state_derivatives, weighted_norm2
 from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 
 F1 = types.float64[::1]
@@ -159,35 +160,14 @@ def _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, 
     if prm.size <= 4 or prm[4] == 0.0:
         setpoint(delta, phi, xi, xi_ref, gain, v_max, v)
     # (else v already holds the spec's abstract input v(t): abstract_controller.kind signal, prm[4] = 1)
-    # feedback = K (x - p); u_nominal = l + feedback; correction = feedback (+ q v)
+    # u = SAT(l + K (x - p) + q v), eqs. (15), (43), (44)
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
-    correction = feedback.copy()
-    if q_ls == 1:
-        # q = pinv(L^T g) (L^T dp/dxi delta), eq. (43)
-        Ltg = np.empty((N, M))
-        Ltd = np.empty((N, MH))
-        for i in range(N):
-            for j in range(M):
-                s = 0.0
-                for k in range(N):
-                    s += L[k, i] * g[k, j]
-                Ltg[i, j] = s
-            for a in range(MH):
-                s = 0.0
-                for k in range(N):
-                    s += L[k, i] * dpd[k, a]
-                Ltd[i, a] = s
-        pg = pinv(Ltg)
-        for j in range(M):
-            s = 0.0
-            for a in range(MH):
-                qa = 0.0
-                for i in range(N):
-                    qa += pg[j, i] * Ltd[i, a]
-                s += qa * v[a]
-            correction[j] = feedback[j] + s
-    saturate(l, 0, correction, 0, U, sat, u, M)          # u = SAT(l + correction)
+    q = np.empty((M, MH))
+    q_of(L, g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
+    qv = np.empty(M)
+    times(q, v, qv)
+    apply(l, feedback, qv, 1.0, U, sat, np.empty(M), u)
     # dxi = phi_bar + delta v; dx = f_bar + g u; r = dp/dxi delta v - g (u - u_nominal)
     # (a plant written as f(x, u): dx = f(x, u), r = dp/dxi delta v - (f(x, u) - f(x, u_nominal)))
     shift = np.zeros(N)
@@ -214,15 +194,10 @@ def _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, 
         for i in range(N):
             shift[i] += fb_on[i] - fb_off[i]
     state_derivatives(phi, delta, v, fb, g, u, dz)
+    dv = np.empty(N)
+    times(dpd, v, dv)
     r = np.empty(N)
-    for i in range(N):
-        s1 = 0.0
-        for a in range(MH):
-            s1 += dpd[i, a] * v[a]
-        s2 = shift[i]
-        for j in range(M):
-            s2 += g[i, j] * (u[j] - (l[j] + feedback[j]))
-        r[i] = s1 - s2
+    residual(dv, 1.0, g, u, l, feedback, shift, r)
     # w' = -(lambda - eps) w + |L^T r|^2 / eps
     dz[NH + N] = -(lam - eps) * z[NH + N] + weighted_norm2(L, r) / eps
 

@@ -6,6 +6,8 @@ kappa(m) = y that sympy finds; without one, kappa^-1 as a (piecewise) Chebyshev 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 import sympy as sp
 
@@ -16,7 +18,7 @@ from ashc_cli.errors import CoverError, DesignError, FitError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model, lambdify, sparse_jacobian, within_budget
 
-__all__ = ["LEFT_INVERSE_TOL", "CONDITION_II_RTOL", "COMPOSE_SAFETY", "SOLVE_MAX_OPS", "closed_form_branches", "branch_residuals", "numeric_inverse",
+__all__ = ["LEFT_INVERSE_TOL", "CONDITION_II_RTOL", "COMPOSE_SAFETY", "SOLVE_MAX_OPS", "Branch", "closed_form_branches", "branch_residuals", "numeric_inverse",
            "composed_tolerances", "solve_kappa", "inverse_on_box", "kappa_inverse_on_Y"]
 
 #: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
@@ -25,6 +27,10 @@ LEFT_INVERSE_TOL = 1e-9
 CONDITION_II_RTOL = 1e-9
 #: kappa is handed to sympy.solve only when it is this small (a fitted polynomial of high degree is not).
 SOLVE_MAX_OPS = 300
+
+#: The branch of kappa(m) = y that is p's left inverse (one output): m(y), the symbol y, how it was found, how many
+#: branches there were, max |m(p(xi)) - xi| on V and kappa on V's grid.
+Branch = namedtuple("Branch", "m_of_y y method branches left_residual y_grid")
 
 
 def closed_form_branches(model: Model, kappa: sp.Matrix, ys: list[sp.Symbol]) -> list[list[sp.Expr]]:

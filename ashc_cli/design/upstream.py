@@ -301,7 +301,7 @@ def signal_levels(model: Model, plant: DesignTerms, kappa: sp.Matrix) -> tuple[l
 
 
 def tracking_start(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple[np.ndarray, np.ndarray, float, list[np.ndarray], list[np.ndarray]]:
-    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level).
+    """The tracking run's start and references: (xi0, x0, W0 = W(xi0, x0), levels, xi_ref per level), W of eq. (35).
 
     Parameters
     ----------

@@ -28,6 +28,25 @@ def pinv(a: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(a)
 
 
+def least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
+    """The least-squares q(xi, x) = pinv(L^T g) (L^T dp/dxi delta) of eq. (43) (M = L L^T): the q that makes
+    sqrt(M) (dp/dxi delta - g q) smallest; the numpy form of :func:`ashc_cli.closedloop.interface.q_of`, for one
+    point or a stack.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+        A factor of M = L L^T.
+    g, dpd : ndarray (..., n, m), (..., n, m_hat)
+        g(x) and dp/dxi delta(xi), with the same leading axes (or broadcastable ones).
+
+    Returns
+    -------
+    ndarray (..., m, m_hat)
+    """
+    return pinv(L.T @ g) @ (L.T @ dpd)
+
+
 def sqrt_M_times(L: np.ndarray, w: np.ndarray) -> np.ndarray:
     """L^T w at N points: w of shape (n, k, N) -> (N, n, k); ||L^T w|| = ||sqrt(M) w|| with M = L L^T.
 

@@ -216,7 +216,7 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     """The interface law u_w(xi, x, v) at a point, with the tool's own numerics (for ``ashc eval DIR u_w``).
 
     The same law as the set-point law (tests/oracle.py ``tracking_law``)'s u: SAT(l(xi) + K (x - p(xi)) + q(xi, x) v),
-    the terms lambdified from the spec and the artefacts, q by :func:`ashc_cli.numerics.linalg.pinv`, SAT by
+    the terms lambdified from the spec and the artefacts, q by :func:`ashc_cli.numerics.linalg.least_squares_q`, SAT by
     :func:`ashc_cli.problem.model.apply_saturation`.
 
     Parameters
@@ -242,7 +242,7 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     DesignError
         If u_w is not a finite real number at the point.
     """
-    from ashc_cli.numerics.linalg import pinv
+    from ashc_cli.numerics.linalg import least_squares_q
 
     require_current(spec, arts)
     d = gather(spec, arts)
@@ -261,7 +261,7 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     if d.q == "least_squares":
         g = at(d.g, model.x, x)
         dpd = at(d.dp_delta, model.xi, xi)
-        correction = correction + (pinv(d.L.T @ g) @ (d.L.T @ dpd)) @ v
+        correction = correction + least_squares_q(d.L, g, dpd) @ v
     u = apply_saturation(l, correction, d.U, d.saturate)
     if not np.all(np.isfinite(u)):
         raise DesignError("u_w", f"u_w is not real at {dict(point)}", "a point where l, p, g and dp/dxi delta are defined")

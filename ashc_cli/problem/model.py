@@ -394,7 +394,8 @@ def lambdify(
 
 @dataclass(frozen=True)
 class Model:
-    """A spec turned into symbols and expressions.
+    """A spec turned into symbols and expressions: the concrete system x' = f(x, u), y = h(x) (eq. (1)) and the
+    abstract system xi' = phi(xi, v), psi = kappa(xi) (eq. (2)).
 
     Attributes
     ----------

@@ -154,7 +154,7 @@ DeltaSpec = Literal["identity", "flatten"] | list[list[Expr]] | Expr
 
 
 class Abstract(_Strict):
-    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. (12))."""
+    """The abstract system xi' = phi_bar(xi) + delta(xi) v, psi = kappa(xi) (eq. (2) in the input-affine form of eq. (12))."""
 
     states: list[Name] = Field(min_length=1)
     inputs: list[Name] = Field(min_length=1)

@@ -30,7 +30,8 @@ FEEDBACK_CONDITION = (1e2, 1e4, 1e6)
 
 def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, structure: str = "full",
                        weights: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None, float, str]:
-    """M and the smallest gain K with (A + B K)^T M + M (A + B K) <= -lambda M at every vertex, for a fixed lambda.
+    """M and the smallest gain K with (A + B K)^T M + M (A + B K) <= -lambda M at every vertex, for a fixed lambda:
+    the decrease of the plant and its copy (eq. (3)) under k(z, x, u) = u + K (z - x).
 
     In X = M^-1 and Y = K X the condition is the LMI A X + X A^T + B Y + Y^T B^T + lambda X <= 0 (imposed at
     lambda (1 + FEEDBACK_RATE_MARGIN), so the re-check at lambda is strict).  Among the solutions with

@@ -19,7 +19,8 @@ def _ball_lmi(A: list[list], M: np.ndarray, lam: float) -> list[list]:
 
 
 def prove_lmi(model: Model, polytope: Polytope, K: np.ndarray, M: np.ndarray, lam: float) -> tuple[float, str]:
-    """A proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M over the polytope's hull.
+    """A proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M over the polytope's hull:
+    the LMI of eq. (28) (Theorem 1's eq. (5b) for the quadratic V of eq. (30)), proved.
 
     The vertex argument: the LMI is affine in A_cl = A + B K, so it holds on the convex hull of the vertex
     matrices once it holds at each of them, and the hull contains every df/dx the certificate covers when the

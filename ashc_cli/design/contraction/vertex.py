@@ -202,7 +202,8 @@ def value_of_M(var: cp.Variable, structure: str) -> np.ndarray:
 
 
 def solve_lmi(A_list: list[np.ndarray], lam: float, structure: str = "full") -> tuple[np.ndarray | None, float, str]:
-    """Find M maximising the margin of eq. (28) at the given vertices for a fixed lambda.
+    """Find M maximising the margin of eq. (28) at the given vertices for a fixed lambda (with the quadratic V of
+    eq. (30), eq. (28) is Theorem 1's decrease condition, eq. (5b)).
 
     Parameters
     ----------

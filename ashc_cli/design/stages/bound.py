@@ -49,7 +49,7 @@ from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.grids import domain_grid, maximise_on_box
 from ashc_cli.problem.model import Model
 from ashc_cli.design.upstream import dp_function, p_function
-from ashc_cli.numerics.linalg import sqrt_M_times
+from ashc_cli.numerics.linalg import least_squares_q, sqrt_M_times
 
 #: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
 MAX_PATTERN_INPUTS = 12
@@ -66,7 +66,7 @@ BOUND_CHECKS = (("stabilise", "lmi_margin"), ("stabilise", "M_positive"), ("mani
 
 
 def alpha_h_linear(M: np.ndarray, C: np.ndarray) -> float:
-    """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T) (ERRATA item 4).
+    """Largest c with M >= c C^T C: 1 / lambda_max(C M^-1 C^T), the alpha_h of eq. (6) for h = C x (ERRATA item 4).
 
     Parameters
     ----------
@@ -89,7 +89,8 @@ def _alpha_h_lipschitz(M: np.ndarray, lipschitz_h: float) -> float:
 
 
 def error_bound_gain(alpha_h: float, lam: float, eps: float, dbar: float) -> float:
-    """The factor G of eq. (38): alpha_h^-1(eta^-1(2 gamma(|v|))) = G |v|.
+    """The factor G of eq. (38): alpha_h^-1(eta^-1(2 gamma(|v|))) = G |v|, the second term of Theorem 2's bound
+    (eq. (8)).
 
     With eta(r) = (lambda - eps) r, gamma(r) = dbar^2 r^2 / eps and alpha_h(r) = alpha_h r^2,
     G = sqrt(2 / (alpha_h (lambda - eps) eps)) dbar (the paper's form, with Theorem 2's factor 2).
@@ -151,12 +152,6 @@ def _input_matrix(model: Model) -> sp.Matrix:
     return model.g if model.affine else sp.zeros(model.n, model.m)
 
 
-def _least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
-    """q = (sqrt(M) g)^+ sqrt(M) dp/dxi delta (eq. (43)) for a constant g at N points: (N, m, m_hat)."""
-    A = sqrt_M_times(L, dpd)
-    return np.linalg.pinv(L.T @ g)[None] @ A
-
-
 def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
     """max over the clipping patterns s in {0, 1}^m of ||sqrt(M) (dp/dxi delta - g diag(s) q)|| at N points.
 
@@ -174,7 +169,7 @@ def pattern_theta_norms(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.nda
     """
     m = g.shape[1]
     A = sqrt_M_times(L, dpd)                                     # (N, n, m_hat)
-    q = _least_squares_q(L, g, dpd)                               # (N, m, m_hat)
+    q = least_squares_q(L, g, np.moveaxis(dpd, -1, 0))             # (N, m, m_hat), eq. (43)
     B = L.T @ g                                                  # (n, m)
     best = np.zeros(A.shape[0])
     for k in range(2 ** m):
@@ -393,7 +388,7 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
         k = np.sqrt(np.einsum("ij,jk,ik->i", K, Minv, K))
         g = _constant_g(model)
         if model.spec.interface.q == "least_squares" and g is not None:
-            qn = np.linalg.norm(_least_squares_q(L, g, dpd_grid), axis=2).T            # (m, N)
+            qn = np.linalg.norm(least_squares_q(L, g, np.moveaxis(dpd_grid, -1, 0)), axis=2).T            # (m, N)
         else:
             qn = np.zeros((model.m, grid.shape[1]))
         l = l_grid[:, 0, :]
@@ -418,6 +413,9 @@ def certified_region(model: Model, upstream: dict[str, Artefact], L: np.ndarray,
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     """Compute alpha_h, epsilon, dbar (q = 0 and least squares) and the gain of eq. (38).
+
+    For W = (p(xi) - x)^T M (p(xi) - x) (eq. (35)), condition (B) (eq. (16), for this W eq. (36)) holds by
+    Proposition 1 when dbar is finite and 0 < epsilon < lambda; W then decreases as eq. (7) asks.
 
     Parameters
     ----------

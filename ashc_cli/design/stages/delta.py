@@ -127,7 +127,7 @@ def flatten(model: Model, stab: Artefact, man: Artefact, grid: np.ndarray) -> sp
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Check the rank of delta on V and build b, c of Theorem 5.
+    """Check the rank of delta on V and build b, c of Theorem 5 (the m-relation's eq. (11a) through eqs. (21a), (21b)).
 
     Parameters
     ----------

@@ -25,8 +25,8 @@ Where m is certified (``values/m_domain``, one [lo, hi] row per output; ``meta/m
 that stays non-negative), or because m is linear.
 
 When p is affine, p(xi) = P xi + p0, m(x) = K (x - p0) for any sizes, K the left inverse of P chosen for condition
-(ii); a spec may give m itself (``abstract.m``), checked, not trusted.  How K is chosen, and the checks of a given m,
-are in docs/guide.md ("Design options": the left inverse m); ``meta/construction`` names the construction used.
+(ii); a spec may give m itself (``abstract.m``), checked, not trusted (docs/guide.md, "Design options": the left
+inverse m); ``meta/construction`` names the construction used.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy
-from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, branch_residuals, closed_form_branches,
+from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, Branch, branch_residuals, closed_form_branches,
                                                composed_tolerances, kappa_inverse_on_Y, numeric_inverse)
 from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
@@ -173,7 +173,7 @@ def _affine_parts(model: Model, expr: sp.Matrix, jacobian: sp.Matrix) -> tuple[n
 
 
 def choose_left_inverse(P: np.ndarray, C: np.ndarray | None) -> dict:
-    """The left inverse K of P (K P = I) used for m(x) = K (x - p0), chosen with condition (ii) in view.
+    """The left inverse K of P (K P = I) used for m(x) = K (x - p0), chosen with condition (ii) in view (eq. (24)).
 
     Every left inverse of a P of full column rank is K = P^+ + Z (I - P P^+).  With a linear h = C x,
     condition (ii) holds for every x iff C (I - P K) = 0, i.e. C P K = C.  P^+ is kept when it satisfies
@@ -568,7 +568,7 @@ def _run_explicit(model: Model, man: Artefact, kap: Artefact) -> Artefact:
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Find the left inverse m of p and check conditions (i), (ii) and eq. (10).
+    """Find the left inverse m of p (h = kappa(m) on X_y: eqs. (11b), (21c)) and check (i), (ii) (eq. (23)) and eq. (10).
 
     Parameters
     ----------
@@ -605,15 +605,12 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
 
 def _run_scalar(model: Model, man: Artefact, kap: Artefact) -> Artefact:
     """One abstract state and one output: m = kappa^-1(h(x)) (:func:`run`), its branch and where it is real."""
-    m_of_y, y, method, n_branches, left_residual, y_grid = _scalar_branch(model, man, kap)
-    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
-    real_lo, real_hi, radicands = _real_on_Y(model, m_of_y, y, y_grid)
-    return _scalar_artefact(model, man, kap, m, m_of_y, y, method, n_branches, left_residual, y_grid, real_lo, real_hi, radicands)
+    b = _scalar_branch(model, man, kap)
+    return _scalar_artefact(model, man, kap, b, _real_on_Y(model, b.m_of_y, b.y, b.y_grid))
 
 
-def _scalar_branch(model: Model, man: Artefact, kap: Artefact):
-    """(m_of_y, y, method, branches, left residual, kappa on V's grid): the branch of kappa(m) = y that is a
-    left inverse of p on V (a closed form, else a Chebyshev interpolant of kappa^-1); a DesignError naming
+def _scalar_branch(model: Model, man: Artefact, kap: Artefact) -> Branch:
+    """The :class:`Branch` of kappa(m) = y that is a left inverse of p on V (a closed form, else a Chebyshev interpolant of kappa^-1); a DesignError naming
     where kappa turns when none is."""
     kappa = kap.expr("kappa")
     y = output_symbol()
@@ -655,7 +652,7 @@ def _scalar_branch(model: Model, man: Artefact, kap: Artefact):
         raise DesignError("abstract.domain", f"p is not injective on V = {model.V.tolist()}: no branch of m satisfies m(p(xi)) = xi (best residual {left_residual:.3g}{where})",
                           "a domain V on which kappa is strictly monotone, or abstract.m written by hand (checked, not trusted)", check="left_inverse")
     m_of_y = tidy(sp.Matrix([branches[best]]))[0]
-    return m_of_y, y, method, len(branches), left_residual, y_grid
+    return Branch(m_of_y, y, method, len(branches), left_residual, y_grid)
 
 
 def _real_on_Y(model: Model, m_of_y: sp.Expr, y: sp.Symbol, y_grid: np.ndarray):
@@ -681,9 +678,11 @@ def _real_on_Y(model: Model, m_of_y: sp.Expr, y: sp.Symbol, y_grid: np.ndarray):
     return real_lo, real_hi, radicands
 
 
-def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, m: sp.Matrix, m_of_y: sp.Expr, y: sp.Symbol, method: str, n_branches: int,
-                     left_residual: float, y_grid: np.ndarray, real_lo: float, real_hi: float, radicands: list) -> Artefact:
-    """Eq. (10) (kappa(V) covers Y), kappa's monotonicity, the certified set and the proofs, into the artefact."""
+def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, branch: Branch, real: tuple) -> Artefact:
+    """Eq. (10) (kappa(V) covers Y), kappa's monotonicity, the certified set and the proofs, into the artefact
+    (``real``: :func:`_real_on_Y`'s lo, hi and radicands)."""
+    (m_of_y, y, method, n_branches, left_residual, y_grid), (real_lo, real_hi, radicands) = branch, real
+    m = sp.Matrix([m_of_y.xreplace({y: model.h[0]})])
     kappa, xi, Y = kap.expr("kappa"), model.xi[0], model.Y
     grid, p_grid = np.asarray(man.value("xi_grid")), np.asarray(man.value("p_grid"))
     real_covers_Y = bool(real_lo <= Y[0, 0] and Y[0, 1] <= real_hi)

@@ -22,7 +22,7 @@ UPSTREAM = ("manifold",)
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Compose kappa = h o p and tabulate it on V.
+    """Compose kappa = h o p (eq. (14b)) and tabulate it on V.
 
     Parameters
     ----------

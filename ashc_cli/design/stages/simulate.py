@@ -31,6 +31,7 @@ the tests' oracle (tests/oracle.py).
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import replace
 
 import numpy as np
@@ -194,7 +195,7 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     if model.state_box is not None:
         checks["tracking_x_in_state_box"] = _in_state_box(model.state_box, x)
     if plan is not None:
-        more_values, more_checks = _guaranteed_results(model, plant, up, tr, plan, z, res, levels, refs, psi, err, segments, settle)
+        more_values, more_checks = _guaranteed_results(model, plant, up, tr, plan, TrackingResult(z, res, levels, refs, psi, err, segments, settle))
         values.update(more_values)
         checks.update(more_checks)
     return values, checks
@@ -229,10 +230,15 @@ def _followed(model: Model, t: np.ndarray, psi: np.ndarray) -> dict:
             "tracking/max_reference_error": float(np.abs(psi - r_t).max())}
 
 
-def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact], tr, plan: GuaranteedPlan, z0: np.ndarray, res: dict,
-                        levels: list[np.ndarray], refs: list[np.ndarray], psi: np.ndarray, err: np.ndarray, segments,
-                        settle: list[float]) -> tuple[dict, dict]:
+#: A tracking run as the guaranteed controller's checks read it: the start z0 = [xi0, x0, W0], the runner's result
+#: (t, y, w, reference_index, ...), the levels and their xi references, psi, |psi - y|, the segments
+#: (t0, t1, xi_ref, level) and the error at the end of each dwell.
+TrackingResult = namedtuple("TrackingResult", "z0 res levels refs psi err segments settle")
+
+
+def _guaranteed_results(model: Model, plant: DesignTerms, up: dict[str, Artefact], tr, plan: GuaranteedPlan, run: TrackingResult) -> tuple[dict, dict]:
     """The values and checks of a guaranteed controller's run (``tracking/guaranteed_*``, reach times, deadlines)."""
+    z0, res, levels, refs, psi, err, segments, settle = run
     ctl = tr.abstract_controller
     t, y, w, idx = res["t"], res["y"], res["w"], res["reference_index"]
     span = float(np.ptp(model.Y, axis=1).max())

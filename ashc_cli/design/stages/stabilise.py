@@ -232,7 +232,8 @@ def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp
 
 
 def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
-    """Certify stabilisability: M and lambda of eq. (28), with margins re-checked in numpy and proved.
+    """Certify stabilisability: M and lambda of eq. (28), with margins re-checked in numpy and proved; M defines
+    V(x, z) = (x - z)^T M (x - z) of eq. (30).
 
     Parameters
     ----------
