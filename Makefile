@@ -41,8 +41,9 @@ test-fast: install
 	$(BIN)/python -m pytest -q -n 2 -m "not slow"
 
 # Wall time and peak memory per stage on the ladder family (n = 4..128) and the Cuk spec; prints a table.
+# BENCH_AGAINST=REV: only the closed loops, this tree against git revision REV side by side (paired runs).
 bench: install
-	$(BIN)/python bench/bench.py
+	$(BIN)/python bench/bench.py $(if $(BENCH_AGAINST),--against $(BENCH_AGAINST))
 
 # A longer fuzz than the suite's: FUZZ_EXAMPLES cases per property; hypothesis prints the counts.
 FUZZ_EXAMPLES ?= 20000

@@ -13,8 +13,14 @@ tables (Markdown, ready for README):
    an ill-conditioned ladder, the CSTR and the inverted pendulum, and the objectives rate and min_gain
    (with the falsified error over the bound).
 
+With ``--against REV`` (``make bench BENCH_AGAINST=REV``) it prints only the closed loops of this tree and of the
+git revision REV side by side (issue 40: a restructuring of the loops must keep their speed): Cuk ``simulate``,
+the governor's ``simulate``, ``falsify`` of 3000 Cuk runs and ``tradeoff``, each in fresh processes, the two trees
+in turn (A B A B ...) on the same design folder, the median of ``--pairs`` runs of each and the median of the
+ratios pair by pair (a ratio holds when the machine's speed drifts).
+
     python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900] [--runs 10000] [--no-closed-loops]
-                          [--no-certificates | --only-certificates]
+                          [--no-certificates | --only-certificates] [--against REV [--pairs 5]]
 """
 
 from __future__ import annotations
@@ -212,6 +218,46 @@ def certificates(tmp: Path, timeout: float) -> list[dict]:
     return out
 
 
+#: The paired closed-loop rows of ``--against``: label, spec, the command after ``ashc``, the stage it times.
+PAIRED = (
+    ("Cuk `simulate`", "specs/cuk_converter.yaml", ["simulate", "--force", "--frozen"], "simulate"),
+    ("governor `simulate` (tests/specs/cuk_guaranteed.yaml)", "tests/specs/cuk_guaranteed.yaml", ["simulate", "--force", "--frozen"], "simulate"),
+    ("Cuk `falsify`, 3000 runs", "specs/cuk_converter.yaml", ["falsify", "--runs", "3000", "--seed", "0", "--frozen"], "falsify"),
+    ("Cuk `tradeoff --tolerances 1,2,5,10,20`", "tests/specs/cuk_guaranteed.yaml", ["tradeoff", "--tolerances", "1,2,5,10,20", "--frozen"],
+     "tradeoff"),
+)
+
+
+def paired(tmp: Path, rev: str, pairs: int, timeout: float) -> list[dict]:
+    """The closed loops of this tree (A) and of git revision ``rev`` (B), in turn, on the same design folders.
+
+    B's package is ``git archive rev`` unpacked in ``tmp`` and put first on PYTHONPATH; both share the
+    interpreter and its dependencies, and a numba cache of their own (one warm-up run each compiles)."""
+    base = tmp / "base"
+    base.mkdir()
+    archive = subprocess.run(["git", "archive", rev, "ashc_cli"], cwd=ROOT, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+    trees = {"A": ROOT, "B": base}
+    rows = []
+    for label, spec, args, stage in PAIRED:
+        folder = tmp / Path(spec).stem
+        subprocess.run(ASHC + ["design", spec, "--out", str(folder)], check=True, capture_output=True, cwd=ROOT)
+        times: dict[str, list[float]] = {"A": [], "B": []}
+        for k in range(pairs + 1):                     # the first pair warms the caches and is not counted
+            for name, tree in trees.items():
+                env = {**os.environ, "PYTHONPATH": str(tree), "ASHC_CACHE": str(tmp / f"cache_{name}")}
+                cmd = [sys.executable, "-m", "ashc_cli", args[0], spec, *args[1:], "--out", str(folder)]
+                wall, _, text, rc = run_child(cmd, timeout, env)
+                if k and rc == 0:
+                    times[name].append(stage_time(text, stage))
+        a, b = np.array(times["A"]), np.array(times["B"])
+        ratio = float(np.median(a / b)) if a.size and a.size == b.size else float("nan")
+        rows.append({"work": label, "A": float(np.median(a)) if a.size else float("nan"), "B": float(np.median(b)) if b.size else float("nan"),
+                     "ratio": ratio, "pairs": int(min(a.size, b.size))})
+        print(f"  measured {label}: {rows[-1]['A']:.2f} s against {rows[-1]['B']:.2f} s", file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stages", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32])
@@ -220,7 +266,19 @@ def main() -> int:
     ap.add_argument("--no-closed-loops", action="store_true", help="leave out the closed-loop table")
     ap.add_argument("--no-certificates", action="store_true", help="leave out the contraction-certificate table (issue 20)")
     ap.add_argument("--only-certificates", action="store_true", help="only the contraction-certificate table")
+    ap.add_argument("--against", metavar="REV", help="only the closed loops, this tree against git revision REV, paired")
+    ap.add_argument("--pairs", type=int, default=5, help="counted pairs of --against (after one warm-up pair)")
     args = ap.parse_args()
+
+    if args.against:
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = paired(Path(tmp), args.against, args.pairs, args.timeout)
+        print(f"| closed loop | this tree (s) | {args.against} (s) | ratio (median of pairs) | pairs |")
+        print("| --- | --- | --- | --- | --- |")
+        for r in rows:
+            print(f"| {r['work']} | {r['A']:.2f} | {r['B']:.2f} | {r['ratio']:.3f} | {r['pairs']} |")
+        print("(seconds: the stage's own time from its progress line, median; ratio: this tree / the revision, pair by pair)")
+        return 0
 
     rows = []
     if args.only_certificates:

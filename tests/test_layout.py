@@ -144,6 +144,32 @@ def test_modules_and_functions_a_reader_can_hold():
     assert not paid, f"paid debts, take them off the lists: {paid}"
 
 
+#: Arguments beyond this travel in a named bundle (docs/guide.md, "Compiled closed loops").
+MAX_PARAMETERS = 12
+
+
+def _parameters(node: ast.FunctionDef) -> int:
+    """The parameters a function takes (self and cls not counted; *args and **kwargs count one each)."""
+    a = node.args
+    count = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + (a.vararg is not None) + (a.kwarg is not None)
+    return count - (1 if a.args and a.args[0].arg in ("self", "cls") else 0)
+
+
+def _long_signatures(text: str, rel: str) -> list[str]:
+    return [f"{rel}:{node.name} takes {_parameters(node)}" for node in ast.walk(ast.parse(text))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and _parameters(node) > MAX_PARAMETERS]
+
+
+def test_no_function_takes_more_than_twelve_parameters():
+    found = [line for rel, text in _modules() for line in _long_signatures(text, rel)]
+    assert not found, found
+
+
+def test_a_long_signature_is_caught():
+    text = "def run(a, b, c, d, e, f, g, h, i, j, k, l, m):\n    pass\n\n\nclass C:\n    def ok(self, a, b, c, d, e, f, g, h, i, j, k, l):\n        pass\n"
+    assert _long_signatures(text, "probe.py") == ["probe.py:run takes 13"]
+
+
 def _still_long(key: str) -> bool:
     rel, name = key.split(":")
     tree = ast.parse((PACKAGE / rel).read_text())

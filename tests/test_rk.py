@@ -33,8 +33,8 @@ def _solve(tab, exponent, t0, t1, y0, t_eval, rtol, atol, level, watch, a):
     y = y0.copy()
     out = np.full((t_eval.size, y.size), np.nan)
     hit = np.full(y.size + 1, np.nan)
-    status, written, nfev, steps = rk.solve(_call, (a,), _event, (level,), watch, tab, exponent, t0, t1, y, t_eval, 0, t_eval.size,
-                                            rtol, np.full(y.size, atol), out, hit)
+    status, written, nfev, steps = rk.solve(_call, (a,), _event, (level,), watch, (tab, exponent), (t0, t1), y, (t_eval, 0, t_eval.size),
+                                            (rtol, np.full(y.size, atol)), out, hit)
     return status, written, nfev, steps, out, hit
 
 

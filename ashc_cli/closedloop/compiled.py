@@ -403,11 +403,12 @@ def kernel_key(model, up) -> str:
     return digest.hexdigest()[:24]
 
 
-def _integrate(core, rhs, kernels, link, dims, z0, t_bounds, t_eval, offsets, refs, prm, L, K, U, q_ls, sat, edges, rtol, atol, what):
-    """One call of the core's DOP853 ``integrate``; the samples (rows of t_eval) and the event.
+def _integrate(core, rhs, kernels, link, loop, run, what: str):
+    """One call of the core's DOP853 ``integrate``; the samples (rows of run.t_eval) and the event.
 
-    ``link`` holds eval_link and eval_u (the core's no_link and no_signal for the tracking loop); ``edges``
-    is empty or [lo, lo_margin, hi, hi_margin] (the m-relation's event).
+    ``link`` holds eval_link and eval_u (the core's no_link and no_signal for the tracking loop); ``loop`` is the
+    core's Loop, ``run`` its Segments (run.edges is empty or [lo, lo_margin, hi, hi_margin], the m-relation's
+    event); ``what`` names the scenario in an error.
 
     Returns
     -------
@@ -427,14 +428,13 @@ def _integrate(core, rhs, kernels, link, dims, z0, t_bounds, t_eval, offsets, re
     """
     from ashc_cli.closedloop import rk
 
-    z0 = np.ascontiguousarray(z0, dtype=float).reshape(-1)
-    out = np.full((t_eval.size, z0.size), np.nan)
-    hit = np.full(z0.size + 1, np.nan)
-    status, written, seg, nfev, steps = core.integrate(rhs, kernels.eval_xi, kernels.eval_x, link[0], link[1], dims, z0, t_bounds, t_eval, offsets, refs,
-                                                       prm, L, K, U, q_ls, sat, np.ascontiguousarray(edges, dtype=float), float(rtol), float(atol),
-                                                       *rk.DOP853, out, hit)
+    run = run._replace(z0=np.ascontiguousarray(run.z0, dtype=float).reshape(-1), edges=np.ascontiguousarray(run.edges, dtype=float),
+                       rtol=float(run.rtol), atol=float(run.atol))
+    out = np.full((run.t_eval.size, run.z0.size), np.nan)
+    hit = np.full(run.z0.size + 1, np.nan)
+    status, written, seg, nfev, steps = core.integrate(rhs, kernels.eval_xi, kernels.eval_x, link[0], link[1], loop, run, rk.DOP853, out, hit)
     if status < 0:
-        t_bad = t_eval[written - 1] if written > 0 else t_bounds[min(seg, len(t_bounds) - 1), 0]
+        t_bad = run.t_eval[written - 1] if written > 0 else run.t_bounds[min(seg, len(run.t_bounds) - 1), 0]
         message = "Required step size is less than spacing between numbers." if status == -1 else "a sample is not finite"
         raise NumericalError(f"simulate.{what}", f"integration failed at t = {t_bad:.6g} s ({message})", "a trajectory that stays finite")
     return status, out, hit, int(nfev), int(steps)
@@ -537,13 +537,17 @@ class TrackingLoop:
     def _prm(self, gain: float, v_max: float) -> np.ndarray:
         return np.array([gain, v_max, self.lam, self.eps], dtype=float)
 
+    def _loop(self, prm: np.ndarray, q_kind: str, saturate):
+        """The core's Loop of this design with the controller's prm and the interface's codes."""
+        q_ls, sat = self._flags(q_kind, saturate)
+        return self.core.Loop(self.dims, np.ascontiguousarray(prm, dtype=float), self.L, self.K, self.U, q_ls, sat)
+
     def law(self, xi, x, xi_ref, gain: float, v_max: float, q_kind: str, saturate, w: float = 0.0):
         """(v, u, dz) at one point: the compiled tracking_law, dz = [dxi, dx, dw]."""
-        q_ls, sat = self._flags(q_kind, saturate)
+        loop = self._loop(self._prm(gain, v_max), q_kind, saturate)
         z = np.ascontiguousarray(np.r_[np.ravel(xi), np.ravel(x), w], dtype=float)
         v, u, dz = np.empty(self.mh), np.empty(self.m), np.empty(z.size)
-        self.core.closed_loop(self.kernels.eval_xi, self.kernels.eval_x, self.dims, z, np.ascontiguousarray(xi_ref, dtype=float).reshape(self.nh),
-                              self._prm(gain, v_max), self.L, self.K, self.U, q_ls, sat, v, u, dz)
+        self.core.closed_loop(self.kernels.eval_xi, self.kernels.eval_x, loop, z, np.ascontiguousarray(xi_ref, dtype=float).reshape(self.nh), v, u, dz)
         return v, u, dz
 
     def run(self, z0: np.ndarray, segments: Sequence[tuple[float, float, np.ndarray, int]], refs: Sequence[np.ndarray], *,
@@ -579,7 +583,6 @@ class TrackingLoop:
             As ``simulate._integrate``: the step size fell below the spacing of floating-point numbers, or a
             sample is not finite.
         """
-        q_ls, sat = self._flags(q_kind, saturate)
         evals = [np.asarray(te, dtype=float).reshape(-1) for _, _, te, _ in segments]
         if not evals or any(te.size == 0 for te in evals):
             raise ValueError("every segment needs its sample times")
@@ -598,23 +601,24 @@ class TrackingLoop:
             w_level, rate, grid, bisections, backoff = governor
             prm = np.r_[prm, w_level, rate, 1.0, grid, bisections, np.asarray(backoff, dtype=float)]
             rhs = gov.governor_rhs
-        _, out, _, nfev, steps = _integrate(self.core, rhs, self.kernels, (self.core.no_link, signal_kernel), self.dims,
-                                            z0, t_bounds, t_eval, offsets, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, np.empty(0),
-                                            rtol, atol, what)
+        loop = self._loop(prm, q_kind, saturate)
+        run = self.core.Segments(z0, t_bounds, t_eval, offsets, seg_refs, np.empty(0), rtol, atol)
+        _, out, _, nfev, steps = _integrate(self.core, rhs, self.kernels, (self.core.no_link, signal_kernel), loop, run, what)
         keep = np.ones(t_eval.size, dtype=bool)
         keep[offsets[1:-1]] = False            # each later segment's first sample repeats the previous end
         seg_of_row = np.repeat(np.arange(len(segments), dtype=np.int64), np.diff(offsets))
-        V, Uo = np.empty((t_eval.size, self.mh)), np.empty((t_eval.size, self.m))
-        PSI, Y = np.empty((t_eval.size, self.p)), np.empty((t_eval.size, self.p))
+        sampled = self.core.Samples(np.empty((t_eval.size, self.mh)), np.empty((t_eval.size, self.m)),
+                                    np.empty((t_eval.size, self.p)), np.empty((t_eval.size, self.p)))
+        V, Uo, PSI, Y = sampled
         fxi, fx = self.kernels.eval_xi, self.kernels.eval_x
         scale = slack = None
         if signal is not None:
-            self.core.signal_samples(fxi, fx, signal.eval_u, self.dims, t_eval, out, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y)
+            self.core.signal_samples(fxi, fx, signal.eval_u, loop, t_eval, out, sampled)
         elif governor is None:
-            self.core.samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y)
+            self.core.samples(fxi, fx, loop, out, seg_of_row, seg_refs, sampled)
         else:
             S, SL = np.empty(t_eval.size), np.empty(t_eval.size)
-            gov.governor_samples(fxi, fx, self.dims, out, seg_of_row, seg_refs, prm, self.L, self.K, self.U, q_ls, sat, V, Uo, PSI, Y, S, SL)
+            gov.governor_samples(fxi, fx, loop, out, seg_of_row, seg_refs, sampled, S, SL)
             scale, slack = S[keep].copy(), SL[keep].copy()
         Z = out[keep].T
         nh, n = self.nh, self.n
@@ -752,18 +756,19 @@ class MRelationLoop:
         if not (t0 < t1 and t_eval.size and np.all(np.diff(t_eval) > 0) and t0 <= t_eval[0] and t_eval[-1] <= t1):
             raise ValueError("t_span must increase and hold t_eval, increasing and not empty")
         n, m, nh = self.n, self.m, self.nh
-        status, out, hit, nfev, steps = _integrate(self.core, self.core.link_rhs, self.kernels, (self.link.eval_link, self.link.eval_u), self.dims,
-                                                   z0, np.array([[t0, t1]]), t_eval, np.array([0, t_eval.size], dtype=np.int64),
-                                                   np.zeros((1, nh)), np.zeros(4), np.zeros((n, n)), np.zeros((m, n)), np.zeros((m, 2)), 0, 0,
-                                                   np.empty(0) if edges is None else np.asarray(edges, dtype=float), rtol, atol, what)
+        loop = self.core.Loop(self.dims, np.zeros(4), np.zeros((n, n)), np.zeros((m, n)), np.zeros((m, 2)), 0, 0)   # dims only are read
+        run = self.core.Segments(z0, np.array([[t0, t1]]), t_eval, np.array([0, t_eval.size], dtype=np.int64), np.zeros((1, nh)),
+                                 np.empty(0) if edges is None else np.asarray(edges, dtype=float), rtol, atol)
+        status, out, hit, nfev, steps = _integrate(self.core, self.core.link_rhs, self.kernels, (self.link.eval_link, self.link.eval_u), loop, run, what)
         if status == 1:
             empty = np.empty((0, 0))
             return MRelationRun(t=np.empty(0), xi=empty, x=empty, u=empty, v=empty, psi=empty, y=empty, m=empty,
                                 left=(float(hit[0]), hit[1:].copy()), nfev=nfev, steps=steps)
         N = t_eval.size
-        V, Uo, PSI, Y, MX = np.empty((N, self.mh)), np.empty((N, m)), np.empty((N, self.p)), np.empty((N, self.p)), np.empty((N, nh))
-        self.core.link_samples(self.kernels.eval_xi, self.kernels.eval_x, self.link.eval_link, self.link.eval_u, self.dims, t_eval, out,
-                               V, Uo, PSI, Y, MX)
+        sampled = self.core.Samples(np.empty((N, self.mh)), np.empty((N, m)), np.empty((N, self.p)), np.empty((N, self.p)))
+        V, Uo, PSI, Y = sampled
+        MX = np.empty((N, nh))
+        self.core.link_samples(self.kernels.eval_xi, self.kernels.eval_x, self.link.eval_link, self.link.eval_u, self.dims, t_eval, out, sampled, MX)
         Z = out.T
         return MRelationRun(t=t_eval, xi=Z[:nh].copy(), x=Z[nh:].copy(), u=Uo.T.copy(), v=V.T.copy(), psi=PSI.T.copy(), y=Y.T.copy(),
                             m=MX.T.copy(), left=None, nfev=nfev, steps=steps)

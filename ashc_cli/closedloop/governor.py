@@ -8,34 +8,31 @@ r(s) through the actual interface (saturation included); then w <= W_max is inva
 closedloop/plan.py).
 """
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
 from ashc_cli.closedloop.laws import setpoint, state_derivatives, weighted_norm2
-from ashc_cli.closedloop.tracking_core import F1, F2, I1, RHS_SIGNATURE, X_KERNEL, XI_KERNEL, design_at, store_sample
+from ashc_cli.closedloop.tracking_core import F1, F2, LOOP, RHS_SIGNATURE, SAMPLES, I1, X_KERNEL, XI_KERNEL, design_at, store_sample
 
 OPTIONS = dict(cache=True, error_model="numpy")
+#: The interface at one point, all of u(s) and r(s) but the scale s: L (M = L L^T), l(xi), K e = K (x - p(xi)),
+#: q v_sp, dp/dxi delta v_sp, g(x), the input box U and the saturation code sat.
+Point = namedtuple("Point", "L l feedback qv dv g U sat")
 
 
 @njit(**OPTIONS)
-def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
-    """u(s) = SAT(l + K e + s q v_sp) and r(s) = s dp/dxi delta v_sp - g (u(s) - l - K e) into u and r; returns
+def interface_at(s, P, u, r, corr):
+    """u(s) = SAT(l + K e + s q v_sp) and r(s) = s dp/dxi delta v_sp - g (u(s) - (l + K e)) into u and r; returns
     |L^T r(s)|^2 (the oracle's interface_r at one s).
 
     Parameters
     ----------
     s : float
-    L : 2-D float array (n, n)
-        M = L L^T.
-    l, feedback, qv : 1-D float arrays (m,)
-        l(xi), K e = K (x - p(xi)) and q v_sp.
-    dv : 1-D float array (n,)
-        dp/dxi delta v_sp.
-    g, U : 2-D float arrays (n, m), (m, 2)
-        g(x) and the input box.
-    sat : int
-        As :func:`~ashc_cli.closedloop.interface.saturate`.
+    P : Point
+        The interface at the point (sat as :func:`~ashc_cli.closedloop.interface.saturate`).
     u, r : 1-D float arrays (m,), (n,)
         Written: u(s) and r(s).
     corr : 1-D float array (m,)
@@ -46,19 +43,19 @@ def interface_at(s, L, l, feedback, qv, dv, g, U, sat, u, r, corr):
     float
         |L^T r(s)|^2.
     """
-    apply(l, feedback, qv, s, U, sat, corr, u)
-    residual(dv, s, g, u, l, feedback, np.zeros(dv.size), r)
-    return weighted_norm2(L, r)
+    apply(P.l, P.feedback, P.qv, s, P.U, P.sat, corr, u)
+    residual(P.dv, s, P.g, u, P.l, P.feedback, np.zeros(P.dv.size), r)
+    return weighted_norm2(P.L, r)
 
 
 @njit(**OPTIONS)
-def breakpoints(l, feedback, qv, U, sat, ends):
+def breakpoints(P, ends):
     """The s in (0, 1) where the interface changes form, sorted and distinct, into ``ends``; returns (count,
     affine) as the oracle's breakpoints.
 
     Parameters
     ----------
-    l, feedback, qv, U, sat
+    P : Point
         As :func:`interface_at`.
     ends : 1-D float array
         Written: the breakpoints in ends[:count]; room for 2 m of them (sat = 1; one for sat = 2).
@@ -69,6 +66,7 @@ def breakpoints(l, feedback, qv, U, sat, ends):
     affine : bool
         Whether r(s) is affine between the breakpoints (not for sat = 2 with K e != 0, then count = 0).
     """
+    l, feedback, qv, U, sat = P.l, P.feedback, P.qv, P.U, P.sat
     if sat == 0:
         return 0, True
     M = l.size
@@ -105,21 +103,21 @@ def breakpoints(l, feedback, qv, U, sat, ends):
 
 
 @njit(**OPTIONS)
-def _largest_verified(lo, hi, bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr):
+def _largest_verified(lo, hi, bound, prm, P, u, r, ut, rt, corr):
     """The largest s in [lo, hi] found admissible by evaluation (hi a few roundings lower, else bisection from
     lo), with u(s) and r(s) in u and r; (False, 0) when not even lo is admissible."""
     for b in range(9, prm.size):
         s_try = max(lo, hi * (1.0 - prm[b]))
-        if interface_at(s_try, L, l, feedback, qv, dv, g, U, sat, u, r, corr) <= bound:
+        if interface_at(s_try, P, u, r, corr) <= bound:
             return True, s_try
-    if not interface_at(lo, L, l, feedback, qv, dv, g, U, sat, u, r, corr) <= bound:
+    if not interface_at(lo, P, u, r, corr) <= bound:
         return False, 0.0
     good = lo
     for _ in range(int(prm[8])):
         mid = 0.5 * (good + hi)
         if not (good < mid < hi):
             break
-        if interface_at(mid, L, l, feedback, qv, dv, g, U, sat, ut, rt, corr) <= bound:
+        if interface_at(mid, P, ut, rt, corr) <= bound:
             good = mid
             u[:] = ut
             r[:] = rt
@@ -129,14 +127,14 @@ def _largest_verified(lo, hi, bound, prm, L, l, feedback, qv, dv, g, U, sat, u, 
 
 
 @njit(**OPTIONS)
-def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
+def governor_scale(P, bound, prm, u, r):
     """The oracle's governor_scale: the largest s in [0, 1] with |L^T r(s)|^2 <= bound, u(s) and r(s) into u and r;
     returns (s, admissible).  Closed-form roots on the pieces where r is affine in s, else a grid of prm[7] + 1
     values of s and bisection.
 
     Parameters
     ----------
-    L, l, feedback, qv, dv, g, U, sat
+    P : Point
         As :func:`interface_at`.
     bound : float
         eps ((lambda - eps) W_max + c (W_max - w)).
@@ -152,9 +150,9 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
     admissible : bool
         False when not even s = 0 meets the bound (s is then 0).
     """
-    M, N = l.size, dv.size
+    M, N = P.l.size, P.dv.size
     ends = np.empty(2 * M + 1)
-    count, affine = breakpoints(l, feedback, qv, U, sat, ends)
+    count, affine = breakpoints(P, ends)
     if affine:
         G = count + 2
         grid = np.empty(G)
@@ -167,13 +165,13 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
     Ug, Rg, q2 = np.empty((G, M)), np.empty((G, N)), np.empty(G)
     corr, ut, rt = np.empty(M), np.empty(M), np.empty(N)
     for k in range(G):
-        q2[k] = interface_at(grid[k], L, l, feedback, qv, dv, g, U, sat, Ug[k], Rg[k], corr)
+        q2[k] = interface_at(grid[k], P, Ug[k], Rg[k], corr)
     if q2[G - 1] <= bound:
         u[:] = Ug[G - 1]
         r[:] = Rg[G - 1]
         return 1.0, True
     if affine:
-        R = Rg @ L
+        R = Rg @ P.L
         for k in range(G - 2, -1, -1):
             s0, s1 = grid[k], grid[k + 1]
             if q2[k + 1] <= bound:
@@ -196,7 +194,7 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
                 lower = c0 / (a * upper) if upper != 0 else (-b - root) / a
             if upper < 0.0 or lower > h:
                 continue
-            found, s = _largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h), bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr)
+            found, s = _largest_verified(s0 + max(lower, 0.0), s0 + min(upper, h), bound, prm, P, u, r, ut, rt, corr)
             if found:
                 return s, True
     else:
@@ -205,7 +203,7 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
             if q2[k] <= bound:
                 last = k
         if last >= 0:
-            found, s = _largest_verified(grid[last], grid[last + 1], bound, prm, L, l, feedback, qv, dv, g, U, sat, u, r, ut, rt, corr)
+            found, s = _largest_verified(grid[last], grid[last + 1], bound, prm, P, u, r, ut, rt, corr)
             if found:
                 return s, True
     u[:] = Ug[0]
@@ -214,8 +212,10 @@ def governor_scale(L, l, feedback, qv, dv, g, U, sat, bound, prm, u, r):
 
 
 @njit(inline="always", **OPTIONS)
-def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     """:func:`_governed_loop` given the design's values at z (``governor_samples`` reuses them for psi and y)."""
+    phi, delta, l, dpd, _, pm, fb, g, _ = at
+    dims, prm, L, K, U, q_ls, sat = loop
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps, w_level, rate = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     xi = z[:NH].copy()
@@ -233,7 +233,7 @@ def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q
     times(dpd, v_sp, dv)
     room = (lam - eps) * w_level + rate * (w_level - w)
     r = np.empty(N)
-    scale, _ = governor_scale(L, l, feedback, qv, dv, g, U, sat, eps * room, prm, u, r)
+    scale, _ = governor_scale(Point(L, l, feedback, qv, dv, g, U, sat), eps * room, prm, u, r)
     for a in range(MH):
         v[a] = scale * v_sp[a]
     state_derivatives(phi, delta, v, fb, g, u, dz)
@@ -243,16 +243,15 @@ def _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q
     out[1] = room - q2 / eps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1, F1), **OPTIONS)
-def _governed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out):
+@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F1, F1, F1, F1, F1, F1), **OPTIONS)
+def _governed_loop(eval_xi, eval_x, loop, z, xi_ref, v, u, dz, out):
     """The oracle's governor_law and the comparison system at z = [xi, x, w]: fills v, u, dz = [dxi, dx, dw] and
     out = [s, slack]."""
-    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-    _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz, out)
+    _governed_at(design_at(eval_xi, eval_x, loop.dims, z), loop, z, xi_ref, v, u, dz, out)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
+def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
     """_governed_loop behind the tracking core's RHS signature.
 
     Parameters
@@ -261,41 +260,41 @@ def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L
         Not read.
     z, dz : 1-D float arrays (n_hat + n + 1,)
         [xi, x, w]; written: [dxi, dx, dw].
-    eval_xi, eval_x, dims, L, K, U, q_ls, sat, v, u
+    eval_xi, eval_x, v, u
         As :func:`~ashc_cli.closedloop.tracking_core.closed_loop` (v = s v_sp).
     eval_link, eval_u : LINK_KERNEL, U_KERNEL
         Not read.
+    loop : Loop
+        As closed_loop's, with prm = [gain, v_max, lambda, eps, W_max, c, 1.0 (not read), grid, bisections, backoffs...].
     ref : 1-D float array (n_hat,)
         The reference xi_ref.
-    prm : 1-D float array
-        [gain, v_max, lambda, eps, W_max, c, 1.0 (not read), grid, bisections, backoffs...].
     """
-    _governed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz, np.empty(2))
+    _governed_loop(eval_xi, eval_x, loop, z, ref, v, u, dz, np.empty(2))
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2, F1, F1), nogil=True,
-      **OPTIONS)
-def governor_samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y, SCALE, SLACK):
+@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F2, I1, F2, SAMPLES, F1, F1), nogil=True, **OPTIONS)
+def governor_samples(eval_xi, eval_x, loop, Z, seg_of_row, refs, out, SCALE, SLACK):
     """At every row of Z: v, u, s and slack (_governed_loop), psi = kappa(xi) and y = h(x).
 
     Parameters
     ----------
-    eval_xi, eval_x, dims, Z, seg_of_row, refs, L, K, U, q_ls, sat, V, Uo, PSI, Y
+    eval_xi, eval_x, Z, seg_of_row, refs, out
         As :func:`~ashc_cli.closedloop.tracking_core.samples`.
-    prm : 1-D float array
+    loop : Loop
         As :func:`governor_rhs`.
     SCALE, SLACK : 1-D float arrays (N,)
         Written: s and (lambda - eps) W_max + c (W_max - w) - |L^T r(s)|^2 / eps, row k at Z[k].
     """
+    dims = loop.dims
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
     u = np.empty(M)
-    out = np.empty(2)
+    sl = np.empty(2)
     for k in range(Z.shape[0]):
         z = Z[k]
-        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-        _governed_at(phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz, out)
-        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
-        SCALE[k] = out[0]
-        SLACK[k] = out[1]
+        at = design_at(eval_xi, eval_x, dims, z)
+        _governed_at(at, loop, z, refs[seg_of_row[k]], v, u, dz, sl)
+        store_sample(k, v, u, at.kap, at.h, out)
+        SCALE[k] = sl[0]
+        SLACK[k] = sl[1]

@@ -409,9 +409,11 @@ def event_root(event, ectx, tab, F, y, t_old, t, z):
 
 
 @njit(**INLINE)
-def _advance(call, ctx, tab, exponent, t, t_bound, y, h_abs, min_step, K, ys, y_new, rtol, atol):
+def _advance(call, ctx, method, span, y, h_abs, min_step, work, tol):
     """scipy's RungeKutta._step_impl: attempts from h_abs until one is accepted; returns (accepted, t_new, h, the
-    next h_abs, evaluations), not accepted when the step fell below min_step."""
+    next h_abs, evaluations), not accepted when the step fell below min_step.  method = (tab, exponent), span =
+    (t, t_bound), work = (K, ys, y_new), tol = (rtol, atol) (as :func:`solve`)."""
+    (tab, exponent), (t, t_bound), (K, ys, y_new), (rtol, atol) = method, span, work, tol
     SAFETY = 0.9
     MIN_FACTOR = 0.2
     MAX_FACTOR = 10.0
@@ -437,7 +439,7 @@ def _advance(call, ctx, tab, exponent, t, t_bound, y, h_abs, min_step, K, ys, y_
 
 
 @njit(**INLINE)
-def solve(call, ctx, event, ectx, watch, tab, exponent, t, t_bound, y, t_eval, i_eval, i_end, rtol, atol, out, hit):
+def solve(call, ctx, event, ectx, watch, method, span, y, samples, tol, out, hit):
     """solve_ivp(call, (t, t_bound), y, t_eval=t_eval[i_eval:i_end], max_step = inf) with at most one terminal
     event (direction -1, watched when ``watch``): scipy's RungeKutta step for step.
 
@@ -453,18 +455,19 @@ def solve(call, ctx, event, ectx, watch, tab, exponent, t, t_bound, y, t_eval, i
     event, ectx
         As :func:`event_root`.
     watch : bool
-    tab : tuple
-    exponent : float
-    t, t_bound : float
+    method : tuple
+        (tab, exponent): the tableau (:data:`DOP853` or :data:`DP54`) and its step-size exponent.
+    span : tuple
+        (t, t_bound), floats.
     y : 1-D array
-    t_eval : 1-D array
-    i_eval, i_end : int
-        The rows of t_eval (and out) of this run.
-    rtol : float
-    atol : 1-D array
+    samples : tuple
+        (t_eval, i_eval, i_end): the sample times and the rows of t_eval (and out) of this run.
+    tol : tuple
+        (rtol, atol): a float and a 1-D array.
     out : 2-D array
     hit : 1-D array (1 + len(y))
     """
+    (tab, exponent), (t, t_bound), (t_eval, i_eval, i_end), (rtol, atol) = method, span, samples, tol
     d = y.size
     ns = tab[1].size
     K = np.empty((tab[0].shape[0], d))
@@ -492,7 +495,7 @@ def solve(call, ctx, event, ectx, watch, tab, exponent, t, t_bound, y, t_eval, i
         min_step = 10 * abs(np.nextafter(t, np.inf) - t)
         if h_abs < min_step:
             h_abs = min_step
-        ok, t_new, h, h_abs, n_f = _advance(call, ctx, tab, exponent, t, t_bound, y, h_abs, min_step, K, ys, y_new, rtol, atol)
+        ok, t_new, h, h_abs, n_f = _advance(call, ctx, method, (t, t_bound), y, h_abs, min_step, (K, ys, y_new), tol)
         nfev += n_f
         if not ok:
             return -1, written, nfev, steps

@@ -4,6 +4,8 @@
 Design-independent: the per-design kernels reach these functions as numba first-class functions
 (:mod:`ashc_cli.closedloop.compiled` prints and caches them); numba caches this module's machine code
 (``cache=True``)."""
+from collections import namedtuple
+
 import numpy as np
 from numba import njit, types
 
@@ -21,6 +23,27 @@ X_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
 LINK_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
 U_KERNEL = types.FunctionType(types.void(F1, F1))
 OPTIONS = dict(cache=True, error_model='numpy')
+
+#: The closed loop's constants: dims = [n_hat, n, m, m_hat, p, affine, disturbed] (affine: 1 for x' = f_bar + g u,
+#: 0 for f(x, u); disturbed: 1 when the run applies its constant disturbance e(x) w0); prm = [gain, v_max, lambda,
+#: eps] (then, for the signal, 1; for the governor, governor.py's entries); L, K, U: the Cholesky factor of M
+#: (M = L L^T), the feedback gain and the input box; q_ls = 1 for the least-squares q of eq. (43), 0 for q = 0;
+#: sat as :func:`~ashc_cli.closedloop.interface.saturate`.
+Loop = namedtuple("Loop", "dims prm L K U q_ls sat")
+LOOP = types.NamedTuple((I1, F1, F2, F2, F2, types.int64, types.int64), Loop)
+#: The design's terms at z = [xi, x, ...] (:func:`design_at`): phi_bar, delta, l, dp/dxi delta, kappa, p of xi and
+#: f_bar, g, h of x.
+At = namedtuple("At", "phi delta l dpd kap pm fb g h")
+#: A run's samples as the loops fill them: v, u, psi and y, one row per sample.
+Samples = namedtuple("Samples", "V Uo PSI Y")
+SAMPLES = types.NamedUniTuple(F2, 4, Samples)
+#: One integration (:func:`integrate`): the start z0, the segments' spans t_bounds (segments, 2), the sample times
+#: t_eval and each segment's rows offsets, the segments' references refs (segments, n_hat), the event's edges
+#: ([lo, lo_margin, hi, hi_margin] or empty), rtol and atol.
+Segments = namedtuple("Segments", "z0 t_bounds t_eval offsets refs edges rtol atol")
+SEGMENTS = types.NamedTuple((F1, F2, F1, I1, F2, F1, types.float64, types.float64), Segments)
+#: A tableau of :mod:`~ashc_cli.closedloop.rk` (A, B, C, E, E3, D).
+TABLEAU = types.Tuple((F2, F1, F1, F1, F1, F2))
 
 
 @njit(inline="always", **OPTIONS)
@@ -102,17 +125,15 @@ def design_at(eval_xi, eval_x, dims, z):
     eval_xi, eval_x : XI_KERNEL, X_KERNEL
         The design's kernels (:mod:`ashc_cli.closedloop.compiled`).
     dims : 1-D int64 array
-        [n_hat, n, m, m_hat, p, affine, disturbed] (affine: 1 for x' = f_bar + g u, 0 for f(x, u); disturbed: 1 when the
-        run applies its constant disturbance e(x) w0; entries after these are not read).
+        :class:`Loop`'s dims (entries after the seventh are not read).
     z : 1-D float array
         xi = z[:n_hat], x = z[n_hat:n_hat + n] (the rest is not read).
 
     Returns
     -------
-    phi, delta, l, dpd, kap, pm : float arrays (n_hat,), (n_hat, m_hat), (m,), (n, m_hat), (p,), (n,)
-        phi_bar(xi), delta(xi), l(xi), dp/dxi delta, kappa(xi) and p(xi).
-    fb, g, h : float arrays (n,), (n, m), (p,)
-        f_bar(x), g(x) and h(x).
+    At
+        phi_bar(xi), delta(xi), l(xi), dp/dxi delta, kappa(xi), p(xi) (shapes (n_hat,), (n_hat, m_hat), (m,),
+        (n, m_hat), (p,), (n,)) and f_bar(x), g(x), h(x) ((n,), (n, m), (p,)).
     """
     NH, N, M, MH, P = dims[0], dims[1], dims[2], dims[3], dims[4]
     phi = np.empty(NH)
@@ -126,11 +147,11 @@ def design_at(eval_xi, eval_x, dims, z):
     g = np.empty((N, M))
     h = np.empty(P)
     x_terms(eval_x, dims, z[NH:NH + N], l, fb, g, h)
-    return phi, delta, l, dpd, kap, pm, fb, g, h
+    return At(phi, delta, l, dpd, kap, pm, fb, g, h)
 
 
 @njit(inline="always", **OPTIONS)
-def store_sample(k, v, u, kap, h, V, Uo, PSI, Y):
+def store_sample(k, v, u, kap, h, out):
     """Row k of the sampled outputs: v, u, psi = kappa(xi) and y = h(x), element by element.
 
     Parameters
@@ -138,9 +159,10 @@ def store_sample(k, v, u, kap, h, V, Uo, PSI, Y):
     k : int
     v, u, kap, h : 1-D float arrays
         The values at the sample.
-    V, Uo, PSI, Y : 2-D float arrays
+    out : Samples
         The tables (one row per sample).
     """
+    V, Uo, PSI, Y = out
     for a in range(v.size):
         V[k, a] = v[a]
     for j in range(u.size):
@@ -151,8 +173,10 @@ def store_sample(k, v, u, kap, h, V, Uo, PSI, Y):
 
 
 @njit(inline="always", **OPTIONS)
-def _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
+def _loop_at(eval_x, at, loop, z, xi_ref, v, u, dz):
     """:func:`closed_loop` given the design's values at z (``samples`` reuses them for psi and y)."""
+    phi, delta, l, dpd, _, pm, fb, g, _ = at
+    dims, prm, L, K, U, q_ls, sat = loop
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
     xi = z[:NH].copy()
@@ -202,32 +226,24 @@ def _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, 
     dz[NH + N] = -(lam - eps) * z[NH + N] + weighted_norm2(L, r) / eps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F1, F1, F1, F2, F2, F2, types.int64, types.int64, F1, F1, F1), **OPTIONS)
-def closed_loop(eval_xi, eval_x, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz):
+@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F1, F1, F1, F1, F1), **OPTIONS)
+def closed_loop(eval_xi, eval_x, loop, z, xi_ref, v, u, dz):
     """The set-point law (tests/oracle.py ``tracking_law``) and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
-
-    dims = [n_hat, n, m, m_hat, p]; prm = [gain, v_max, lambda, eps]; q_ls = 1 for the least-squares q, 0 for
-    q = 0; sat = 0 (no saturation), 1 (clip each channel to U) or 2 (scale the correction).
 
     Parameters
     ----------
-    eval_xi, eval_x, dims
+    eval_xi, eval_x
         As :func:`design_at`.
+    loop : Loop
+        The closed loop's constants (prm's entries after the fourth: 1 at prm[4] for an abstract input v(t) already in v).
     z : 1-D float array (n_hat + n + 1,)
         [xi, x, w].
     xi_ref : 1-D float array (n_hat,)
         The set-point controller's reference.
-    prm : 1-D float array
-        As above (entries after the fourth are not read).
-    L, K, U : 2-D float arrays (n, n), (m, n), (m, 2)
-        The Cholesky factor of M (M = L L^T), the feedback gain and the input box.
-    q_ls, sat : int
-        As above.
     v, u, dz : 1-D float arrays (m_hat,), (m,), (n_hat + n + 1,)
         Written: the abstract input, the concrete input and [dxi, dx, dw].
     """
-    phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-    _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, xi_ref, prm, L, K, U, q_ls, sat, v, u, dz)
+    _loop_at(eval_x, design_at(eval_xi, eval_x, loop.dims, z), loop, z, xi_ref, v, u, dz)
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, types.float64, F1, F1, F1, F1), **OPTIONS)
@@ -299,16 +315,15 @@ def no_signal(t, u):
     """
 
 
-#: rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u): the right-hand side
-#: of either loop behind one signature, so that one integrate runs both (an indirect call: integrate is compiled
-#: once and small, instead of inlining both loops at each of its calls).
-RHS_SIGNATURE = types.void(types.float64, F1, F1, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F1, F2, F2, F2, types.int64,
-                           types.int64, F1, F1)
+#: rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u): the right-hand side of either loop behind one
+#: signature, so that one integrate runs both (an indirect call: integrate is compiled once and small, instead of
+#: inlining both loops at each of its calls).
+RHS_SIGNATURE = types.void(types.float64, F1, F1, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LOOP, F1, F1, F1)
 RHS = types.FunctionType(RHS_SIGNATURE)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
+def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
     """closed_loop behind the RHS signature (t, eval_link and eval_u unused).
 
     Parameters
@@ -316,25 +331,25 @@ def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L
     t : float
     z, dz : 1-D float arrays (n_hat + n + 1,)
         [xi, x, w]; written: [dxi, dx, dw].
-    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat, v, u
+    eval_xi, eval_x, loop, v, u
         As :func:`closed_loop`.
     eval_link, eval_u : LINK_KERNEL, U_KERNEL
     ref : 1-D float array (n_hat,)
         closed_loop's xi_ref.
     """
-    closed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
+    closed_loop(eval_xi, eval_x, loop, z, ref, v, u, dz)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def signal_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
-    """closed_loop driven by the spec's abstract input: v = v(t) from eval_u (``kind: signal``; prm[4] = 1), eval_link unused.
+def signal_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
+    """closed_loop driven by the spec's abstract input: v = v(t) from eval_u (``kind: signal``; loop.prm[4] = 1), eval_link unused.
 
     Parameters
     ----------
     t : float
     z, dz : 1-D float arrays (n_hat + n + 1,)
         [xi, x, w]; written: [dxi, dx, dw].
-    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat, v, u
+    eval_xi, eval_x, loop, v, u
         As :func:`closed_loop` (prm[4] = 1: the set-point law is not run).
     eval_link, eval_u : LINK_KERNEL, U_KERNEL
         eval_u([t], v) fills the abstract input.
@@ -344,24 +359,26 @@ def signal_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, 
     tt = np.empty(1)
     tt[0] = t
     eval_u(tt, v)
-    closed_loop(eval_xi, eval_x, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
+    closed_loop(eval_xi, eval_x, loop, z, ref, v, u, dz)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u):
-    """link_loop behind the RHS signature (ref, prm, L, K, U, q_ls and sat unused).
+def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
+    """link_loop behind the RHS signature (ref and all of loop but its dims unused).
 
     Parameters
     ----------
     t : float
     z, dz : 1-D float arrays (n_hat + n,)
         [xi, x]; written: [dxi, dx].
-    eval_xi, eval_x, eval_link, eval_u, dims, v, u
+    eval_xi, eval_x, eval_link, eval_u, v, u
         As :func:`link_loop`.
-    ref, prm, L, K, U, q_ls, sat
-        The tracking loop's arguments (:func:`closed_loop`).
+    loop : Loop
+        Its dims are link_loop's.
+    ref : 1-D float array
+        Not read.
     """
-    link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t, z, v, u, dz)
+    link_loop(eval_xi, eval_x, eval_link, eval_u, loop.dims, t, z, v, u, dz)
 
 
 @njit(**OPTIONS)
@@ -381,10 +398,10 @@ def _leaves(eval_x, dims, z, edges):
 
 @njit(inline="always", **OPTIONS)
 def _call(t, y, D, row, ctx):
-    """The engine's call(t, y, D, row, ctx) for either loop: ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, dims,
-    ref, prm, L, K, U, q_ls, sat, v, u)."""
-    rhs, eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u = ctx
-    rhs(t, y, D[row], eval_xi, eval_x, eval_link, eval_u, dims, ref, prm, L, K, U, q_ls, sat, v, u)
+    """The engine's call(t, y, D, row, ctx) for either loop: ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, loop,
+    ref, v, u)."""
+    rhs, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u = ctx
+    rhs(t, y, D[row], eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u)
 
 
 @njit(inline="always", **OPTIONS)
@@ -393,51 +410,34 @@ def _leaves_event(z, ectx):
     return _leaves(ectx[0], ectx[1], z, ectx[2])
 
 
-@njit(types.UniTuple(types.int64, 5)(RHS, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F1, I1, F2, F1, F2, F2, F2,
-                                     types.int64, types.int64, F1, types.float64, types.float64, F2, F1, F1, F1, F1, F2, F2, F1),
-      nogil=True, **OPTIONS)
-def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eval, offsets, refs, prm, L, K, U, q_ls, sat, edges,
-              rtol, atol, A, B, C, E, E3, D, out, hit):
-    """The engine's :func:`~ashc_cli.closedloop.rk.solve` with the tableau (A, B, C, E, E3, D), segment after segment.
+@njit(types.UniTuple(types.int64, 5)(RHS, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LOOP, SEGMENTS, TABLEAU, F2, F1), nogil=True, **OPTIONS)
+def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, loop, run, tab, out, hit):
+    """The engine's :func:`~ashc_cli.closedloop.rk.solve` with the tableau ``tab``, segment after segment.
 
-    ``rhs`` is tracking_rhs or governor_rhs (refs[k], prm, L, K, U, q_ls and sat used; eval_link and eval_u not,
-    pass no_link and no_signal) or link_rhs (those unused).  Segment k runs from t_bounds[k, 0] to t_bounds[k, 1]
-    with the reference refs[k] and writes its samples t_eval[offsets[k]:offsets[k + 1]] to the same rows of out;
-    the next segment starts from its last sample.  With edges = [lo, lo_margin, hi, hi_margin] (empty: no event)
-    the run stops where h(x) leaves [lo + lo_margin, hi - hi_margin] (simulate's leaves_certified_set, direction
-    -1, terminal): hit = [t, z] there.  Returns (status, rows written, segment, nfev, accepted steps), status as
-    rk.solve's.
+    ``rhs`` is tracking_rhs, signal_rhs or governor_rhs (the loop's constants used; eval_link and eval_u not,
+    pass no_link and no_signal, but eval_u for signal_rhs) or link_rhs (only loop.dims used).  Segment k runs from
+    run.t_bounds[k, 0] to run.t_bounds[k, 1] with the reference run.refs[k] and writes its samples
+    run.t_eval[run.offsets[k]:run.offsets[k + 1]] to the same rows of out; the next segment starts from its last
+    sample.  With run.edges = [lo, lo_margin, hi, hi_margin] (empty: no event) the run stops where h(x) leaves
+    [lo + lo_margin, hi - hi_margin] (simulate's leaves_certified_set, direction -1, terminal): hit = [t, z]
+    there.  Returns (status, rows written, segment, nfev, accepted steps), status as rk.solve's.
 
     Parameters
     ----------
     rhs : RHS
-        tracking_rhs, governor_rhs (:mod:`ashc_cli.closedloop.governor`) or link_rhs.
-    eval_xi, eval_x, eval_link, eval_u, dims
+        tracking_rhs, signal_rhs, governor_rhs (:mod:`ashc_cli.closedloop.governor`) or link_rhs.
+    eval_xi, eval_x, eval_link, eval_u
         As :func:`link_loop`.
-    z0 : 1-D float array (d,)
-        The start: [xi0, x0, W0] (d = n_hat + n + 1) or, for link_rhs, [xi0, x0] (d = n_hat + n).
-    t_bounds : 2-D float array (segments, 2)
-        Each segment's [t0, t1], t0 <= t1.
-    t_eval : 1-D float array (N,)
-        Every segment's sample times, one segment after the other; a segment's last is its t1.
-    offsets : 1-D int64 array (segments + 1,)
-        Segment k's samples are t_eval[offsets[k]:offsets[k + 1]] (offsets[0] = 0, offsets[-1] = N).
-    refs : 2-D float array (segments, n_hat)
-        Each segment's xi_ref.
-    prm : 1-D float array
-        [gain, v_max, lambda, eps] (:func:`closed_loop`), for governor_rhs followed by [W_max, c, 1.0 (not read),
-        grid, bisections, backoffs...].
-    L, K, U, q_ls, sat
-        As :func:`closed_loop`.
-    edges : 1-D float array (4,) or (0,)
-        [lo, lo_margin, hi, hi_margin] of the event on y = h(x)[0]; empty: no event.
-    rtol, atol : float
-        The tolerances (atol for every component).
-    A, B, C, E, E3, D : float arrays
-        The tableau (:data:`~ashc_cli.closedloop.rk.DOP853`, or DP54 with E3 empty): the square A (DOP853's with the
-        dense output's extra stages), the weights B, the nodes C, the error estimates E and E3, the dense output D.
+    loop : Loop
+        The closed loop's constants (for governor_rhs prm goes on with [W_max, c, 1.0 (not read), grid,
+        bisections, backoffs...]).
+    run : Segments
+        The start ([xi0, x0, W0], or [xi0, x0] for link_rhs), the segments, their sample times and references, the
+        event's edges and the tolerances (atol for every component).
+    tab : tuple
+        The tableau (:data:`~ashc_cli.closedloop.rk.DOP853`, or DP54 with E3 empty).
     out : 2-D float array (N, d)
-        Written: row i the state at t_eval[i].
+        Written: row i the state at run.t_eval[i].
     hit : 1-D float array (1 + d,)
         Written at the event.
 
@@ -448,20 +448,20 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
         backward span) or -2 (a sample is not finite); the rows of out written are those before ``written``;
         the segment it stopped in (the number of segments when it did not); evaluations and accepted steps.
     """
-    tab = (A, B, C, E, E3, D)
-    exponent = DOP853_EXPONENT if E3.size > 0 else DP54_EXPONENT
-    y = z0.copy()
-    tol = np.full(y.size, atol)
+    dims, t_bounds, offsets = loop.dims, run.t_bounds, run.offsets
+    method = (tab, DOP853_EXPONENT if tab[4].size > 0 else DP54_EXPONENT)
+    y = run.z0.copy()
+    tol = (run.rtol, np.full(y.size, run.atol))
     v = np.empty(dims[3])
     u = np.empty(dims[2])
-    ectx = (eval_x, dims, edges)
+    ectx = (eval_x, dims, run.edges)
     nfev = 0
     steps = 0
     written = 0
     for seg in range(t_bounds.shape[0]):
-        ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, dims, refs[seg], prm, L, K, U, q_ls, sat, v, u)
-        status, written, n_f, n_s = solve(_call, ctx, _leaves_event, ectx, edges.size > 0, tab, exponent, t_bounds[seg, 0],
-                                          t_bounds[seg, 1], y, t_eval, offsets[seg], offsets[seg + 1], rtol, tol, out, hit)
+        ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, loop, run.refs[seg], v, u)
+        status, written, n_f, n_s = solve(_call, ctx, _leaves_event, ectx, run.edges.size > 0, method, (t_bounds[seg, 0], t_bounds[seg, 1]),
+                                          y, (run.t_eval, offsets[seg], offsets[seg + 1]), tol, out, hit)
         nfev += n_f
         steps += n_s
         if status != 0:
@@ -471,13 +471,13 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, dims, z0, t_bounds, t_eva
     return 0, written, t_bounds.shape[0], nfev, steps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, I1, F2, I1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), nogil=True, **OPTIONS)
-def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y):
+@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F2, I1, F2, SAMPLES), nogil=True, **OPTIONS)
+def samples(eval_xi, eval_x, loop, Z, seg_of_row, refs, out):
     """At every row of Z: v and u (tracking_law), psi = kappa(xi) and y = h(x).
 
     Parameters
     ----------
-    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat
+    eval_xi, eval_x, loop
         As :func:`closed_loop`.
     Z : 2-D float array (N, n_hat + n + 1)
         The samples [xi, x, w] (integrate's out).
@@ -485,27 +485,28 @@ def samples(eval_xi, eval_x, dims, Z, seg_of_row, refs, prm, L, K, U, q_ls, sat,
         Each row's segment, its row of refs.
     refs : 2-D float array (segments, n_hat)
         Each segment's xi_ref.
-    V, Uo, PSI, Y : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p)
-        Written: v, u, psi and y, row k at Z[k].
+    out : Samples
+        Written: v, u, psi and y (shapes (N, m_hat), (N, m), (N, p), (N, p)), row k at Z[k].
     """
+    dims = loop.dims
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
     u = np.empty(M)
     for k in range(Z.shape[0]):
         z = Z[k]
-        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-        _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, refs[seg_of_row[k]], prm, L, K, U, q_ls, sat, v, u, dz)
-        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
+        at = design_at(eval_xi, eval_x, dims, z)
+        _loop_at(eval_x, at, loop, z, refs[seg_of_row[k]], v, u, dz)
+        store_sample(k, v, u, at.kap, at.h, out)
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, U_KERNEL, I1, F1, F2, F1, F2, F2, F2, types.int64, types.int64, F2, F2, F2, F2), nogil=True, **OPTIONS)
-def signal_samples(eval_xi, eval_x, eval_u, dims, t, Z, prm, L, K, U, q_ls, sat, V, Uo, PSI, Y):
+@njit(types.void(XI_KERNEL, X_KERNEL, U_KERNEL, LOOP, F1, F2, SAMPLES), nogil=True, **OPTIONS)
+def signal_samples(eval_xi, eval_x, eval_u, loop, t, Z, out):
     """At every row of Z (time t[k]): v = v(t) (eval_u), u (the interface), psi = kappa(xi) and y = h(x).
 
     Parameters
     ----------
-    eval_xi, eval_x, dims, prm, L, K, U, q_ls, sat
+    eval_xi, eval_x, loop
         As :func:`signal_rhs`.
     eval_u : U_KERNEL
         The abstract input v(t).
@@ -513,9 +514,10 @@ def signal_samples(eval_xi, eval_x, eval_u, dims, t, Z, prm, L, K, U, q_ls, sat,
         The sample times.
     Z : 2-D float array (N, n_hat + n + 1)
         The samples [xi, x, w] (integrate's out).
-    V, Uo, PSI, Y : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p)
+    out : Samples
         Written: v, u, psi and y, row k at Z[k].
     """
+    dims = loop.dims
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N + 1)
     v = np.empty(MH)
@@ -526,13 +528,13 @@ def signal_samples(eval_xi, eval_x, eval_u, dims, t, Z, prm, L, K, U, q_ls, sat,
         z = Z[k]
         tt[0] = t[k]
         eval_u(tt, v)
-        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
-        _loop_at(eval_x, phi, delta, l, dpd, pm, fb, g, dims, z, ref, prm, L, K, U, q_ls, sat, v, u, dz)
-        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
+        at = design_at(eval_xi, eval_x, dims, z)
+        _loop_at(eval_x, at, loop, z, ref, v, u, dz)
+        store_sample(k, v, u, at.kap, at.h, out)
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, F2, F2, F2, F2, F2), nogil=True, **OPTIONS)
-def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, MX):
+@njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, F1, F2, SAMPLES, F2), nogil=True, **OPTIONS)
+def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, out, MX):
     """At every row of Z = [xi, x] (time t[k]): v and u (link_loop), psi = kappa(xi), y = h(x) and m(x).
 
     Parameters
@@ -543,8 +545,10 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
         The sample times.
     Z : 2-D float array (N, n_hat + n)
         The samples (integrate's out).
-    V, Uo, PSI, Y, MX : 2-D float arrays (N, m_hat), (N, m), (N, p), (N, p), (N, n_hat)
-        Written: v, u, psi, y and m(x), row k at Z[k].
+    out : Samples
+        Written: v, u, psi and y, row k at Z[k].
+    MX : 2-D float array (N, n_hat)
+        Written: m(x), row k at Z[k].
     """
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     dz = np.empty(NH + N)
@@ -556,9 +560,9 @@ def link_samples(eval_xi, eval_x, eval_link, eval_u, dims, t, Z, V, Uo, PSI, Y, 
     for k in range(Z.shape[0]):
         z = Z[k]
         link_loop(eval_xi, eval_x, eval_link, eval_u, dims, t[k], z, v, u, dz)
-        phi, delta, l, dpd, kap, pm, fb, g, h = design_at(eval_xi, eval_x, dims, z)
+        at = design_at(eval_xi, eval_x, dims, z)
         x = z[NH:NH + N].copy()
         link_terms(eval_link, dims, x, u, b, c, mx)
-        store_sample(k, v, u, kap, h, V, Uo, PSI, Y)
+        store_sample(k, v, u, at.kap, at.h, out)
         for i in range(NH):
             MX[k, i] = mx[i]
