@@ -125,3 +125,24 @@ def test_a_blow_up_fails_instead_of_hanging():
         with np.errstate(all="ignore"):      # scipy's overflow on the way, as the engine's
             ref = sint.solve_ivp(lambda t, y: 800.0 * y + np.array([np.sin(t), 0, 0]), (0.0, 10.0), y0, method=method, rtol=1e-8, atol=1e-10)
         assert status == -1 and ref.status == -1
+
+
+def test_fixed_step_is_the_textbook_rk4_bit_for_bit_and_of_order_four():
+    # the task plan's step (rk.fixed_step with rk.RK4) against RK4 written out, on a nonlinear field
+    def f(y):
+        return np.array([y[1], -np.sin(y[0]) - 0.3 * y[1]])
+
+    y, h = np.array([1.2, -0.4]), 0.05
+    k1 = f(y)
+    k2 = f(y + 0.5 * h * k1)
+    k3 = f(y + 0.5 * h * k2)
+    k4 = f(y + h * k3)
+    assert np.array_equal(rk.fixed_step(f, y, h, k1), y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4))
+
+    def error(steps):                           # y' = -y over [0, 1]
+        z, dt = np.array([1.0]), 1.0 / steps
+        for _ in range(steps):
+            z = rk.fixed_step(lambda u: -u, z, dt, -z)
+        return abs(z[0] - np.exp(-1.0))
+
+    assert 14.0 < error(20) / error(40) < 18.0   # halving the step divides the error by 2^4

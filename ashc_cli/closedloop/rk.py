@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 from scipy.integrate._ivp import dop853_coefficients as _dop853, rk as _rk
 
-__all__ = ["DOP853", "DP54", "stage_input", "stage_time", "attempt", "error_norm", "step_factor", "initial_step", "dense_prepare", "dense_eval",
+__all__ = ["DOP853", "DP54", "RK4", "fixed_step", "stage_input", "stage_time", "attempt", "error_norm", "step_factor", "initial_step", "dense_prepare", "dense_eval",
            "event_root", "solve"]
 
 INLINE = dict(inline="always", cache=True, error_model="numpy")
@@ -28,6 +28,10 @@ DOP853 = tuple(np.ascontiguousarray(a, dtype=float) for a in (_dop853.A, _dop853
 #: scipy's RK45, Dormand-Prince 5(4) (the 5th-order solution is the last stage, FSAL; 4th-order dense output).
 DP54 = tuple(np.ascontiguousarray(a, dtype=float) for a in (_square(_rk.RK45.A, 7), _rk.RK45.B, _rk.RK45.C, _rk.RK45.E,
                                                              np.zeros(0), _rk.RK45.P))
+#: The classical Runge-Kutta method of order 4, for plans stepped on a fixed grid in numpy (:func:`fixed_step`):
+#: (A, weights, divisor), y_new = y + h / 6 (k1 + 2 k2 + 2 k3 + k4), the weights kept whole over their divisor so
+#: that the sum is the textbook one, term by term.
+RK4 = (np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 1.0]]), np.array([1.0, 2.0, 2.0, 1.0]), 6.0)
 #: -1 / (order of the error estimate + 1), the exponent of the step-size rule.
 DOP853_EXPONENT = -1.0 / 8.0
 DP54_EXPONENT = -1.0 / 5.0
@@ -537,3 +541,40 @@ def solve(call, ctx, event, ectx, watch, method, span, y, samples, tol, out, hit
     if i_end > i_eval:                         # not reached: the last sample is t_bound
         return -1, written, nfev, steps
     return 0, written, nfev, steps
+
+
+def fixed_step(f, y: np.ndarray, h: float, k1: np.ndarray, tab=RK4) -> np.ndarray:
+    """One explicit Runge-Kutta step of fixed size h in numpy, for an autonomous f (a plan on the abstraction,
+    whose field is numpy code, not a compiled loop): y + h / divisor sum_s w_s k_s, k_s = f(y + h sum_j A[s, j] k_j).
+
+    Parameters
+    ----------
+    f : callable
+        y -> y' (1-D arrays).
+    y : 1-D array
+        The state at the step's start.
+    h : float
+        The step.
+    k1 : 1-D array
+        f(y), which the caller has (it samples the plan there).
+    tab : tuple
+        (A, weights, divisor), :data:`RK4` by default.
+
+    Returns
+    -------
+    1-D array
+        The state after the step.
+    """
+    A, w, divisor = tab
+    ks = [k1]
+    for s in range(1, w.size):
+        acc = None
+        for j in range(s):
+            if A[s, j] != 0.0:
+                term = A[s, j] * ks[j]
+                acc = term if acc is None else acc + term
+        ks.append(f(y if acc is None else y + h * acc))
+    acc = w[0] * ks[0]
+    for s in range(1, w.size):
+        acc = acc + w[s] * ks[s]
+    return y + h / divisor * acc

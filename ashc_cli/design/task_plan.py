@@ -34,6 +34,7 @@ from scipy.optimize import minimize_scalar
 
 from ashc_cli.closedloop import plan as guaranteed
 from ashc_cli.closedloop import runner
+from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact
@@ -212,10 +213,7 @@ def _integrate(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.n
         k1, v_run[:, i] = field(z, ref, here)
         if i == t.size - 1:
             break
-        k2 = field(z + 0.5 * dt * k1, ref)[0]
-        k3 = field(z + 0.5 * dt * k2, ref)[0]
-        k4 = field(z + dt * k3, ref)[0]
-        z = z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        z = rk.fixed_step(lambda y: field(y, ref)[0], z, dt, k1)
     return t, xi, psi, v_run, switches
 
 
