@@ -7,10 +7,10 @@ function of xi and one of x (:class:`BatchPlant`) and the interface's terms that
 from __future__ import annotations
 
 import numpy as np
-import sympy as sp
 
+from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.numerics.linalg import least_squares_q
-from ashc_cli.problem.model import Model, compile_flat, sparse_jacobian
+from ashc_cli.problem.model import Model, compile_flat
 
 
 class BatchPlant:
@@ -18,12 +18,9 @@ class BatchPlant:
     one of x (each call returns every term, shape (N, rows, cols))."""
 
     def __init__(self, model: Model, arts: dict):
-        xi_terms = {"phi": model.phi_bar, "delta": arts["delta"].expr("delta"), "l": model.l,
-                    "dpd": arts["bound"].expr("dp_delta"), "p": arts["manifold"].expr("p"), "kappa": arts["kappa"].expr("kappa"),
-                    "dp": arts["manifold"].expr("dp_dxi")}
+        xi_terms = design_matrices(model, arts, ("phi", "delta", "l", "dpd", "p", "kappa", "dp"))
         # A plant written as f(x, u): "f_bar" is f(x, u) and g = 0, compiled in x and u (at_x takes the inputs).
-        fb, g = (model.f_bar, model.g) if model.affine else (model.f, sp.zeros(model.n, model.m))
-        x_terms = {"f_bar": fb, "g": g, "h": model.h, "dh": sparse_jacobian(model.h, model.x)}
+        x_terms = design_matrices(model, arts, ("f_bar", "g", "h", "dh"))
         self.m = model.m
         self._xi = self._named(xi_terms, list(model.xi), model)
         self._x = self._named(x_terms, list(model.x) + list(model.u), model)

@@ -25,6 +25,7 @@ import numpy as np
 import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
+from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.errors import NumericalError, Unsupported
 from ashc_cli.problem.model import almost_everywhere
 
@@ -162,22 +163,21 @@ def emit_kernel(name: str, state: str, symbols: Sequence[sp.Symbol], outputs: Se
 
 
 def _design_terms(model, up):
-    xi_terms = [("phi", model.phi_bar, True), ("delta", up["delta"].expr("delta"), False), ("l", model.l, True),
-                ("dpd", up["bound"].expr("dp_delta"), False), ("kap", up["kappa"].expr("kappa"), True),
-                ("pm", up["manifold"].expr("p"), True)]
-    # A plant written as f(x, u): fb = f(x, u) and g = 0 (the kernel's state is [x, u]; an input-affine one ignores u).
-    fb, g = (model.f_bar, model.g) if model.affine else (model.f, sp.zeros(model.n, model.m))
+    """The kernels' outputs (array name, matrix, as a vector), from :func:`~ashc_cli.closedloop.terms.design_matrices`:
+    phi, delta, l, dpd, kap, pm of xi; fb, g, h of [x, u] (a plant written as f(x, u): fb = f(x, u) and g = 0; the
+    kernel's state is [x, u], an input-affine one ignores u)."""
+    replace = {}
     w0 = _run_disturbance(model)
     if w0 is not None:      # the tracking run's constant disturbance, switched by the kernel's last state entry
-        fb = fb + DISTURBANCE_ON * model.e * sp.Matrix(w0)
-    x_terms = [("fb", fb, True), ("g", g, False), ("h", model.h, True)]
-    nh, n, m, mh, p = model.n_hat, model.n, model.m, model.m_hat, model.p
-    expected = {"phi": (nh, 1), "delta": (nh, mh), "l": (m, 1), "dpd": (n, mh), "kap": (p, 1), "pm": (n, 1),
-                "fb": (n, 1), "g": (n, m), "h": (p, 1)}
-    for name, matrix, _ in xi_terms + x_terms:
-        if tuple(matrix.shape) != expected[name]:
-            raise Unsupported(f"{name} has shape {tuple(matrix.shape)}, expected {expected[name]}")
-    return xi_terms, x_terms
+        f = model.f_bar if model.affine else model.f
+        replace["f_bar"] = f + DISTURBANCE_ON * model.e * sp.Matrix(w0)
+    try:
+        T = design_matrices(model, up, ("phi", "delta", "l", "dpd", "kappa", "p", "f_bar", "g", "h"), replace)
+    except ValueError as exc:
+        raise Unsupported(str(exc)) from None
+    xi_terms = [("phi", T["phi"], True), ("delta", T["delta"], False), ("l", T["l"], True), ("dpd", T["dpd"], False),
+                ("kap", T["kappa"], True), ("pm", T["p"], True)]
+    return xi_terms, [("fb", T["f_bar"], True), ("g", T["g"], False), ("h", T["h"], True)]
 
 
 #: The x kernel's last state entry: 1 switches the tracking run's constant disturbance e(x) w0 on, 0 off.

@@ -16,7 +16,7 @@ from numba import carray, njit, types
 from numba.extending import intrinsic
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, times
-from ashc_cli.closedloop.laws import pinv_into
+from ashc_cli.closedloop.laws import pinv_into, setpoint_direction
 from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, error_norm, stage_input, step_factor
 
 F1 = types.float64[::1]
@@ -147,11 +147,9 @@ def _apply(T, D, v, u, dxi, dx):
 def _setpoint_v(z, T, ref, gain, noise, v_limit, v):
     """The random strategy's law: v = delta^+ (gain (ref - xi) - phi_bar) + noise, its norm clipped to v_limit."""
     pinv_into(T.delta, T.dplus)
+    setpoint_direction(T.dplus, T.phi, z, ref, gain, v)
     for a in range(v.size):
-        s = 0.0
-        for i in range(ref.size):
-            s += T.dplus[a, i] * (gain * (ref[i] - z[i]) - T.phi[i])
-        v[a] = s + noise[a]
+        v[a] = v[a] + noise[a]
     shrink = min(1.0, v_limit / max(_norm(v), 1e-300))
     for a in range(v.size):
         v[a] *= shrink

@@ -22,7 +22,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.closedloop.compiled import Unsupported, emit_kernel, available, interface_codes, load_source
-from ashc_cli.problem.model import sparse_jacobian
+from ashc_cli.closedloop.terms import design_matrices
 
 __all__ = ["FalsifyLoop", "falsify_loop", "threads"]
 
@@ -37,18 +37,13 @@ KERNEL_SIGNATURE = "types.void(F1, F1)"
 
 def _matrices(model, arts):
     """The kernels' matrices, in the order of the flat buffers: (name, matrix) for xi and for x."""
-    xi_terms = [("phi", model.phi_bar), ("delta", arts["delta"].expr("delta")), ("l", model.l),
-                ("dpd", arts["bound"].expr("dp_delta")), ("kap", arts["kappa"].expr("kappa")),
-                ("pm", arts["manifold"].expr("p")), ("dp", arts["manifold"].expr("dp_dxi"))]
-    x_terms = [("fb", _drift(model)), ("g", model.g if model.affine else sp.zeros(model.n, model.m)), ("h", model.h),
-               ("dh", sparse_jacobian(model.h, model.x))]
-    nh, n, m, mh, p = model.n_hat, model.n, model.m, model.m_hat, model.p
-    expected = {"phi": (nh, 1), "delta": (nh, mh), "l": (m, 1), "dpd": (n, mh), "kap": (p, 1), "pm": (n, 1), "dp": (n, nh),
-                "fb": (n, 1), "g": (n, m), "h": (p, 1), "dh": (p, n)}
-    for name, matrix in xi_terms + x_terms:
-        if tuple(matrix.shape) != expected[name]:
-            raise Unsupported(f"{name} has shape {tuple(matrix.shape)}, expected {expected[name]}")
-    return xi_terms, x_terms
+    try:
+        T = design_matrices(model, arts, ("phi", "delta", "l", "dpd", "kappa", "p", "dp", "f_bar", "g", "h", "dh"), {"f_bar": _drift(model)})
+    except ValueError as exc:
+        raise Unsupported(str(exc)) from None
+    xi_terms = [(k, T[name]) for k, name in (("phi", "phi"), ("delta", "delta"), ("l", "l"), ("dpd", "dpd"), ("kap", "kappa"),
+                                              ("pm", "p"), ("dp", "dp"))]
+    return xi_terms, [(k, T[name]) for k, name in (("fb", "f_bar"), ("g", "g"), ("h", "h"), ("dh", "dh"))]
 
 
 def _drift(model) -> sp.Matrix:

@@ -65,6 +65,33 @@ def pinv(a):
 
 
 @njit(**INLINE)
+def setpoint_direction(dplus, phi, xi, xi_ref, gain, v):
+    """The set-point law before its limit into ``v``: delta^+ (gain (xi_ref - xi) - phi_bar), so that xi' = gain
+    (xi_ref - xi) where delta has full row rank.  :func:`setpoint` clips it; falsify's random strategy adds noise
+    and scales it to its norm limit.
+
+    Parameters
+    ----------
+    dplus : 2-D float array (m_hat, n_hat)
+        delta(xi)^+ (:func:`pinv_into`).
+    phi : 1-D float array (n_hat,)
+        phi_bar(xi).
+    xi : 1-D float array
+        The abstract state in its first n_hat entries (a longer state [xi, x, ...] may be passed).
+    xi_ref : 1-D float array (n_hat,)
+        The reference.
+    gain : float
+    v : 1-D float array (m_hat,)
+        Filled.
+    """
+    for a in range(v.size):
+        s = 0.0
+        for i in range(xi_ref.size):
+            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
+        v[a] = s
+
+
+@njit(**INLINE)
 def setpoint(delta, phi, xi, xi_ref, gain, v_max, v):
     """The set-point controller into ``v``: clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max).
 
@@ -77,12 +104,9 @@ def setpoint(delta, phi, xi, xi_ref, gain, v_max, v):
     v : 1-D float array (m_hat,)
         Filled with the abstract input.
     """
-    dplus = pinv(delta)
+    setpoint_direction(pinv(delta), phi, xi, xi_ref, gain, v)
     for a in range(v.size):
-        s = 0.0
-        for i in range(xi.size):
-            s += dplus[a, i] * (gain * (xi_ref[i] - xi[i]) - phi[i])
-        v[a] = min(max(s, -v_max), v_max)
+        v[a] = min(max(v[a], -v_max), v_max)
 
 
 @njit(**INLINE)

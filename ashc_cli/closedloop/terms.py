@@ -1,12 +1,69 @@
 """The design's terms bundled once from the artefacts: the maps every closed loop evaluates (plant, abstraction,
-interface), compiled into fused numpy functions on first use."""
+interface), compiled into fused numpy functions on first use.
+
+:func:`design_matrices` is the one place that says where each term comes from and what shape it has; every loop
+(these fused functions, the batch of :mod:`~ashc_cli.closedloop.batch`, the tracking kernels of
+:mod:`~ashc_cli.closedloop.compiled` and falsify's of :mod:`~ashc_cli.closedloop.falsify_loop`) takes the terms it
+reads from it by name."""
 
 from __future__ import annotations
 
 import numpy as np
 import sympy as sp
 
-from ashc_cli.problem.model import Model, compile_terms
+from ashc_cli.problem.model import Model, compile_terms, sparse_jacobian
+
+#: Each term's shape, in the sizes n_hat, n, m, m_hat, p of the model.
+SHAPES = {"phi": ("n_hat", 1), "delta": ("n_hat", "m_hat"), "l": ("m", 1), "dpd": ("n", "m_hat"), "p": ("n", 1),
+          "kappa": ("p", 1), "dp": ("n", "n_hat"), "f_bar": ("n", 1), "g": ("n", "m"), "h": ("p", 1), "dh": ("p", "n"),
+          "b": ("m_hat", 1), "c": ("m_hat", "m"), "m": ("n_hat", 1)}
+
+
+def design_matrices(model: Model, up: dict, names, replace: dict | None = None) -> dict[str, sp.Matrix]:
+    """The design's terms ``names`` as sympy matrices, each checked against its shape.
+
+    phi = phi_bar(xi), delta(xi), l(xi), dpd = dp/dxi delta(xi), p(xi), kappa(xi), dp = dp/dxi(xi) of the
+    abstraction and the manifold; f_bar(x), g(x), h(x), dh = dh/dx(x), b(x), c(x) and m(x) of the plant, the link and
+    the left inverse.  For a plant written as f(x, u), f_bar is f(x, u) and g = 0 (a loop then evaluates f at the
+    input it applies).
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+        The design's artefacts by stage (those the names need).
+    names : iterable of str
+        Keys of :data:`SHAPES`.
+    replace : dict, optional
+        Terms a loop builds its own way (falsify's f_bar at the saturated input, the tracking run's disturbance),
+        by name; they are checked against the shape too.
+
+    Returns
+    -------
+    dict of str to sympy Matrix
+
+    Raises
+    ------
+    ValueError
+        A term's shape is not the one :data:`SHAPES` gives.
+    """
+    sources = {"phi": lambda: model.phi_bar, "delta": lambda: up["delta"].expr("delta"), "l": lambda: model.l,
+               "dpd": lambda: up["bound"].expr("dp_delta"), "p": lambda: up["manifold"].expr("p"),
+               "kappa": lambda: up["kappa"].expr("kappa"), "dp": lambda: up["manifold"].expr("dp_dxi"),
+               "f_bar": lambda: model.f_bar if model.affine else model.f,
+               "g": lambda: model.g if model.affine else sp.zeros(model.n, model.m), "h": lambda: model.h,
+               "dh": lambda: sparse_jacobian(model.h, model.x), "b": lambda: up["delta"].expr("b"),
+               "c": lambda: up["delta"].expr("c"), "m": lambda: up["inverse"].expr("m")}
+    sizes = {"n_hat": model.n_hat, "n": model.n, "m": model.m, "m_hat": model.m_hat, "p": model.p, 1: 1}
+    out = {}
+    for name in names:
+        matrix = (replace or {}).get(name)
+        matrix = sources[name]() if matrix is None else matrix
+        expected = tuple(sizes[s] for s in SHAPES[name])
+        if tuple(matrix.shape) != expected:
+            raise ValueError(f"{name} has shape {tuple(matrix.shape)}, expected {expected}")
+        out[name] = matrix
+    return out
 
 
 class DesignTerms:
@@ -21,14 +78,12 @@ class DesignTerms:
 
     def __init__(self, model: Model, up: dict):
         self.n, self.m, self.nh, self.mh, self.p = model.n, model.m, model.n_hat, model.m_hat, model.p
-        m_of_x = up["inverse"].expr("m")
+        T = design_matrices(model, up, ("phi", "delta", "l", "dpd", "kappa", "p", "f_bar", "g", "h", "b", "c", "m"))
         self._terms = {
-            "xi": ([model.phi_bar, up["delta"].expr("delta"), model.l, up["bound"].expr("dp_delta"), up["kappa"].expr("kappa"),
-                    up["manifold"].expr("p")], model.xi),
+            "xi": ([T[k] for k in ("phi", "delta", "l", "dpd", "kappa", "p")], model.xi),
             # a plant written as f(x, u): f_bar is f(x, u), g = 0 and b is b(x, u) (at_x takes the input)
-            "x": ([model.f_bar if model.affine else model.f, model.g if model.affine else sp.zeros(model.n, model.m), model.h,
-                   up["delta"].expr("b"), up["delta"].expr("c"), m_of_x], list(model.x) + list(model.u)),
-            "h_m": ([model.h, m_of_x], model.x),
+            "x": ([T[k] for k in ("f_bar", "g", "h", "b", "c", "m")], list(model.x) + list(model.u)),
+            "h_m": ([T["h"], T["m"]], model.x),
         }
         self._values = model.values
         self._compiled = {}
