@@ -4,9 +4,9 @@ least-squares q), the set-point controller, the state derivatives and the compar
 interface itself is :mod:`ashc_cli.closedloop.interface`.  The numpy form of :func:`pinv` is
 :func:`ashc_cli.numerics.linalg.pinv` (the same arithmetic: the tests hold them to round-off).
 
-They work on 2-D arrays; falsification views its flat per-run buffers as matrices once per run.  A view made per
-call (a slice and a reshape each time: a reference count on a buffer) cost falsify's 3000 Cuk runs 47% (measured
-against the laws written out in each core); made once per run it costs nothing measurable.
+They work on 2-D arrays.  Falsification views its flat per-run buffers as matrices once per run, with views that
+carry no reference count (``falsify_core._vec``): views made by slicing cost its 3000 Cuk runs 2.2x, every call
+that binds one paying an atomic count (docs/guide.md, "Compiled closed loops").
 """
 
 import numpy as np
