@@ -78,6 +78,49 @@ def test_batch_is_reproducible_and_keeps_what_it_drew(tmp_path):
     assert np.all(art["worst_error"] <= art["worst_bound"] + floor)
 
 
+def test_a_start_far_off_the_manifold_is_not_a_false_alarm(tmp_path):
+    # cuk_guaranteed's 120 s runs from W0 up to 1e10: at rtol 1e-5 (and still at 1e-7) the integrator keeps an
+    # error of about rtol |x| while the W0 term decays to 1e-21; the search read violations by 4.8e19 (run 40,
+    # seed 0), never verified since the rounds went to the refined runs. Every run above 1 is verified now, and
+    # the verification's own integration error is measured against TOL_FINE and not counted.
+    out = tmp_path / "d"
+    r = ashc("falsify", str(COUNTER_SPECS / "cuk_guaranteed.yaml"), "--out", str(out), "--runs", "64")
+    assert r.returncode == 0, r.stdout + r.stderr
+    art = read_artefact(out / "falsify.h5").values
+    assert art["max_ratio"] <= 1.0 and np.all(art["run_ratio"] <= 1.0)
+    assert np.sum(art["verified"]) > 2 * falsify.VERIFY_TOP          # not only the two headline runs
+
+
+def _series(err, fine, bound, xi):
+    """One recorded run for falsify._resolved: the TOL_VERIFY error, the TOL_FINE error, the bound, xi (1-D)."""
+    H = err.size
+    Z = np.c_[xi, np.ones(H)]
+    return {"Z": Z[None], "err": err[None], "bound": bound[None]}, {"err": fine[None]}
+
+
+def test_the_verified_ratio_takes_off_the_integration_error_and_nothing_more():
+    st = SimpleNamespace(model=SimpleNamespace(n_hat=1, V=np.array([[-1.0, 1.0]])), floor=1e-7,
+                         scale=np.array([2.0, 1.0]))
+    t = np.linspace(0.0, 120.0, 121)
+    bound = 10.0 * np.exp(-0.4 * t)
+    xi = np.zeros_like(t)
+    # an error plateau of the integrator (1e-5 at TOL_VERIFY, 1e-9 at TOL_FINE) above a bound that decays to 1e-20
+    plateau = np.full_like(t, 1e-5)
+    r, fine = _series(np.minimum(plateau + bound / 2, 10.0), np.minimum(1e-9 + bound / 2, 10.0), bound, xi)
+    got = falsify._resolved(st, r, fine, 0)
+    assert got["ratio"] <= 0.5 + 1e-9
+    # a real excess that both tolerances agree on is kept: three times the bound from t = 10 s
+    err = np.where(t >= 10.0, 3.0 * bound, bound / 2)
+    r, fine = _series(err, err * (1 + 1e-9), bound, xi)
+    got = falsify._resolved(st, r, fine, 0)
+    assert got["ratio"] == pytest.approx(3.0, rel=1e-6) and t[got["k_at"]] >= 10.0
+    # after xi first leaves V nothing counts, even when it comes back: only the samples before t = 6 s
+    xi_out = np.where((t > 5.0) & (t < 8.0), 2.0, 0.0)
+    r, fine = _series(err, err, bound, xi_out)
+    got = falsify._resolved(st, r, fine, 0)
+    assert got["ratio"] == pytest.approx(0.5, rel=1e-6) and t[got["k_at"]] <= 5.0
+
+
 def test_a_broken_bound_is_found(tmp_path):
     # Shrink the gain G a thousandfold in memory: the falsifier must now see errors above the "bound".
     spec, arts = _designed(SPECS / "nonlinear_cascade.yaml", tmp_path)
