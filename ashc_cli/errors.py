@@ -171,4 +171,10 @@ class CoverError(ValueError):
         self.y, self.residual, self.excursion = y, residual, excursion
 
 
+class Untranslatable(ValueError):
+    """A law that ``ashc export`` prints (:mod:`ashc_cli.outputs.translate`) uses a construct outside the subset the
+    printer reads; the message names the function, its file and line.  A developer's error: the tests print every
+    law, so it never reaches a user."""
+
+
 EXIT_CODES = {cls.__name__: cls.exit_code for cls in (SpecError, DesignError, NumericalError, ArtefactError)}

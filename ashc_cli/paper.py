@@ -345,7 +345,7 @@ EQUATIONS: tuple[Equation, ...] = (
     Equation("eq. (41)", "the converter's abstraction", elsewhere="specs/cuk_converter.yaml (abstract)"),
     Equation("eq. (42)", "the converter's interface u_w = xi + q v (eq. (15) with l(xi) = xi)", (_C + "closedloop.interface.apply",)),
     Equation("eq. (43)", "the least-squares q = (g^T M g)^-1 g^T M dp/dxi delta", (_C + "closedloop.interface.q_of", _C + "numerics.linalg.least_squares_q")),
-    Equation("eq. (44)", "the saturated interface u = sat(xi + q v)", (_C + "closedloop.interface.saturate", _C + "problem.model.apply_saturation")),
+    Equation("eq. (44)", "the saturated interface u = sat(xi + q v)", (_C + "closedloop.interface.saturate", _C + "closedloop.interface.apply_saturation")),
 )
 
 

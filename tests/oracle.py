@@ -19,7 +19,21 @@ from ashc_cli.closedloop.plan import GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVE
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.numerics.linalg import pinv
 from ashc_cli.errors import NumericalError
-from ashc_cli.problem.model import TIME, Model, apply_saturation, compile_flat
+from ashc_cli.problem.model import TIME, Model, compile_flat
+
+
+def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode) -> np.ndarray:
+    """SAT of eq. (44) written here in numpy, apart from the tool's (closedloop/interface.py): the oracle's own."""
+    u = l + correction
+    if mode == "scale":
+        lo, hi = U[:, 0], U[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(correction > 0, (hi - l) / correction, np.where(correction < 0, (lo - l) / correction, np.inf))
+        s = np.clip(np.min(room, axis=-1, keepdims=True), 0.0, 1.0)
+        return l + s * correction
+    if mode:
+        return np.clip(u, U[:, 0], U[:, 1])
+    return u
 
 
 def tracking_law(plant: DesignTerms, xi: np.ndarray, x: np.ndarray, xi_ref: np.ndarray, gain: float, v_max: float,

@@ -483,7 +483,9 @@ def test_python_and_c_sources_from_one_gathering(designs):
     d = designs["unstable_linear"]
     design = gather(d["spec"], d["arts"])
     source, header = c_sources(design, "x.h")
-    assert "static const double K[ASHC_N_INPUTS][ASHC_N_STATES]" in source and "K[j][i] * (x[i] - pm[i])" in source
+    assert "static const double K[ASHC_N_INPUTS][ASHC_N_STATES]" in source and "feedback_of(&K[0][0]" in source
+    # the law is the compiled loops' own function, printed: its arithmetic, with K's extents
+    assert "s += (K[j * K_cols + i] * (x[i] - pm[i]));" in source
     assert "K = numpy.array(" in python_source(design)
     assert design.K is not None and design.K.shape == (1, 2)
     cuk = gather(designs["cuk_converter"]["spec"], designs["cuk_converter"]["arts"])

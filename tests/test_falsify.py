@@ -19,7 +19,7 @@ import pytest
 from ashc_cli.products import falsify
 from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.design.pipeline import DESIGN, design_model, run
-from ashc_cli.problem.model import apply_saturation
+from ashc_cli.closedloop.interface import apply_saturation
 from ashc_cli.problem.spec import load_spec
 from ashc_cli.design.stages.bound import error_bound_gain
 

@@ -27,6 +27,7 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.errors import NumericalError, Unsupported
+from ashc_cli.closedloop.interface import SATURATE_CODES, interface_codes
 from ashc_cli.problem.model import almost_everywhere
 
 __all__ = ["Unsupported", "SATURATE_CODES", "interface_codes", "TrackingLoop", "TrackingRun", "tracking_loop", "abstract_signal", "MRelationLoop", "MRelationRun", "m_relation_loop", "cache_dir",
@@ -480,37 +481,6 @@ class TrackingRun:
     steps: int
     scale: np.ndarray | None = None
     slack: np.ndarray | None = None
-
-
-#: The codes of ``interface.saturate`` that :func:`ashc_cli.closedloop.laws.saturate` reads as ``sat``: no clipping, each channel, one scale.
-SATURATE_CODES = {False: 0, True: 1, "scale": 2}
-
-
-def interface_codes(q_kind: str, saturate_kind) -> tuple[int, int]:
-    """The interface's choices as the integer codes the compiled loops read: (1 for the least-squares q of eq. (43),
-    0 for q = 0; the saturation's code, :data:`SATURATE_CODES`).
-
-    Parameters
-    ----------
-    q_kind : str
-        ``interface.q``: ``least_squares`` or ``zero``.
-    saturate_kind : bool or str
-        ``interface.saturate``: True, False or ``scale``.
-
-    Returns
-    -------
-    (int, int)
-
-    Raises
-    ------
-    ValueError
-        Naming the key whose value no compiled loop knows.
-    """
-    if q_kind not in ("least_squares", "zero"):
-        raise ValueError(f"interface.q = {q_kind!r}")
-    if not isinstance(saturate_kind, (bool, np.bool_, str)) or saturate_kind not in SATURATE_CODES:
-        raise ValueError(f"interface.saturate = {saturate_kind!r}")
-    return int(q_kind == "least_squares"), SATURATE_CODES[saturate_kind]
 
 
 class TrackingLoop:

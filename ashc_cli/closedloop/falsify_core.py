@@ -16,11 +16,9 @@ from numba import carray, njit, types
 from numba.extending import intrinsic
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, times
-from ashc_cli.closedloop.laws import pinv_into, setpoint_direction
+from ashc_cli.closedloop.laws import F1, F2, pinv_into, setpoint_direction
 from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, error_norm, stage_input, step_factor
 
-F1 = types.float64[::1]
-F2 = types.float64[:, ::1]
 F3 = types.float64[:, :, ::1]
 I1 = types.int64[::1]
 I2 = types.int64[:, ::1]

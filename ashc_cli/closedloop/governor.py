@@ -222,7 +222,7 @@ def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     x = z[NH:NH + N].copy()
     w = z[NH + N]
     v_sp = np.empty(MH)
-    setpoint(delta, phi, xi, xi_ref, gain, v_max, v_sp)
+    setpoint(delta, np.empty((MH, NH)), phi, xi, xi_ref, gain, v_max, v_sp)
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
     q = np.empty((M, MH))

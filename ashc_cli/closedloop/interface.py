@@ -8,19 +8,20 @@ multiplies q v.  The comparison system (C) of the a-posteriori bound reads :func
 r = dp/dxi delta s v - (f(x, u) - f(x, u_nominal)).
 
 Each function works on 2-D arrays of the loop's own (falsification's flat work buffers are viewed as matrices once
-per run) and is inlined into its caller.  The numpy forms are :func:`ashc_cli.problem.model.apply_saturation` and
-:func:`ashc_cli.numerics.linalg.pinv` (the same arithmetic: the tests hold them to round-off), and the printers of
-``ashc export`` (:mod:`ashc_cli.outputs.printers`) write the same steps in C and Python.
+per run) and is inlined into its caller.  Numpy callers use the same functions (:func:`apply_saturation` over rows,
+:func:`interface_u` at a point), and ``ashc export`` prints them as C and Python (:mod:`ashc_cli.outputs.translate`):
+the parameters are annotated with their kinds for that printer (``F1`` a vector, ``F2`` a matrix, ``int``,
+``float``; numba ignores annotations), and the bodies stay within the subset it reads.
 """
 
 import numpy as np
 from numba import njit
 
-from ashc_cli.closedloop.laws import INLINE, pinv_into
+from ashc_cli.closedloop.laws import F1, F2, INLINE, pinv_into
 
 
 @njit(**INLINE)
-def saturate(lb, lo, cb, co, U, sat, u, m):
+def saturate(lb: F1, lo: int, cb: F1, co: int, U: F2, sat: int, u: F1, m: int):
     """u = SAT(l + correction) into ``u``: the interface of eq. (15) with the saturation of eq. (44).
 
     Parameters
@@ -63,7 +64,7 @@ def saturate(lb, lo, cb, co, U, sat, u, m):
 
 
 @njit(**INLINE)
-def feedback_of(K, x, pm, feedback):
+def feedback_of(K: F2, x: F1, pm: F1, feedback: F1):
     """K (x - p(xi)) into ``feedback``: the feedback term of the interface (eq. (15) with ``feedback: linear_gain``;
     K = 0 for identity feedback).
 
@@ -83,7 +84,7 @@ def feedback_of(K, x, pm, feedback):
 
 
 @njit(**INLINE)
-def q_of(L, g, dpd, q_ls, q, ltg, ltd, pg):
+def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
     """q(xi, x) of u* = q v (eq. (20)) into ``q``: the least-squares q = pinv(L^T g) (L^T dp/dxi delta) of eq. (43)
     when ``q_ls`` is 1, else 0.
 
@@ -127,7 +128,7 @@ def q_of(L, g, dpd, q_ls, q, ltg, ltd, pg):
 
 
 @njit(**INLINE)
-def times(A, v, out):
+def times(A: F2, v: F1, out: F1):
     """out = A v (the rows of A summed in order), for q v and dp/dxi delta v.
 
     Parameters
@@ -145,7 +146,7 @@ def times(A, v, out):
 
 
 @njit(**INLINE)
-def apply(l, feedback, qv, s, U, sat, corr, u):
+def apply(l: F1, feedback: F1, qv: F1, s: float, U: F2, sat: int, corr: F1, u: F1):
     """u = SAT(l + K e + s q v) into ``u`` (eqs. (15), (44); the example's eq. (42) is l(xi) = xi, K = 0); ``corr``
     is left holding K e + s q v.
 
@@ -169,7 +170,7 @@ def apply(l, feedback, qv, s, U, sat, corr, u):
 
 
 @njit(**INLINE)
-def residual(dv, s, g, u, l, feedback, shift, r):
+def residual(dv: F1, s: float, g: F2, u: F1, l: F1, feedback: F1, shift: F1, r: F1):
     """r = s dp/dxi delta v - (shift + g (u - (l + K e))) into ``r``: what the interface leaves of the manifold's
     motion, the input of the comparison system (C) (eq. (37) applied to the saturated u).
 
@@ -195,3 +196,111 @@ def residual(dv, s, g, u, l, feedback, shift, r):
         for j in range(M):
             s2 += g[i, j] * (u[j] - (l[j] + feedback[j]))
         r[i] = s * dv[i] - s2
+
+
+#: The codes of ``interface.saturate`` that :func:`saturate` reads as ``sat``: no clipping, each channel, one scale.
+SATURATE_CODES = {False: 0, True: 1, "scale": 2}
+
+
+def interface_codes(q_kind: str, saturate_kind) -> tuple[int, int]:
+    """The interface's choices as the integer codes the compiled loops read: (1 for the least-squares q of eq. (43),
+    0 for q = 0; the saturation's code, :data:`SATURATE_CODES`).
+
+    Parameters
+    ----------
+    q_kind : str
+        ``interface.q``: ``least_squares`` or ``zero``.
+    saturate_kind : bool or str
+        ``interface.saturate``: True, False or ``scale``.
+
+    Returns
+    -------
+    (int, int)
+
+    Raises
+    ------
+    ValueError
+        Naming the key whose value no compiled loop knows.
+    """
+    if q_kind not in ("least_squares", "zero"):
+        raise ValueError(f"interface.q = {q_kind!r}")
+    if not isinstance(saturate_kind, (bool, np.bool_, str)) or saturate_kind not in SATURATE_CODES:
+        raise ValueError(f"interface.saturate = {saturate_kind!r}")
+    return int(q_kind == "least_squares"), SATURATE_CODES[saturate_kind]
+
+
+# --- from numpy: the same law over rows, and at one point ------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def _saturate_rows(l, correction, U, sat, u):
+    for k in range(l.shape[0]):
+        saturate(l[k], 0, correction[k], 0, U, sat, u[k], l.shape[1])
+
+
+def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode) -> np.ndarray:
+    """The interface's input u_w = SAT(l + correction) of eqs. (15), (44) for numpy callers: :func:`saturate`
+    on each row.
+
+    Parameters
+    ----------
+    l, correction : ndarray (..., m)
+        l(xi) (inside U) and the correction K (x - p) + q v, for one point or a batch (leading axes).
+    U : ndarray (m, 2)
+        The input box.
+    mode : True, False or "scale"
+        ``interface.saturate``: clip each channel to U; one factor s in [0, 1] for every channel (the correction
+        keeps its direction); no saturation.
+
+    Returns
+    -------
+    ndarray (..., m)
+    """
+    l, correction = np.broadcast_arrays(np.asarray(l, dtype=float), np.asarray(correction, dtype=float))
+    shape = l.shape
+    m = shape[-1]
+    rows_l = np.ascontiguousarray(l.reshape(-1, m))
+    rows_c = np.ascontiguousarray(correction.reshape(-1, m))
+    u = np.empty_like(rows_l)
+    _saturate_rows(rows_l, rows_c, np.ascontiguousarray(U, dtype=float), SATURATE_CODES[mode], u)
+    return u.reshape(shape)
+
+
+def interface_u(l: np.ndarray, K: np.ndarray | None, x: np.ndarray, pm: np.ndarray, L: np.ndarray | None, g: np.ndarray,
+                dpd: np.ndarray, v: np.ndarray, U: np.ndarray, codes: tuple[int, int]) -> np.ndarray:
+    """u = SAT(l + K (x - p) + q v) at one point for numpy callers (``ashc eval DIR u_w``): the functions above in
+    the order the compiled loops call them.
+
+    Parameters
+    ----------
+    l, x, pm, v : ndarray (m,), (n,), (n,), (m_hat,)
+        l(xi), the state, p(xi) and the abstract input.
+    K : ndarray (m, n) or None
+        The feedback gain (None: identity feedback).
+    L : ndarray (n, n) or None
+        M = L L^T (read when q is least squares).
+    g, dpd : ndarray (n, m), (n, m_hat)
+        g(x) and dp/dxi delta(xi) (read when q is least squares).
+    U : ndarray (m, 2)
+    codes : (int, int)
+        (q_ls, sat) as the compiled loops read them (:func:`ashc_cli.closedloop.compiled.interface_codes`).
+
+    Returns
+    -------
+    ndarray (m,)
+    """
+    q_ls, sat = codes
+    f = np.asarray
+    l, x, pm, v = (np.ascontiguousarray(f(a, dtype=float)) for a in (l, x, pm, v))
+    M, N, MH = l.size, x.size, v.size
+    feedback, qv = np.zeros(M), np.zeros(M)
+    if K is not None:
+        feedback_of(np.ascontiguousarray(K, dtype=float), x, pm, feedback)
+    if q_ls == 1:
+        q = np.empty((M, MH))
+        q_of(np.ascontiguousarray(L, dtype=float), np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(dpd, dtype=float), 1, q,
+             np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
+        times(q, v, qv)
+    u = np.empty(M)
+    apply(l, feedback, qv, 1.0, np.ascontiguousarray(U, dtype=float), sat, np.empty(M), u)
+    return u

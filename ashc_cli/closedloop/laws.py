@@ -10,16 +10,20 @@ that binds one paying an atomic count (docs/guide.md, "Compiled closed loops").
 """
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 OPTIONS = dict(cache=True, error_model="numpy")
+#: A vector and a matrix of floats (C order): the cores' signatures, and the annotations of the laws that ``ashc
+#: export`` prints (:mod:`ashc_cli.outputs.translate` reads F1, F2, int and float; numba ignores annotations).
+F1 = types.float64[::1]
+F2 = types.float64[:, ::1]
 #: Inlined into the caller by numba (its IR, not LLVM's: a function loaded from numba's cache is machine code that
 #: LLVM cannot inline), so the hot loops pay no call.
 INLINE = dict(OPTIONS, inline="always")
 
 
 @njit(**INLINE)
-def pinv_into(a, out):
+def pinv_into(a: F2, out: F2):
     """out = the Moore-Penrose pseudo-inverse (c x r) of the r x c matrix ``a``: a single column or row in closed form
     a^T / |a|^2 (zero where a is), else numpy's (SVD) pinv.
 
@@ -65,7 +69,7 @@ def pinv(a):
 
 
 @njit(**INLINE)
-def setpoint_direction(dplus, phi, xi, xi_ref, gain, v):
+def setpoint_direction(dplus: F2, phi: F1, xi: F1, xi_ref: F1, gain: float, v: F1):
     """The set-point law before its limit into ``v``: delta^+ (gain (xi_ref - xi) - phi_bar), so that xi' = gain
     (xi_ref - xi) where delta has full row rank.  :func:`setpoint` clips it; falsify's random strategy adds noise
     and scales it to its norm limit.
@@ -92,19 +96,22 @@ def setpoint_direction(dplus, phi, xi, xi_ref, gain, v):
 
 
 @njit(**INLINE)
-def setpoint(delta, phi, xi, xi_ref, gain, v_max, v):
+def setpoint(delta: F2, dplus: F2, phi: F1, xi: F1, xi_ref: F1, gain: float, v_max: float, v: F1):
     """The set-point controller into ``v``: clip(delta^+ (gain (xi_ref - xi) - phi_bar), -v_max, v_max).
 
     Parameters
     ----------
     delta : 2-D float array (n_hat, m_hat)
+    dplus : 2-D float array (m_hat, n_hat)
+        Work: delta^+.
     phi, xi, xi_ref : 1-D float arrays (n_hat,)
         phi_bar(xi), the abstract state and its reference.
     gain, v_max : float
     v : 1-D float array (m_hat,)
         Filled with the abstract input.
     """
-    setpoint_direction(pinv(delta), phi, xi, xi_ref, gain, v)
+    pinv_into(delta, dplus)
+    setpoint_direction(dplus, phi, xi, xi_ref, gain, v)
     for a in range(v.size):
         v[a] = min(max(v[a], -v_max), v_max)
 

@@ -10,11 +10,9 @@ import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
-from ashc_cli.closedloop.laws import setpoint, state_derivatives, weighted_norm2
+from ashc_cli.closedloop.laws import F1, F2, setpoint, state_derivatives, weighted_norm2
 from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 
-F1 = types.float64[::1]
-F2 = types.float64[:, ::1]
 I1 = types.int64[::1]
 #: eval_xi(xi, phi_bar, delta, l, dp/dxi delta, kappa, p) and eval_x([x, u], f_bar, g, h), filling their arrays.
 XI_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1, F2, F1, F1))
@@ -182,7 +180,7 @@ def _loop_at(eval_x, at, loop, z, xi_ref, v, u, dz):
     xi = z[:NH].copy()
     x = z[NH:NH + N].copy()
     if prm.size <= 4 or prm[4] == 0.0:
-        setpoint(delta, phi, xi, xi_ref, gain, v_max, v)
+        setpoint(delta, np.empty((MH, NH)), phi, xi, xi_ref, gain, v_max, v)
     # (else v already holds the spec's abstract input v(t): abstract_controller.kind signal, prm[4] = 1)
     # u = SAT(l + K (x - p) + q v), eqs. (15), (43), (44)
     feedback = np.empty(M)

@@ -12,8 +12,9 @@
     The interface u_w = SAT(l(xi) + K (x - p(xi)) + q(xi, x) v) of the set-point law (tests/oracle.py ``tracking_law``)
     (eqs. (15), (42), (44)): the feedback K (x - p) when the design synthesised a gain
     (``feedback: linear_gain``); q = pinv(L^T g(x)) L^T dp/dxi delta(xi) (eq. (43), with M = L L^T) or q = 0
-    as the spec's ``interface.q`` says; SAT as :func:`ashc_cli.problem.model.apply_saturation` (``interface.saturate``:
-    clip per channel, scale the correction, or none).
+    as the spec's ``interface.q`` says; SAT as ``interface.saturate`` says (clip per channel, scale the correction,
+    or none).  Its arithmetic is the compiled loops' own (:mod:`ashc_cli.closedloop.interface`), printed by
+    :mod:`ashc_cli.outputs.translate`.
 ``ashc_controller(xi, xi_ref)``
     The set-point abstract controller of the tracking scenario, v = clip(delta^+ (gain (xi_ref - xi) -
     phi_bar(xi)), -v_max, v_max), with gain and v_max from ``simulate.tracking.abstract_controller`` when the
@@ -47,9 +48,10 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
+from ashc_cli.closedloop.interface import interface_codes, interface_u
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import DesignError, SpecError
-from ashc_cli.problem.model import apply_saturation, build_model, lambdify
+from ashc_cli.problem.model import build_model, lambdify
 from ashc_cli.problem.spec import Spec
 
 from ashc_cli.outputs.export_design import Design, gather, require_current
@@ -216,8 +218,8 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     """The interface law u_w(xi, x, v) at a point, with the tool's own numerics (for ``ashc eval DIR u_w``).
 
     The same law as the set-point law (tests/oracle.py ``tracking_law``)'s u: SAT(l(xi) + K (x - p(xi)) + q(xi, x) v),
-    the terms lambdified from the spec and the artefacts, q by :func:`ashc_cli.numerics.linalg.least_squares_q`, SAT by
-    :func:`ashc_cli.problem.model.apply_saturation`.
+    the terms lambdified from the spec and the artefacts, the law by :func:`ashc_cli.closedloop.interface.interface_u`
+    (the compiled loops' functions).
 
     Parameters
     ----------
@@ -242,8 +244,6 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     DesignError
         If u_w is not a finite real number at the point.
     """
-    from ashc_cli.numerics.linalg import least_squares_q
-
     require_current(spec, arts)
     d = gather(spec, arts)
     xi, x, v = interface_point(d, point)
@@ -253,16 +253,12 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     def at(matrix, args, arrays):
         return lambdify(matrix, list(args), values)(*arrays).reshape(sp.Matrix(matrix).shape)
 
+    ls = d.q == "least_squares"
     l = at(d.l, model.xi, xi)[:, 0]
-    feedback = np.zeros(d.n_inputs)
-    if d.K is not None:
-        feedback = d.K @ (x - at(d.p, model.xi, xi)[:, 0])
-    correction = feedback
-    if d.q == "least_squares":
-        g = at(d.g, model.x, x)
-        dpd = at(d.dp_delta, model.xi, xi)
-        correction = correction + least_squares_q(d.L, g, dpd) @ v
-    u = apply_saturation(l, correction, d.U, d.saturate)
+    pm = at(d.p, model.xi, xi)[:, 0]
+    g = at(d.g, model.x, x) if ls else np.zeros((d.n, d.n_inputs))
+    dpd = at(d.dp_delta, model.xi, xi) if ls else np.zeros((d.n, d.m_hat))
+    u = interface_u(l, d.K, x, pm, d.L if ls else None, g, dpd, v, d.U, interface_codes(d.q, d.saturate))
     if not np.all(np.isfinite(u)):
         raise DesignError("u_w", f"u_w is not real at {dict(point)}", "a point where l, p, g and dp/dxi delta are defined")
     return [float(value) + 0.0 for value in u]

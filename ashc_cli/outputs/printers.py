@@ -5,8 +5,11 @@ out as :mod:`ashc_cli.outputs.export` describes."""
 
 from __future__ import annotations
 
+import ast
+import inspect
 import math
 import re
+import textwrap
 from collections.abc import Sequence
 
 import numpy as np
@@ -19,6 +22,10 @@ from ashc_cli.errors import DesignError
 from ashc_cli.problem.model import parameter_symbol, state_symbol
 from ashc_cli.design.upstream import DOMAIN_RTOL
 
+from ashc_cli.closedloop import interface as law
+from ashc_cli.closedloop.compiled import interface_codes
+from ashc_cli.closedloop.laws import pinv_into, setpoint, setpoint_direction
+from ashc_cli.outputs import translate
 from ashc_cli.outputs.export_design import NEEDED, Design
 
 __all__ = ["c_sources", "python_source", "PINV_RCOND", "JACOBI_SWEEPS"]
@@ -27,6 +34,48 @@ __all__ = ["c_sources", "python_source", "PINV_RCOND", "JACOBI_SWEEPS"]
 PINV_RCOND = 1e-15
 #: Sweeps of the C pseudo-inverse's Jacobi SVD at most (it converges in a handful for the small sizes here).
 JACOBI_SWEEPS = 60
+#: The laws the exported interface and controller run: the compiled loops' own functions, printed (callees first).
+#: pinv_into is numpy's pinv in Python and the Jacobi SVD below in C.
+LAWS = (pinv_into, law.saturate, law.feedback_of, law.q_of, law.times, law.apply, setpoint_direction, setpoint)
+
+
+def _name(fn) -> str:
+    return getattr(fn, "py_func", fn).__name__
+
+
+def _needed(called: set[str]) -> list:
+    """The functions of :data:`LAWS` that ``called`` (names) reach, in :data:`LAWS`' order."""
+    calls = {}
+    for fn in LAWS:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(getattr(fn, "py_func", fn))))
+        calls[_name(fn)] = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    want, todo = set(), list(called)
+    while todo:
+        name = todo.pop()
+        if name in calls and name not in want:
+            want.add(name)
+            todo += list(calls[name])
+    return [fn for fn in LAWS if _name(fn) in want]
+
+
+def _c_laws(called: set[str], pinv_kinds: tuple[bool, bool]) -> list[str]:
+    """The C text of the laws ``called`` reaches (:func:`ashc_cli.outputs.translate.c_function`), pinv_into
+    written on the helpers the design needs: (pinv_vector exists, pinv_small exists)."""
+    known: dict = {}
+    lines: list[str] = []
+    for fn in _needed(called):
+        name = _name(fn)
+        if fn is pinv_into:
+            vector, general = pinv_kinds
+            body = (["    if (a_rows == 1 || a_cols == 1) pinv_vector(a_rows * a_cols, a, out);", "    else pinv_small(a_rows, a_cols, a, out);"]
+                    if vector and general else ["    pinv_vector(a_rows * a_cols, a, out);"] if vector else ["    pinv_small(a_rows, a_cols, a, out);"])
+            lines += ["/* out = pinv(a) (cols x rows): a single row or column a^T / |a|^2, else the Jacobi SVD above */",
+                      "static void pinv_into(const double *a, int a_rows, int a_cols, double *out, int out_rows, int out_cols)",
+                      "{", "    (void)out_rows;", "    (void)out_cols;", *body, "}", ""]
+        else:
+            lines += translate.c_function(fn, known)
+        known[name] = translate.header(fn, known)
+    return lines
 
 
 # --- printing --------------------------------------------------------------------------------------------
@@ -241,13 +290,18 @@ def _c_preamble(d: Design, header_name: str) -> list[str]:
               f"static const double K[{NI}][{NS}] = {_c_rows(d.K)};"]
     if ls:
         c += ["/* M = L L^T (bound stage), for the least-squares q. */", f"static const double L[{NS}][{NS}] = {_c_rows(d.L)};"]
-    c += ["", "static double clip(double z, double lo, double hi)", "{", "    return z < lo ? lo : (z > hi ? hi : z);", "}", ""]
+    c += ["", *translate.C_MIN_MAX, ""]
     if vector:
         c += ["/* Pseudo-inverse of a single column or row a (len entries): a^T / |a|^2, zero for a zero vector. */",
               "static void pinv_vector(int len, const double *a, double *out)", "{", "    double s = 0.0;", "    int i;",
               "    for (i = 0; i < len; i++) s += a[i] * a[i];", "    for (i = 0; i < len; i++) out[i] = s > 0.0 ? a[i] / s : 0.0;", "}", ""]
     if general:
         c += _c_pinv_small(max(r * k for r, k in general), max(min(r, k) for r, k in general))
+    called = {"setpoint", "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    c += ["/* The law of the interface and of the set-point controller: the compiled closed loops' own functions",
+          " * (ashc_cli/closedloop/interface.py and laws.py) printed by ashc_cli/outputs/translate.py; an array A comes",
+          " * with its extents A_rows, A_cols (x_n for a vector), row-major. */", ""]
+    c += _c_laws(called, (bool(vector), bool(general)))
     return c
 
 
@@ -281,16 +335,13 @@ def _c_terms(d: Design) -> list[str]:
 
 
 def _c_controller(d: Design, controller_args: str) -> list[str]:
-    """The set-point abstract controller and the abstract right-hand side."""
+    """The set-point abstract controller (closedloop/laws.py's setpoint, printed) and the abstract right-hand side."""
     has_gain = d.gain is not None
     c: list[str] = []
-    pinv_delta = f"pinv_vector({NAS} * {NAI}, delta, dplus);" if min(d.n_hat, d.m_hat) == 1 else f"pinv_small({NAS}, {NAI}, delta, dplus);"
     c += ["static void controller_law(const double *xi, const double *xi_ref, double gain, double v_max, double *v)", "{",
-          f"    double phi[{NAS}], delta[{NAS} * {NAI}], dplus[{NAI} * {NAS}], e[{NAS}];", "    int i, a;",
-          "    abstract_terms(xi, phi, delta);", f"    {pinv_delta}",
-          f"    for (i = 0; i < {NAS}; i++) e[i] = gain * (xi_ref[i] - xi[i]) - phi[i];",
-          f"    for (a = 0; a < {NAI}; a++) {{", "        double s = 0.0;",
-          f"        for (i = 0; i < {NAS}; i++) s += dplus[a * {NAS} + i] * e[i];", "        v[a] = clip(s, -v_max, v_max);", "    }", "}", ""]
+          f"    double phi[{NAS}], delta[{NAS} * {NAI}], dplus[{NAI} * {NAS}];",
+          "    abstract_terms(xi, phi, delta);",
+          f"    setpoint(delta, {NAS}, {NAI}, dplus, {NAI}, {NAS}, phi, {NAS}, xi, {NAS}, xi_ref, {NAS}, gain, v_max, v, {NAI});", "}", ""]
     if has_gain:
         c += [f"void ashc_controller({controller_args})", "{", "    controller_law(xi, xi_ref, ASHC_GAIN, ASHC_V_MAX, v);", "}", ""]
     else:
@@ -383,16 +434,15 @@ def _c_pinv_small(entries: int, small: int) -> list[str]:
 
 
 def _c_interface(d: Design, interface_outputs, uses_x: bool) -> list[str]:
-    NS, NI, NAI = "ASHC_N_STATES", "ASHC_N_INPUTS", "ASHC_N_ABSTRACT_INPUTS"
+    """ashc_interface: the design's terms, then the compiled loops' own law (closedloop/interface.py, printed)."""
     ls = d.q == "least_squares"
+    q_ls, sat = interface_codes(d.q, d.saturate)
     decl = [f"    double {a}[{ {'l': NI, 'pm': NS, 'dpd': f'{NS} * {NAI}', 'g': f'{NS} * {NI}'}[a] }];" for a, _ in interface_outputs]
     lines = ["void ashc_interface(const double *xi, const double *x, const double *v, double *u)", "{", *decl,
-             f"    double feedback[{NI}], correction[{NI}];"]
+             f"    double feedback[{NI}], qv[{NI}], corr[{NI}];"]
     if ls:
-        lines += [f"    double Ltg[{NS} * {NI}], Ltd[{NS} * {NAI}], pg[{NI} * {NS}], q[{NI} * {NAI}];", "    int i, j, k, a;"]
-    elif d.K is not None:
-        lines += ["    int i, j;"]
-    else:
+        lines += [f"    double q[{NI} * {NAI}], ltg[{NS} * {NI}], ltd[{NS} * {NAI}], pg[{NI} * {NS}];"]
+    if d.K is None or not ls:
         lines += ["    int j;"]
     if not uses_x:
         lines += ["    (void)x;"]
@@ -401,37 +451,17 @@ def _c_interface(d: Design, interface_outputs, uses_x: bool) -> list[str]:
     args = ", ".join(["xi"] + (["x"] if uses_x else []) + [a for a, _ in interface_outputs])
     lines += [f"    interface_terms({args});"]
     if d.K is not None:
-        lines += ["    /* K (x - p(xi)): k(x, p(xi), l(xi)) - l(xi) of eq. (15) */", f"    for (j = 0; j < {NI}; j++) {{",
-                  "        double s = 0.0;", f"        for (i = 0; i < {NS}; i++) s += K[j][i] * (x[i] - pm[i]);",
-                  "        feedback[j] = s;", "    }"]
+        lines += ["    /* K (x - p(xi)): k(x, p(xi), l(xi)) - l(xi) of eq. (15) */", f"    feedback_of(&K[0][0], {NI}, {NS}, x, {NS}, pm, {NS}, feedback, {NI});"]
     else:
         lines += [f"    for (j = 0; j < {NI}; j++) feedback[j] = 0.0;   /* identity feedback: K = 0 */"]
-    lines += [f"    for (j = 0; j < {NI}; j++) correction[j] = feedback[j];"]
     if ls:
-        pinv = f"pinv_vector({NS} * {NI}, Ltg, pg);" if min(d.n, d.n_inputs) == 1 else f"pinv_small({NS}, {NI}, Ltg, pg);"
-        lines += ["    /* q = pinv(L^T g) (L^T dp/dxi delta), eq. (43) */", f"    for (i = 0; i < {NS}; i++) {{",
-                  f"        for (j = 0; j < {NI}; j++) {{", "            double s = 0.0;",
-                  f"            for (k = 0; k < {NS}; k++) s += L[k][i] * g[k * {NI} + j];", f"            Ltg[i * {NI} + j] = s;", "        }",
-                  f"        for (a = 0; a < {NAI}; a++) {{", "            double s = 0.0;",
-                  f"            for (k = 0; k < {NS}; k++) s += L[k][i] * dpd[k * {NAI} + a];", f"            Ltd[i * {NAI} + a] = s;", "        }",
-                  "    }", f"    {pinv}", f"    for (j = 0; j < {NI}; j++) {{", f"        for (a = 0; a < {NAI}; a++) {{",
-                  "            double s = 0.0;", f"            for (i = 0; i < {NS}; i++) s += pg[j * {NS} + i] * Ltd[i * {NAI} + a];",
-                  f"            q[j * {NAI} + a] = s;", "        }", "    }", f"    for (j = 0; j < {NI}; j++) {{", "        double s = 0.0;",
-                  f"        for (a = 0; a < {NAI}; a++) s += q[j * {NAI} + a] * v[a];", "        correction[j] = feedback[j] + s;", "    }"]
-    if d.saturate == "scale":
-        lines += ["    /* SAT (scale): l + s correction with the largest s in [0, 1] keeping u in U (one factor for every channel) */",
-                  "    {", "        double smin = HUGE_VAL, s;", f"        for (j = 0; j < {NI}; j++) {{", "            const double cj = correction[j];",
-                  "            double room = HUGE_VAL;",
-                  "            if (cj > 0.0) room = (ashc_input_bounds[j][1] - l[j]) / cj;",
-                  "            else if (cj < 0.0) room = (ashc_input_bounds[j][0] - l[j]) / cj;",
-                  "            if (room < smin || room != room) smin = room;", "        }",
-                  "        s = smin < 0.0 ? 0.0 : (smin > 1.0 ? 1.0 : smin);",
-                  f"        for (j = 0; j < {NI}; j++) u[j] = l[j] + s * correction[j];", "    }"]
-    elif d.saturate:
-        lines += ["    /* SAT (clip): each channel to U */",
-                  f"    for (j = 0; j < {NI}; j++) u[j] = clip(l[j] + correction[j], ashc_input_bounds[j][0], ashc_input_bounds[j][1]);"]
+        lines += ["    /* q = pinv(L^T g) (L^T dp/dxi delta), eq. (43) */",
+                  f"    q_of(&L[0][0], {NS}, {NS}, g, {NS}, {NI}, dpd, {NS}, {NAI}, {q_ls}, q, {NI}, {NAI}, ltg, {NS}, {NI}, ltd, {NS}, {NAI}, pg, {NI}, {NS});",
+                  f"    times(q, {NI}, {NAI}, v, {NAI}, qv, {NI});"]
     else:
-        lines += ["    /* no saturation: u may leave U */", f"    for (j = 0; j < {NI}; j++) u[j] = l[j] + correction[j];"]
+        lines += [f"    for (j = 0; j < {NI}; j++) qv[j] = 0.0;   /* q = 0 */"]
+    lines += [f"    /* u = SAT(l + K e + q v), eq. (44): {_saturate_text(d.saturate)} */",
+              f"    apply(l, {NI}, feedback, {NI}, qv, {NI}, 1.0, &ashc_input_bounds[0][0], {NI}, 2, {sat}, corr, {NI}, u, {NI});"]
     return lines + ["}", ""]
 
 
@@ -477,7 +507,7 @@ def python_source(design: Design) -> str:
     lines = ['"""' + head[0], "", *head[1:], "",
              f"Arrays: xi[i] is abstract state i ({', '.join(d.abstract_states)}), x[i] state i ({', '.join(d.states)}), "
              f"u[j] input j ({', '.join(d.inputs)}), v[a] abstract input a ({', '.join(d.abstract_inputs)}).", '"""', "",
-             "import functools", "", "import numpy", "",
+             "import functools", "", "import numpy", "import numpy as np", "",
              f"N_STATES = {d.n}", f"N_INPUTS = {d.n_inputs}", f"N_ABSTRACT_STATES = {d.n_hat}", f"N_ABSTRACT_INPUTS = {d.m_hat}",
              f"N_OUTPUTS = {d.n_outputs}", "",
              "#: Status of ashc_m.", "OK, OUTSIDE_CERTIFIED_SET, NOT_REAL = 0, 1, 2", "",
@@ -489,10 +519,7 @@ def python_source(design: Design) -> str:
     lines += [f"L = {_py_rows(d.L)}  # M = L L^T" if ls else "L = None  # q = 0"]
     if has_gain:
         lines += [f"GAIN = {d.gain!r}", f"V_MAX = {d.v_max!r}"]
-    lines += ["", "",
-              "def _pinv(a):", '    """linalg.pinv: one column in closed form a^T / |a|^2 (zero for a zero column), else numpy\'s pinv."""',
-              "    if a.shape[1] == 1:", "        s = float(a[:, 0] @ a[:, 0])", "        return a.T / s if s > 0 else numpy.zeros_like(a.T)",
-              "    return numpy.linalg.pinv(a)", "", ""]
+    lines += ["", ""]
     uses_x = d.K is not None or ls
     lines += function("_interface_terms", "xi, x" if uses_x else "xi", interface_outputs, "l(xi)" + (", p(xi)" if d.K is not None else "")
                       + (", dp/dxi delta(xi), g(x)" if ls else "") + ".")
@@ -509,29 +536,32 @@ def python_source(design: Design) -> str:
               "        return OUTSIDE_CERTIFIED_SET, numpy.full(N_ABSTRACT_STATES, numpy.nan)", "    xi = _m_terms(x)",
               "    return (OK if numpy.all(numpy.isfinite(xi)) else NOT_REAL), xi", "", ""]
     terms = ", ".join(a for a, _ in interface_outputs)
+    q_ls, sat = interface_codes(d.q, d.saturate)
+    called = {"setpoint", "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    lines += ["# The law of the interface and of the set-point controller: the compiled closed loops' own functions",
+              "# (closedloop/interface.py and laws.py of ashc), their source as it is (annotations: f1 a vector, f2 a matrix).", "", ""]
+    for fn in _needed(called):
+        lines += [*translate.python_source(fn).rstrip("\n").splitlines(), "", ""]
     lines += ["def ashc_interface(xi, x, v):",
               f'    """u = SAT(l(xi){" + K (x - p(xi))" if d.K is not None else ""}{" + q(xi, x) v" if ls else ""}), saturation: {_saturate_text(d.saturate)}."""',
               "    xi = numpy.asarray(xi, dtype=float)", "    x = numpy.asarray(x, dtype=float)", "    v = numpy.asarray(v, dtype=float)",
               f"    {terms} = _interface_terms({'xi, x' if uses_x else 'xi'})",
-              "    feedback = K @ (x - pm)" if d.K is not None else "    feedback = numpy.zeros(N_INPUTS)",
-              "    correction = feedback"]
+              "    feedback = numpy.zeros(N_INPUTS)", "    qv = numpy.zeros(N_INPUTS)"]
+    if d.K is not None:
+        lines += ["    feedback_of(K, x, pm, feedback)  # K (x - p(xi)), eq. (15)"]
     if ls:
-        lines += ["    q = _pinv(L.T @ g) @ (L.T @ dpd)  # eq. (43)", "    correction = correction + q @ v"]
-    if d.saturate == "scale":
-        lines += ["    lo, hi = INPUT_BOUNDS[:, 0], INPUT_BOUNDS[:, 1]", "    with numpy.errstate(divide='ignore', invalid='ignore'):",
-                  "        room = numpy.where(correction > 0, (hi - l) / correction, numpy.where(correction < 0, (lo - l) / correction, numpy.inf))",
-                  "    s = numpy.clip(numpy.min(room), 0.0, 1.0)", "    return l + s * correction"]
-    elif d.saturate:
-        lines += ["    return numpy.clip(l + correction, INPUT_BOUNDS[:, 0], INPUT_BOUNDS[:, 1])"]
-    else:
-        lines += ["    return l + correction"]
-    lines += ["", ""]
+        lines += ["    q = numpy.empty((N_INPUTS, N_ABSTRACT_INPUTS))",
+                  f"    q_of(L, g, dpd, {q_ls}, q, numpy.empty((N_STATES, N_INPUTS)), numpy.empty((N_STATES, N_ABSTRACT_INPUTS)), "
+                  "numpy.empty((N_INPUTS, N_STATES)))  # eq. (43)", "    times(q, v, qv)"]
+    lines += ["    u = numpy.empty(N_INPUTS)", f"    apply(l, feedback, qv, 1.0, INPUT_BOUNDS, {sat}, numpy.empty(N_INPUTS), u)  # eq. (44)",
+              "    return u", "", ""]
     args = "xi, xi_ref" if has_gain else "xi, xi_ref, gain, v_max"
     lines += [f"def ashc_controller({args}):", '    """v = clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max)."""',
               *(["    gain, v_max = GAIN, V_MAX"] if has_gain else []),
               "    xi = numpy.asarray(xi, dtype=float)", "    xi_ref = numpy.asarray(xi_ref, dtype=float)",
-              "    phi, delta = _abstract_terms(xi)",
-              "    return numpy.clip(_pinv(delta) @ (gain * (xi_ref - xi) - phi), -v_max, v_max)", "", "",
+              "    phi, delta = _abstract_terms(xi)", "    v = numpy.empty(N_ABSTRACT_INPUTS)",
+              "    setpoint(delta, numpy.empty((N_ABSTRACT_INPUTS, N_ABSTRACT_STATES)), phi, xi, xi_ref, float(gain), float(v_max), v)",
+              "    return v", "", "",
               "def ashc_abstract_rhs(xi, v):", '    """dxi = phi_bar(xi) + delta(xi) v."""',
               "    v = numpy.asarray(v, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    return phi + delta @ v", ""]
     text = "\n".join(lines)

@@ -21,7 +21,7 @@ from ashc_cli.problem.expr import NUMERIC_MODULES, parse_expression
 from ashc_cli.problem.grids import domain_grid, maximise_on_box
 from ashc_cli.problem.spec import Spec
 
-__all__ = ["Model", "build_model", "apply_saturation", "lambdify", "compile_flat", "compile_terms", "sparse_jacobian", "tidy", "parameter_symbol", "state_symbol", "TIME"]
+__all__ = ["Model", "build_model", "lambdify", "compile_flat", "compile_terms", "sparse_jacobian", "tidy", "parameter_symbol", "state_symbol", "TIME"]
 
 #: Above this many states the stages use numbers instead of sympy where both work (measured with
 #: `make bench` on the ladder family: at n = 16 sympy.solve of the manifold and of kappa^-1 already take
@@ -66,32 +66,6 @@ def state_symbol(name: str) -> sp.Symbol:
     Symbol
     """
     return sp.Symbol(name, real=True)
-
-
-def apply_saturation(l: np.ndarray, correction: np.ndarray, U: np.ndarray, mode: bool | str) -> np.ndarray:
-    """The interface's input u_w from l(xi) and the correction K (x - p) + q v (eqs. (15), (44)).
-
-    Parameters
-    ----------
-    l, correction : ndarray (..., m)
-        l(xi) (inside U) and the correction, for one point or a batch (leading axes).
-    U : ndarray (m, 2)
-        The input box.
-    mode : True, False or "scale"
-        ``True``: clip each channel to U; ``"scale"``: l + s correction with the largest s in [0, 1] that
-        keeps u in U (one factor for every channel, so the correction keeps its direction); ``False``: l +
-        correction unclipped.
-    """
-    u = l + correction
-    if mode == "scale":
-        lo, hi = U[:, 0], U[:, 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            room = np.where(correction > 0, (hi - l) / correction, np.where(correction < 0, (lo - l) / correction, np.inf))
-        s = np.clip(np.min(room, axis=-1, keepdims=True), 0.0, 1.0)
-        return l + s * correction
-    if mode:
-        return np.clip(u, U[:, 0], U[:, 1])
-    return u
 
 
 def sparse_jacobian(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> sp.Matrix:

@@ -14,7 +14,7 @@ start: the runs then also start outside the state box (W(0) over decades, as the
 
 The runs are few (at most the ``--runs`` of the search) and integrated by scipy's solve_ivp on the numpy closed
 loop (:class:`ashc_cli.closedloop.batch.BatchPlant` and :func:`~ashc_cli.closedloop.batch.interface`, the
-saturation of :func:`ashc_cli.problem.model.apply_saturation`), independently of the compiled kernels.  Times
+saturation of :func:`ashc_cli.closedloop.interface.apply_saturation`, the compiled loops' own SAT), apart from the compiled runs.  Times
 after xi leaves V are not counted (the theorem is local to V).
 """
 
@@ -26,7 +26,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from ashc_cli.closedloop.batch import BatchPlant, interface
-from ashc_cli.problem.model import Model, apply_saturation
+from ashc_cli.closedloop.interface import apply_saturation
+from ashc_cli.problem.model import Model
 
 __all__ = ["attack_disturbances", "attack_task_disturbances", "record_task", "wanted"]
 

@@ -1,0 +1,118 @@
+"""The abstract controllers, by name: each is one law v = law(t, z, ref, phi, delta, prm, v) compiled with numba
+(:data:`~ashc_cli.closedloop.laws.LAW_SIGNATURE`), registered here, and then run by every tracking run
+(:func:`ashc_cli.closedloop.runner.closed_loop_run`: ``simulate``, ``tradeoff``, ``synthesize``'s check, the reach
+times) and printed by ``ashc export`` when it is written in the subset :mod:`ashc_cli.outputs.translate` reads.
+
+Adding a controller (docs/guide.md, "Adding a controller"; tests/test_controllers.py does it from a test file)::
+
+    @njit(LAW_SIGNATURE, cache=True)
+    def proportional(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
+        for a in range(v.size):
+            v[a] = prm[0] * (ref[a] - z[a])
+
+    register(Controller("proportional", lambda model: proportional, lambda law: np.array([law.params[0]]),
+                        "v = k (xi_ref - xi)", printed=proportional))
+
+The governor of the guaranteed controller is not a law of this kind: it scales the set-point law's v by the
+largest s that keeps the comparison system's w below its level, with a loop of its own
+(:mod:`ashc_cli.closedloop.governor`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ashc_cli.closedloop.laws import setpoint_law
+from ashc_cli.closedloop.plan import Law
+from ashc_cli.errors import DesignError
+
+__all__ = ["Controller", "register", "controller", "names", "REGISTRY"]
+
+
+@dataclass(frozen=True)
+class Controller:
+    """One abstract controller.
+
+    Attributes
+    ----------
+    name : str
+        What :class:`~ashc_cli.closedloop.plan.Law` ``kind`` names it.
+    law : callable
+        ``law(model)``: the compiled law for a design's model (a numba function of
+        :data:`~ashc_cli.closedloop.laws.LAW_SIGNATURE`; the signal's is generated from the spec).
+    prm : callable
+        ``prm(law)``: the law's parameters (1-D float array) from the run's :class:`~ashc_cli.closedloop.plan.Law`.
+    says : str
+        The law in one line (the report, ``--help``).
+    printed : function, optional
+        The law in the subset ``ashc export`` prints (usually the same numba function); None: not exported.
+    """
+
+    name: str
+    law: Callable
+    prm: Callable[[Law], np.ndarray]
+    says: str
+    printed: Callable | None = None
+
+
+#: The registered controllers by name.
+REGISTRY: dict[str, Controller] = {}
+
+
+def register(c: Controller) -> Controller:
+    """Register ``c`` under its name (a second registration under one name replaces the first).
+
+    Parameters
+    ----------
+    c : Controller
+
+    Returns
+    -------
+    Controller
+        ``c``.
+    """
+    REGISTRY[c.name] = c
+    return c
+
+
+def names() -> list[str]:
+    """The registered names, sorted."""
+    return sorted(REGISTRY)
+
+
+def controller(name: str) -> Controller:
+    """The controller registered as ``name``.
+
+    Parameters
+    ----------
+    name : str
+
+    Raises
+    ------
+    DesignError
+        Naming the registered ones.
+    """
+    try:
+        return REGISTRY[name]
+    except KeyError:
+        raise DesignError("abstract_controller.kind", repr(name), f"one of {names()} (or guaranteed)") from None
+
+
+def _signal_law(model):
+    """The spec's v(t) (``abstract_controller.kind: signal``), generated and compiled."""
+    from ashc_cli.closedloop import compiled
+    from ashc_cli.closedloop.runner import abstract_input
+    from ashc_cli.errors import NumericalError
+
+    try:
+        return compiled.abstract_signal(model, abstract_input(model)).law
+    except compiled.Unsupported as exc:
+        raise NumericalError("simulate", str(exc), "an abstract input v(t) the compiled closed loop can run") from exc
+
+
+register(Controller("setpoint", lambda model: setpoint_law, lambda law: np.array([law.gain, law.v_max], dtype=float),
+                    "v = clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max)", printed=setpoint_law))
+register(Controller("signal", _signal_law, lambda law: np.zeros(0), "v = v(t), the spec's abstract input (open loop)"))
