@@ -310,8 +310,9 @@ class TrackingOracle:
         dw = -(self.lam - self.eps) * z[-1] + float(np.sum((self.plant.L.T @ r) ** 2)) / self.eps
         return v, u, np.r_[dxi, dx, dw], s, slack
 
-    def run(self, z0, segments, refs, *, gain, v_max, q_kind, saturate, rtol, atol, governor=None) -> TrackingRun:
-        """As :meth:`ashc_cli.closedloop.compiled.TrackingLoop.run`."""
+    def run(self, z0, segments, refs, *, gain, v_max, q_kind, saturate, rtol, atol, governor=None, law=None) -> TrackingRun:
+        """As :meth:`ashc_cli.closedloop.compiled.TrackingLoop.run` (``law``, the compiled one, is not read: the
+        oracle runs its own set-point law or governor, as its Law says)."""
         nh = self.model.n_hat
         z = np.asarray(z0, dtype=float)
         ts, zs, idx, psi_end = [], [], [], []

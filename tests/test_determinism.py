@@ -10,7 +10,7 @@ from ashc_cli.errors import SpecError
 from ashc_cli.numerics import boxsearch, interval, proofs
 from ashc_cli.problem.spec import parse_spec_text, spec_sha256
 
-from .conftest import CUK_PAPER_M
+from .conftest import CUK_PAPER_M, ROOT
 
 X = interval.compile_interval  # (exprs, args, values)
 
@@ -140,3 +140,29 @@ def _same(a, b) -> bool:
     if isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b):
         return True
     return a == b
+
+
+def test_the_radicands_of_m_come_in_one_order_whatever_the_string_hashes(tmp_path):
+    # inverse.h5 listed the boost converter's radicands in the order of a set of sympy powers, which follows
+    # Python's salted str hashing: two designs of one spec differed (found comparing two runs, 2026-12-05).
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sympy as sp\n"
+              "from ashc_cli.design.inverse_proofs import real_interval\n"
+              "from ashc_cli.problem.model import build_model\n"
+              "from ashc_cli.problem.spec import load_spec\n"
+              "from tests.conftest import SPECS\n"
+              "model = build_model(load_spec(SPECS / 'boost_converter.yaml'))\n"
+              "y = sp.Symbol('_y')\n"
+              "R, E, r = (next(s for s in model.params.values() if s.name == n) for n in ('R', 'E', 'r'))\n"
+              "m = sp.sqrt(R) * sp.sqrt(E**2 * R - 4 * y**2 * r) + sp.sqrt(1 + y**2)\n"
+              "print(real_interval(m, y, model)[2])\n")
+    seen = set()
+    for seed in ("1", "2", "3", "4"):
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT,
+                             env={**os.environ, "PYTHONHASHSEED": seed}, timeout=120)
+        assert out.returncode == 0, out.stderr
+        seen.add(out.stdout.strip())
+    assert len(seen) == 1, seen

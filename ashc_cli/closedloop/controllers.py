@@ -24,12 +24,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import sympy as sp
 
+from ashc_cli.closedloop import compiled
 from ashc_cli.closedloop.laws import setpoint_law
 from ashc_cli.closedloop.plan import Law
-from ashc_cli.errors import DesignError
+from ashc_cli.errors import DesignError, NumericalError
+from ashc_cli.problem.expr import parse_expression
+from ashc_cli.problem.model import TIME, Model
 
-__all__ = ["Controller", "register", "controller", "names", "REGISTRY"]
+__all__ = ["Controller", "register", "controller", "names", "REGISTRY", "abstract_input"]
 
 
 @dataclass(frozen=True)
@@ -101,12 +105,30 @@ def controller(name: str) -> Controller:
         raise DesignError("abstract_controller.kind", repr(name), f"one of {names()} (or guaranteed)") from None
 
 
+def abstract_input(model: Model) -> sp.Matrix:
+    """The tracking scenario's abstract input v(t) (``abstract_controller.kind: signal``), parsed: one expression in t
+    and the parameters per abstract input (the time signals triangle, square, step allowed).
+
+    Parameters
+    ----------
+    model : Model
+
+    Returns
+    -------
+    sympy Matrix (m_hat, 1)
+
+    Raises
+    ------
+    SpecError
+        Naming ``simulate.tracking.abstract_controller.v[i]``.
+    """
+    names = {**model.params, "t": TIME}
+    texts = model.spec.simulate.tracking.abstract_controller.texts()
+    return sp.Matrix([parse_expression(s, names, f"simulate.tracking.abstract_controller.v[{i}]", signal=True) for i, s in enumerate(texts)])
+
+
 def _signal_law(model):
     """The spec's v(t) (``abstract_controller.kind: signal``), generated and compiled."""
-    from ashc_cli.closedloop import compiled
-    from ashc_cli.closedloop.runner import abstract_input
-    from ashc_cli.errors import NumericalError
-
     try:
         return compiled.abstract_signal(model, abstract_input(model)).law
     except compiled.Unsupported as exc:

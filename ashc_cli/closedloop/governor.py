@@ -215,7 +215,7 @@ def governor_scale(P, bound, prm, u, r):
 def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     """:func:`_governed_loop` given the design's values at z (``governor_samples`` reuses them for psi and y)."""
     phi, delta, l, dpd, _, pm, fb, g, _ = at
-    dims, prm, L, K, U, q_ls, sat = loop
+    dims, prm, L, K, U, q_ls, sat, _ = loop
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
     gain, v_max, lam, eps, w_level, rate = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     xi = z[:NH].copy()
@@ -251,7 +251,7 @@ def _governed_loop(eval_xi, eval_x, loop, z, xi_ref, v, u, dz, out):
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
+def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u):
     """_governed_loop behind the tracking core's RHS signature.
 
     Parameters
@@ -262,8 +262,8 @@ def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
         [xi, x, w]; written: [dxi, dx, dw].
     eval_xi, eval_x, v, u
         As :func:`~ashc_cli.closedloop.tracking_core.closed_loop` (v = s v_sp).
-    eval_link, eval_u : LINK_KERNEL, U_KERNEL
-        Not read.
+    eval_link, eval_u, law : LINK_KERNEL, U_KERNEL, LAW
+        Not read (v_sp is the set-point law, :func:`~ashc_cli.closedloop.laws.setpoint`).
     loop : Loop
         As closed_loop's, with prm = [gain, v_max, lambda, eps, W_max, c, 1.0 (not read), grid, bisections, backoffs...].
     ref : 1-D float array (n_hat,)

@@ -17,6 +17,9 @@ OPTIONS = dict(cache=True, error_model="numpy")
 #: export`` prints (:mod:`ashc_cli.outputs.translate` reads F1, F2, int and float; numba ignores annotations).
 F1 = types.float64[::1]
 F2 = types.float64[:, ::1]
+#: law(t, z, ref, phi, delta, prm, v): an abstract controller's law (:mod:`ashc_cli.closedloop.controllers`) at time
+#: t and state z = [xi, x, ...] with the reference xi_ref, phi_bar(xi), delta(xi) and its parameters prm; fills v.
+LAW_SIGNATURE = types.void(types.float64, F1, F1, F1, F2, F1, F1)
 #: Inlined into the caller by numba (its IR, not LLVM's: a function loaded from numba's cache is machine code that
 #: LLVM cannot inline), so the hot loops pay no call.
 INLINE = dict(OPTIONS, inline="always")
@@ -114,6 +117,28 @@ def setpoint(delta: F2, dplus: F2, phi: F1, xi: F1, xi_ref: F1, gain: float, v_m
     setpoint_direction(dplus, phi, xi, xi_ref, gain, v)
     for a in range(v.size):
         v[a] = min(max(v[a], -v_max), v_max)
+
+
+@njit(LAW_SIGNATURE, **OPTIONS)
+def setpoint_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
+    """The set-point controller as a registered law (prm = [gain, v_max]): :func:`setpoint` at xi = z[:n_hat].
+
+    Parameters
+    ----------
+    t : float
+        Not read.
+    z : 1-D float array
+        [xi, x, ...].
+    ref, phi : 1-D float arrays (n_hat,)
+        xi_ref and phi_bar(xi).
+    delta : 2-D float array (n_hat, m_hat)
+    prm : 1-D float array (2,)
+        gain, v_max.
+    v : 1-D float array (m_hat,)
+        Filled.
+    """
+    dplus = np.empty((v.size, ref.size))
+    setpoint(delta, dplus, phi, z, ref, prm[0], prm[1], v)
 
 
 @njit(**INLINE)

@@ -8,14 +8,13 @@ attack call these; none of them imports a design stage's machinery for it.
 from __future__ import annotations
 
 import numpy as np
-import sympy as sp
 
-from ashc_cli.closedloop import compiled
+from ashc_cli.closedloop import compiled, controllers
+from ashc_cli.closedloop.controllers import abstract_input
 from ashc_cli.closedloop.plan import GOVERNOR_BACKOFF, GOVERNOR_BISECTIONS, GOVERNOR_GRID, Law
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.errors import NumericalError
-from ashc_cli.problem.expr import parse_expression
-from ashc_cli.problem.model import TIME, Model
+from ashc_cli.problem.model import Model
 
 __all__ = ["SAMPLE_DT", "MAX_RUN_SAMPLES", "TRACKING_TOL", "SETTLE_RTOL", "REACH_HORIZON_DWELLS", "REACH_SAMPLE_DWELLS", "sample_dt",
            "sample_times", "tracking_segments", "tracking_loop_for", "abstract_input", "closed_loop_run", "reach_time", "reach_times"]
@@ -97,8 +96,9 @@ def tracking_segments(t_final: float, dwell: float, n_levels: int, dt: float = S
 
 
 def tracking_loop_for(model: Model, up: dict, law: Law):
-    """The compiled tracking loop for ``law`` (:func:`ashc_cli.closedloop.compiled.tracking_loop`): the set-point law
-    (the budget mode is that law) or the governor (:mod:`ashc_cli.closedloop.governor`).
+    """The compiled tracking loop for ``law`` (:func:`ashc_cli.closedloop.compiled.tracking_loop`): a registered
+    abstract controller (:mod:`ashc_cli.closedloop.controllers`; the budget mode is the set-point law) or the
+    governor (:mod:`ashc_cli.closedloop.governor`).
 
     Parameters
     ----------
@@ -125,28 +125,6 @@ def tracking_loop_for(model: Model, up: dict, law: Law):
         raise NumericalError("simulate", str(exc), "a design the compiled closed loop can run (numba, ASHC_COMPILED unset)") from exc
 
 
-def abstract_input(model: Model) -> sp.Matrix:
-    """The tracking scenario's abstract input v(t) (``abstract_controller.kind: signal``), parsed: one expression in t
-    and the parameters per abstract input (the time signals triangle, square, step allowed).
-
-    Parameters
-    ----------
-    model : Model
-
-    Returns
-    -------
-    sympy Matrix (m_hat, 1)
-
-    Raises
-    ------
-    SpecError
-        Naming ``simulate.tracking.abstract_controller.v[i]``.
-    """
-    names = {**model.params, "t": TIME}
-    texts = model.spec.simulate.tracking.abstract_controller.texts()
-    return sp.Matrix([parse_expression(s, names, f"simulate.tracking.abstract_controller.v[{i}]", signal=True) for i, s in enumerate(texts)])
-
-
 def closed_loop_run(model: Model, plant: DesignTerms, up: dict, law: Law, z0: np.ndarray,
                     segments: list[tuple[float, float, np.ndarray, int]], refs: list[np.ndarray], loop) -> dict:
     """Integrate the tracking closed loop under ``law``, segment after segment, from z0 = [xi0, x0, W0], with
@@ -159,7 +137,8 @@ def closed_loop_run(model: Model, plant: DesignTerms, up: dict, law: Law, z0: np
     plant, up : DesignTerms, dict of str to Artefact
         The design's compiled terms and artefacts (not read here: ``loop`` holds the design).
     law : Law
-        The abstract controller (gain, v_max and, for the governor, its level and rate).
+        The abstract controller: a registered one by its kind (:mod:`~ashc_cli.closedloop.controllers`), or the
+        governor (its gain, v_max, level and rate).
     z0 : ndarray (n_hat + n + 1,)
         [xi0, x0, w0].
     segments, refs : list of (float, float, ndarray, int), list of ndarray (n_hat,)
@@ -176,11 +155,9 @@ def closed_loop_run(model: Model, plant: DesignTerms, up: dict, law: Law, z0: np
     """
     governor = (law.w_level, law.rate, GOVERNOR_GRID, GOVERNOR_BISECTIONS, GOVERNOR_BACKOFF) if law.kind == "governor" else None
     more = {}
-    if law.kind == "signal":
-        try:
-            more["signal"] = compiled.abstract_signal(model, abstract_input(model))
-        except compiled.Unsupported as exc:
-            raise NumericalError("simulate", str(exc), "an abstract input v(t) the compiled closed loop can run") from exc
+    if governor is None:
+        c = controllers.controller(law.kind)
+        more["law"] = (c.law(model), c.prm(law))
     res = loop.run(np.asarray(z0, dtype=float), segments, refs, gain=law.gain, v_max=law.v_max, q_kind=model.spec.interface.q,
                    saturate=model.spec.interface.saturate, rtol=TRACKING_TOL["rtol"], atol=TRACKING_TOL["atol"], governor=governor, **more)
     out: dict = {"compiled": getattr(loop, "compiled", True)}

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
-from ashc_cli.closedloop.laws import F1, F2, setpoint, state_derivatives, weighted_norm2
+from ashc_cli.closedloop.laws import F1, F2, LAW_SIGNATURE, state_derivatives, weighted_norm2
 from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 
 I1 = types.int64[::1]
@@ -20,15 +20,17 @@ X_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
 #: eval_link([x, u], b, c, m) and eval_u([t], u): the m-relation's link and the spec's input signal.
 LINK_KERNEL = types.FunctionType(types.void(F1, F1, F2, F1))
 U_KERNEL = types.FunctionType(types.void(F1, F1))
+#: An abstract controller's law (:data:`~ashc_cli.closedloop.laws.LAW_SIGNATURE`, :mod:`~ashc_cli.closedloop.controllers`).
+LAW = types.FunctionType(LAW_SIGNATURE)
 OPTIONS = dict(cache=True, error_model='numpy')
 
 #: The closed loop's constants: dims = [n_hat, n, m, m_hat, p, affine, disturbed] (affine: 1 for x' = f_bar + g u,
 #: 0 for f(x, u); disturbed: 1 when the run applies its constant disturbance e(x) w0); prm = [gain, v_max, lambda,
-#: eps] (then, for the signal, 1; for the governor, governor.py's entries); L, K, U: the Cholesky factor of M
-#: (M = L L^T), the feedback gain and the input box; q_ls = 1 for the least-squares q of eq. (43), 0 for q = 0;
-#: sat as :func:`~ashc_cli.closedloop.interface.saturate`.
-Loop = namedtuple("Loop", "dims prm L K U q_ls sat")
-LOOP = types.NamedTuple((I1, F1, F2, F2, F2, types.int64, types.int64), Loop)
+#: eps] (then, for the governor, governor.py's entries); L, K, U: the Cholesky factor of M (M = L L^T), the feedback
+#: gain and the input box; q_ls = 1 for the least-squares q of eq. (43), 0 for q = 0; sat as
+#: :func:`~ashc_cli.closedloop.interface.saturate`; lprm: the abstract controller's parameters (its law's prm).
+Loop = namedtuple("Loop", "dims prm L K U q_ls sat lprm")
+LOOP = types.NamedTuple((I1, F1, F2, F2, F2, types.int64, types.int64, F1), Loop)
 #: The design's terms at z = [xi, x, ...] (:func:`design_at`): phi_bar, delta, l, dp/dxi delta, kappa, p of xi and
 #: f_bar, g, h of x.
 At = namedtuple("At", "phi delta l dpd kap pm fb g h")
@@ -171,17 +173,14 @@ def store_sample(k, v, u, kap, h, out):
 
 
 @njit(inline="always", **OPTIONS)
-def _loop_at(eval_x, at, loop, z, xi_ref, v, u, dz):
-    """:func:`closed_loop` given the design's values at z (``samples`` reuses them for psi and y)."""
+def _loop_at(eval_x, at, loop, z, v, u, dz):
+    """:func:`closed_loop` given the design's values at z and the abstract input v (``samples`` reuses them for
+    psi and y)."""
     phi, delta, l, dpd, _, pm, fb, g, _ = at
-    dims, prm, L, K, U, q_ls, sat = loop
+    dims, prm, L, K, U, q_ls, sat, _ = loop
     NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
-    gain, v_max, lam, eps = prm[0], prm[1], prm[2], prm[3]
-    xi = z[:NH].copy()
+    lam, eps = prm[2], prm[3]
     x = z[NH:NH + N].copy()
-    if prm.size <= 4 or prm[4] == 0.0:
-        setpoint(delta, np.empty((MH, NH)), phi, xi, xi_ref, gain, v_max, v)
-    # (else v already holds the spec's abstract input v(t): abstract_controller.kind signal, prm[4] = 1)
     # u = SAT(l + K (x - p) + q v), eqs. (15), (43), (44)
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
@@ -224,24 +223,30 @@ def _loop_at(eval_x, at, loop, z, xi_ref, v, u, dz):
     dz[NH + N] = -(lam - eps) * z[NH + N] + weighted_norm2(L, r) / eps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F1, F1, F1, F1, F1), **OPTIONS)
-def closed_loop(eval_xi, eval_x, loop, z, xi_ref, v, u, dz):
-    """The set-point law (tests/oracle.py ``tracking_law``) and the comparison system at z = [xi, x, w]; fills v, u and dz = [dxi, dx, dw].
+@njit(types.void(XI_KERNEL, X_KERNEL, LAW, LOOP, types.float64, F1, F1, F1, F1, F1), **OPTIONS)
+def closed_loop(eval_xi, eval_x, law, loop, t, z, xi_ref, v, u, dz):
+    """The abstract controller's law, the interface and the comparison system at (t, z = [xi, x, w]) (with the
+    set-point law: tests/oracle.py ``tracking_law``); fills v, u and dz = [dxi, dx, dw].
 
     Parameters
     ----------
     eval_xi, eval_x
         As :func:`design_at`.
+    law : LAW
+        The abstract controller (:mod:`~ashc_cli.closedloop.controllers`), called with loop.lprm.
     loop : Loop
-        The closed loop's constants (prm's entries after the fourth: 1 at prm[4] for an abstract input v(t) already in v).
+        The closed loop's constants.
+    t : float
     z : 1-D float array (n_hat + n + 1,)
         [xi, x, w].
     xi_ref : 1-D float array (n_hat,)
-        The set-point controller's reference.
+        The controller's reference.
     v, u, dz : 1-D float arrays (m_hat,), (m,), (n_hat + n + 1,)
         Written: the abstract input, the concrete input and [dxi, dx, dw].
     """
-    _loop_at(eval_x, design_at(eval_xi, eval_x, loop.dims, z), loop, z, xi_ref, v, u, dz)
+    at = design_at(eval_xi, eval_x, loop.dims, z)
+    law(t, z, xi_ref, at.phi, at.delta, loop.lprm, v)
+    _loop_at(eval_x, at, loop, z, v, u, dz)
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, I1, types.float64, F1, F1, F1, F1), **OPTIONS)
@@ -302,6 +307,17 @@ def no_link(x, b, c, m):
     """
 
 
+@njit(LAW_SIGNATURE, **OPTIONS)
+def no_law(t, z, ref, phi, delta, prm, v):
+    """The law of the m-relation runs (``integrate`` takes one; it is never called there).
+
+    Parameters
+    ----------
+    t, z, ref, phi, delta, prm, v
+        A law's arguments, neither read nor written.
+    """
+
+
 @njit(types.void(F1, F1), **OPTIONS)
 def no_signal(t, u):
     """The eval_u of the tracking runs (never called there).
@@ -313,56 +329,34 @@ def no_signal(t, u):
     """
 
 
-#: rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u): the right-hand side of either loop behind one
-#: signature, so that one integrate runs both (an indirect call: integrate is compiled once and small, instead of
-#: inlining both loops at each of its calls).
-RHS_SIGNATURE = types.void(types.float64, F1, F1, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LOOP, F1, F1, F1)
+#: rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u): the right-hand side of either loop
+#: behind one signature, so that one integrate runs both (an indirect call: integrate is compiled once and small,
+#: instead of inlining both loops at each of its calls).
+RHS_SIGNATURE = types.void(types.float64, F1, F1, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LAW, LOOP, F1, F1, F1)
 RHS = types.FunctionType(RHS_SIGNATURE)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
-    """closed_loop behind the RHS signature (t, eval_link and eval_u unused).
+def tracking_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u):
+    """closed_loop behind the RHS signature (eval_link and eval_u unused).
 
     Parameters
     ----------
     t : float
     z, dz : 1-D float arrays (n_hat + n + 1,)
         [xi, x, w]; written: [dxi, dx, dw].
-    eval_xi, eval_x, loop, v, u
+    eval_xi, eval_x, law, loop, v, u
         As :func:`closed_loop`.
     eval_link, eval_u : LINK_KERNEL, U_KERNEL
     ref : 1-D float array (n_hat,)
         closed_loop's xi_ref.
     """
-    closed_loop(eval_xi, eval_x, loop, z, ref, v, u, dz)
+    closed_loop(eval_xi, eval_x, law, loop, t, z, ref, v, u, dz)
 
 
 @njit(RHS_SIGNATURE, **OPTIONS)
-def signal_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
-    """closed_loop driven by the spec's abstract input: v = v(t) from eval_u (``kind: signal``; loop.prm[4] = 1), eval_link unused.
-
-    Parameters
-    ----------
-    t : float
-    z, dz : 1-D float arrays (n_hat + n + 1,)
-        [xi, x, w]; written: [dxi, dx, dw].
-    eval_xi, eval_x, loop, v, u
-        As :func:`closed_loop` (prm[4] = 1: the set-point law is not run).
-    eval_link, eval_u : LINK_KERNEL, U_KERNEL
-        eval_u([t], v) fills the abstract input.
-    ref : 1-D float array (n_hat,)
-        Not read.
-    """
-    tt = np.empty(1)
-    tt[0] = t
-    eval_u(tt, v)
-    closed_loop(eval_xi, eval_x, loop, z, ref, v, u, dz)
-
-
-@njit(RHS_SIGNATURE, **OPTIONS)
-def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
-    """link_loop behind the RHS signature (ref and all of loop but its dims unused).
+def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u):
+    """link_loop behind the RHS signature (law, ref and all of loop but its dims unused).
 
     Parameters
     ----------
@@ -371,6 +365,8 @@ def link_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u):
         [xi, x]; written: [dxi, dx].
     eval_xi, eval_x, eval_link, eval_u, v, u
         As :func:`link_loop`.
+    law : LAW
+        Not called (:func:`no_law`).
     loop : Loop
         Its dims are link_loop's.
     ref : 1-D float array
@@ -396,10 +392,10 @@ def _leaves(eval_x, dims, z, edges):
 
 @njit(inline="always", **OPTIONS)
 def _call(t, y, D, row, ctx):
-    """The engine's call(t, y, D, row, ctx) for either loop: ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, loop,
-    ref, v, u)."""
-    rhs, eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u = ctx
-    rhs(t, y, D[row], eval_xi, eval_x, eval_link, eval_u, loop, ref, v, u)
+    """The engine's call(t, y, D, row, ctx) for either loop: ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, law,
+    loop, ref, v, u)."""
+    rhs, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u = ctx
+    rhs(t, y, D[row], eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v, u)
 
 
 @njit(inline="always", **OPTIONS)
@@ -408,12 +404,12 @@ def _leaves_event(z, ectx):
     return _leaves(ectx[0], ectx[1], z, ectx[2])
 
 
-@njit(types.UniTuple(types.int64, 5)(RHS, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LOOP, SEGMENTS, TABLEAU, F2, F1), nogil=True, **OPTIONS)
-def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, loop, run, tab, out, hit):
+@njit(types.UniTuple(types.int64, 5)(RHS, XI_KERNEL, X_KERNEL, LINK_KERNEL, U_KERNEL, LAW, LOOP, SEGMENTS, TABLEAU, F2, F1), nogil=True, **OPTIONS)
+def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, law, loop, run, tab, out, hit):
     """The engine's :func:`~ashc_cli.closedloop.rk.solve` with the tableau ``tab``, segment after segment.
 
-    ``rhs`` is tracking_rhs, signal_rhs or governor_rhs (the loop's constants used; eval_link and eval_u not,
-    pass no_link and no_signal, but eval_u for signal_rhs) or link_rhs (only loop.dims used).  Segment k runs from
+    ``rhs`` is tracking_rhs or governor_rhs (the loop's constants and, for tracking_rhs, the law used; eval_link and
+    eval_u not: pass no_link and no_signal) or link_rhs (only loop.dims used; pass no_law).  Segment k runs from
     run.t_bounds[k, 0] to run.t_bounds[k, 1] with the reference run.refs[k] and writes its samples
     run.t_eval[run.offsets[k]:run.offsets[k + 1]] to the same rows of out; the next segment starts from its last
     sample.  With run.edges = [lo, lo_margin, hi, hi_margin] (empty: no event) the run stops where h(x) leaves
@@ -423,9 +419,11 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, loop, run, tab, out, hit)
     Parameters
     ----------
     rhs : RHS
-        tracking_rhs, signal_rhs, governor_rhs (:mod:`ashc_cli.closedloop.governor`) or link_rhs.
+        tracking_rhs, governor_rhs (:mod:`ashc_cli.closedloop.governor`) or link_rhs.
     eval_xi, eval_x, eval_link, eval_u
         As :func:`link_loop`.
+    law : LAW
+        The abstract controller of tracking_rhs.
     loop : Loop
         The closed loop's constants (for governor_rhs prm goes on with [W_max, c, 1.0 (not read), grid,
         bisections, backoffs...]).
@@ -457,7 +455,7 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, loop, run, tab, out, hit)
     steps = 0
     written = 0
     for seg in range(t_bounds.shape[0]):
-        ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, loop, run.refs[seg], v, u)
+        ctx = (rhs, eval_xi, eval_x, eval_link, eval_u, law, loop, run.refs[seg], v, u)
         status, written, n_f, n_s = solve(_call, ctx, _leaves_event, ectx, run.edges.size > 0, method, (t_bounds[seg, 0], t_bounds[seg, 1]),
                                           y, (run.t_eval, offsets[seg], offsets[seg + 1]), tol, out, hit)
         nfev += n_f
@@ -469,14 +467,16 @@ def integrate(rhs, eval_xi, eval_x, eval_link, eval_u, loop, run, tab, out, hit)
     return 0, written, t_bounds.shape[0], nfev, steps
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F2, I1, F2, SAMPLES), nogil=True, **OPTIONS)
-def samples(eval_xi, eval_x, loop, Z, seg_of_row, refs, out):
-    """At every row of Z: v and u (tracking_law), psi = kappa(xi) and y = h(x).
+@njit(types.void(XI_KERNEL, X_KERNEL, LAW, LOOP, F1, F2, I1, F2, SAMPLES), nogil=True, **OPTIONS)
+def samples(eval_xi, eval_x, law, loop, t, Z, seg_of_row, refs, out):
+    """At every row of Z (time t[k]): v (the law) and u (the interface), psi = kappa(xi) and y = h(x).
 
     Parameters
     ----------
-    eval_xi, eval_x, loop
+    eval_xi, eval_x, law, loop
         As :func:`closed_loop`.
+    t : 1-D float array (N,)
+        The sample times.
     Z : 2-D float array (N, n_hat + n + 1)
         The samples [xi, x, w] (integrate's out).
     seg_of_row : 1-D int64 array (N,)
@@ -494,40 +494,8 @@ def samples(eval_xi, eval_x, loop, Z, seg_of_row, refs, out):
     for k in range(Z.shape[0]):
         z = Z[k]
         at = design_at(eval_xi, eval_x, dims, z)
-        _loop_at(eval_x, at, loop, z, refs[seg_of_row[k]], v, u, dz)
-        store_sample(k, v, u, at.kap, at.h, out)
-
-
-@njit(types.void(XI_KERNEL, X_KERNEL, U_KERNEL, LOOP, F1, F2, SAMPLES), nogil=True, **OPTIONS)
-def signal_samples(eval_xi, eval_x, eval_u, loop, t, Z, out):
-    """At every row of Z (time t[k]): v = v(t) (eval_u), u (the interface), psi = kappa(xi) and y = h(x).
-
-    Parameters
-    ----------
-    eval_xi, eval_x, loop
-        As :func:`signal_rhs`.
-    eval_u : U_KERNEL
-        The abstract input v(t).
-    t : 1-D float array (N,)
-        The sample times.
-    Z : 2-D float array (N, n_hat + n + 1)
-        The samples [xi, x, w] (integrate's out).
-    out : Samples
-        Written: v, u, psi and y, row k at Z[k].
-    """
-    dims = loop.dims
-    NH, N, M, MH = dims[0], dims[1], dims[2], dims[3]
-    dz = np.empty(NH + N + 1)
-    v = np.empty(MH)
-    u = np.empty(M)
-    tt = np.empty(1)
-    ref = np.zeros(NH)
-    for k in range(Z.shape[0]):
-        z = Z[k]
-        tt[0] = t[k]
-        eval_u(tt, v)
-        at = design_at(eval_xi, eval_x, dims, z)
-        _loop_at(eval_x, at, loop, z, ref, v, u, dz)
+        law(t[k], z, refs[seg_of_row[k]], at.phi, at.delta, loop.lprm, v)
+        _loop_at(eval_x, at, loop, z, v, u, dz)
         store_sample(k, v, u, at.kap, at.h, out)
 
 

@@ -301,7 +301,7 @@ def real_interval(m_of_y: sp.Expr, y: sp.Symbol, model: Model) -> tuple[float, f
         The radicands, as formulas in y.
     """
     lo, hi, texts = -np.inf, np.inf, []
-    for power in m_of_y.atoms(sp.Pow):
+    for power in sorted(m_of_y.atoms(sp.Pow), key=sp.default_sort_key):   # a set: its order follows str hashing
         if power.exp.is_Rational and power.exp.q % 2 == 0:
             radicand = power.base
             texts.append(str(radicand))

@@ -24,7 +24,7 @@ from ashc_cli.design.upstream import DOMAIN_RTOL
 
 from ashc_cli.closedloop import interface as law
 from ashc_cli.closedloop.compiled import interface_codes
-from ashc_cli.closedloop.laws import pinv_into, setpoint, setpoint_direction
+from ashc_cli.closedloop.laws import pinv_into, setpoint, setpoint_direction, setpoint_law
 from ashc_cli.outputs import translate
 from ashc_cli.outputs.export_design import NEEDED, Design
 
@@ -36,17 +36,19 @@ PINV_RCOND = 1e-15
 JACOBI_SWEEPS = 60
 #: The laws the exported interface and controller run: the compiled loops' own functions, printed (callees first).
 #: pinv_into is numpy's pinv in Python and the Jacobi SVD below in C.
-LAWS = (pinv_into, law.saturate, law.feedback_of, law.q_of, law.times, law.apply, setpoint_direction, setpoint)
+LAWS = (pinv_into, law.saturate, law.feedback_of, law.q_of, law.times, law.apply, setpoint_direction, setpoint, setpoint_law)
 
 
 def _name(fn) -> str:
     return getattr(fn, "py_func", fn).__name__
 
 
-def _needed(called: set[str]) -> list:
-    """The functions of :data:`LAWS` that ``called`` (names) reach, in :data:`LAWS`' order."""
+def _needed(called: set[str], extra=()) -> list:
+    """The functions of :data:`LAWS` and ``extra`` (a registered controller's law) that ``called`` (names) reach,
+    callees first."""
+    laws = LAWS + tuple(fn for fn in extra if fn not in LAWS)
     calls = {}
-    for fn in LAWS:
+    for fn in laws:
         tree = ast.parse(textwrap.dedent(inspect.getsource(getattr(fn, "py_func", fn))))
         calls[_name(fn)] = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
     want, todo = set(), list(called)
@@ -55,15 +57,15 @@ def _needed(called: set[str]) -> list:
         if name in calls and name not in want:
             want.add(name)
             todo += list(calls[name])
-    return [fn for fn in LAWS if _name(fn) in want]
+    return [fn for fn in laws if _name(fn) in want]
 
 
-def _c_laws(called: set[str], pinv_kinds: tuple[bool, bool]) -> list[str]:
+def _c_laws(called: set[str], pinv_kinds: tuple[bool, bool], extra=()) -> list[str]:
     """The C text of the laws ``called`` reaches (:func:`ashc_cli.outputs.translate.c_function`), pinv_into
     written on the helpers the design needs: (pinv_vector exists, pinv_small exists)."""
     known: dict = {}
     lines: list[str] = []
-    for fn in _needed(called):
+    for fn in _needed(called, extra):
         name = _name(fn)
         if fn is pinv_into:
             vector, general = pinv_kinds
@@ -135,7 +137,7 @@ def _renamer(design: Design):
     def rename(expr, what: str):
         expr = sp.sympify(expr)
         subs = {}
-        for s in expr.free_symbols:
+        for s in sorted(expr.free_symbols, key=lambda s: s.name):
             if s.name not in names:
                 raise DesignError(f"export.{what}", f"uses '{s.name}', which is neither a state nor a parameter of the spec",
                                   "expressions in the spec's states and parameters")
@@ -207,7 +209,7 @@ def _saturate_text(saturate) -> str:
 # --- C ---------------------------------------------------------------------------------------------------
 
 
-def c_sources(design: Design, header_name: str = "ashc_design.h") -> tuple[str, str]:
+def c_sources(design: Design, header_name: str = "ashc_design.h", controller=None) -> tuple[str, str]:
     """The C99 source and header of a design.
 
     Parameters
@@ -216,23 +218,38 @@ def c_sources(design: Design, header_name: str = "ashc_design.h") -> tuple[str, 
         From :func:`gather`.
     header_name : str
         The header's file name, which the source includes.
+    controller : (Controller, prm), optional
+        A registered abstract controller (:mod:`ashc_cli.closedloop.controllers`, one with a printed law) and its
+        parameters for ``ashc_controller``; default the set-point law with the spec's gain and v_max (else
+        arguments).
 
     Returns
     -------
     source, header : str
     """
     d = design
-    controller_args = "const double *xi, const double *xi_ref, double *v" if d.gain is not None else \
+    controller_args = "const double *xi, const double *xi_ref, double *v" if d.gain is not None or controller is not None else \
         "const double *xi, const double *xi_ref, double gain, double v_max, double *v"
-    source = _c_preamble(d, header_name) + _c_terms(d) + _c_controller(d, controller_args)
-    return "\n".join(source), "\n".join(_c_header(d, controller_args))
+    source = _c_preamble(d, header_name, controller) + _c_terms(d) + _c_controller(d, controller_args, controller)
+    return "\n".join(source), "\n".join(_c_header(d, controller_args, controller))
+
+
+def _law_of(d: Design, controller) -> tuple:
+    """(printed law, C text of its parameters or None for the set-point's gain and v_max, count, one-line law)."""
+    if controller is None:
+        return setpoint_law, None, 2, "v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max): the set-point abstract controller"
+    c, prm = controller
+    if c.printed is None:
+        raise DesignError("abstract_controller.kind", repr(c.name), "a controller whose law is printed (Controller.printed)")
+    prm = np.asarray(prm, dtype=float).reshape(-1)
+    return c.printed, prm, prm.size, f"{c.says}: the abstract controller {c.name}"
 
 
 #: The C macros of the design's dimensions.
 NS, NI, NAS, NAI, NO = "ASHC_N_STATES", "ASHC_N_INPUTS", "ASHC_N_ABSTRACT_STATES", "ASHC_N_ABSTRACT_INPUTS", "ASHC_N_OUTPUTS"
 
 
-def _c_header(d: Design, controller_args: str) -> list[str]:
+def _c_header(d: Design, controller_args: str, controller=None) -> list[str]:
     """The header's lines: dimensions, status codes, constants and the prototypes."""
     ls, has_gain = d.q == "least_squares", d.gain is not None
 
@@ -261,7 +278,7 @@ def _c_header(d: Design, controller_args: str) -> list[str]:
           "int ashc_m(const double *x, double *xi);",
           f"/* u = SAT(l(xi){' + K (x - p(xi))' if d.K is not None else ''}{' + q(xi, x) v' if ls else ''}): the interface (saturation: {_saturate_text(d.saturate)}). */",
           "void ashc_interface(const double *xi, const double *x, const double *v, double *u);",
-          "/* v = clip(delta(xi)^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max): the set-point abstract controller. */",
+          f"/* {_law_of(d, controller)[3]}. */",
           f"void ashc_controller({controller_args});",
           "/* dxi = phi_bar(xi) + delta(xi) v: the abstract system, to integrate xi. */",
           "void ashc_abstract_rhs(const double *xi, const double *v, double *dxi);", "",
@@ -270,7 +287,7 @@ def _c_header(d: Design, controller_args: str) -> list[str]:
     return h
 
 
-def _c_preamble(d: Design, header_name: str) -> list[str]:
+def _c_preamble(d: Design, header_name: str, controller=None) -> list[str]:
     """The source's comment, includes, parameters, constant arrays and the pseudo-inverse helpers."""
     ls = d.q == "least_squares"
     pinv_uses = [(d.n_hat, d.m_hat)] + ([(d.n, d.n_inputs)] if ls else [])
@@ -297,11 +314,12 @@ def _c_preamble(d: Design, header_name: str) -> list[str]:
               "    for (i = 0; i < len; i++) s += a[i] * a[i];", "    for (i = 0; i < len; i++) out[i] = s > 0.0 ? a[i] / s : 0.0;", "}", ""]
     if general:
         c += _c_pinv_small(max(r * k for r, k in general), max(min(r, k) for r, k in general))
-    called = {"setpoint", "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
-    c += ["/* The law of the interface and of the set-point controller: the compiled closed loops' own functions",
-          " * (ashc_cli/closedloop/interface.py and laws.py) printed by ashc_cli/outputs/translate.py; an array A comes",
-          " * with its extents A_rows, A_cols (x_n for a vector), row-major. */", ""]
-    c += _c_laws(called, (bool(vector), bool(general)))
+    fn = _law_of(d, controller)[0]
+    called = {_name(fn), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    c += ["/* The laws of the interface and of the abstract controller: the compiled closed loops' own functions",
+          " * (ashc_cli/closedloop/interface.py, laws.py, controllers.py) printed by ashc_cli/outputs/translate.py; an",
+          " * array A comes with its extents A_rows, A_cols (x_n for a vector), row-major. */", ""]
+    c += _c_laws(called, (bool(vector), bool(general)), (fn,))
     return c
 
 
@@ -334,18 +352,16 @@ def _c_terms(d: Design) -> list[str]:
     return c
 
 
-def _c_controller(d: Design, controller_args: str) -> list[str]:
-    """The set-point abstract controller (closedloop/laws.py's setpoint, printed) and the abstract right-hand side."""
-    has_gain = d.gain is not None
-    c: list[str] = []
-    c += ["static void controller_law(const double *xi, const double *xi_ref, double gain, double v_max, double *v)", "{",
-          f"    double phi[{NAS}], delta[{NAS} * {NAI}], dplus[{NAI} * {NAS}];",
-          "    abstract_terms(xi, phi, delta);",
-          f"    setpoint(delta, {NAS}, {NAI}, dplus, {NAI}, {NAS}, phi, {NAS}, xi, {NAS}, xi_ref, {NAS}, gain, v_max, v, {NAI});", "}", ""]
-    if has_gain:
-        c += [f"void ashc_controller({controller_args})", "{", "    controller_law(xi, xi_ref, ASHC_GAIN, ASHC_V_MAX, v);", "}", ""]
+def _c_controller(d: Design, controller_args: str, controller=None) -> list[str]:
+    """ashc_controller (the abstract controller's printed law at t = 0) and the abstract right-hand side."""
+    fn, prm, count, _ = _law_of(d, controller)
+    if prm is None:
+        values = "ASHC_GAIN, ASHC_V_MAX" if d.gain is not None else "gain, v_max"
     else:
-        c += [f"void ashc_controller({controller_args})", "{", "    controller_law(xi, xi_ref, gain, v_max, v);", "}", ""]
+        values = ", ".join(_num(p) for p in prm) if count else "0.0"
+    c = [f"void ashc_controller({controller_args})", "{", f"    double phi[{NAS}], delta[{NAS} * {NAI}];",
+         f"    const double prm[{max(count, 1)}] = {{{values}}};", "    abstract_terms(xi, phi, delta);",
+         f"    {_name(fn)}(0.0, xi, {NAS}, xi_ref, {NAS}, phi, {NAS}, delta, {NAS}, {NAI}, prm, {count}, v, {NAI});", "}", ""]
     c += ["void ashc_abstract_rhs(const double *xi, const double *v, double *dxi)", "{",
           f"    double phi[{NAS}], delta[{NAS} * {NAI}];", "    int i, a;", "    abstract_terms(xi, phi, delta);",
           f"    for (i = 0; i < {NAS}; i++) {{", "        double s = 0.0;",
@@ -468,13 +484,50 @@ def _c_interface(d: Design, interface_outputs, uses_x: bool) -> list[str]:
 # --- Python ----------------------------------------------------------------------------------------------
 
 
-def python_source(design: Design) -> str:
+def _py_laws(d: Design, controller, interface_outputs) -> list[str]:
+    """The Python export's laws (the compiled loops' source), ashc_interface and ashc_controller."""
+    ls, has_gain, uses_x = d.q == "least_squares", d.gain is not None, d.K is not None or d.q == "least_squares"
+    lines: list[str] = []
+    terms = ", ".join(a for a, _ in interface_outputs)
+    q_ls, sat = interface_codes(d.q, d.saturate)
+    fn_law, prm, _, says = _law_of(d, controller)
+    called = {_name(fn_law), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    lines += ["# The laws of the interface and of the abstract controller: the compiled closed loops' own functions",
+              "# (closedloop/interface.py, laws.py, controllers.py of ashc), their source as it is.", "", ""]
+    for fn in _needed(called, (fn_law,)):
+        lines += [*translate.python_source(fn).rstrip("\n").splitlines(), "", ""]
+    lines += ["def ashc_interface(xi, x, v):",
+              f'    """u = SAT(l(xi){" + K (x - p(xi))" if d.K is not None else ""}{" + q(xi, x) v" if ls else ""}), saturation: {_saturate_text(d.saturate)}."""',
+              "    xi = numpy.asarray(xi, dtype=float)", "    x = numpy.asarray(x, dtype=float)", "    v = numpy.asarray(v, dtype=float)",
+              f"    {terms} = _interface_terms({'xi, x' if uses_x else 'xi'})",
+              "    feedback = numpy.zeros(N_INPUTS)", "    qv = numpy.zeros(N_INPUTS)"]
+    if d.K is not None:
+        lines += ["    feedback_of(K, x, pm, feedback)  # K (x - p(xi)), eq. (15)"]
+    if ls:
+        lines += ["    q = numpy.empty((N_INPUTS, N_ABSTRACT_INPUTS))",
+                  f"    q_of(L, g, dpd, {q_ls}, q, numpy.empty((N_STATES, N_INPUTS)), numpy.empty((N_STATES, N_ABSTRACT_INPUTS)), "
+                  "numpy.empty((N_INPUTS, N_STATES)))  # eq. (43)", "    times(q, v, qv)"]
+    lines += ["    u = numpy.empty(N_INPUTS)", f"    apply(l, feedback, qv, 1.0, INPUT_BOUNDS, {sat}, numpy.empty(N_INPUTS), u)  # eq. (44)",
+              "    return u", "", ""]
+    args = "xi, xi_ref" if has_gain or controller is not None else "xi, xi_ref, gain, v_max"
+    values = (("GAIN, V_MAX" if has_gain else "gain, v_max") if prm is None else ", ".join(repr(float(p)) for p in prm))
+    lines += [f"def ashc_controller({args}):", f'    """{says}."""',
+              "    xi = numpy.ascontiguousarray(xi, dtype=float)", "    xi_ref = numpy.ascontiguousarray(xi_ref, dtype=float)",
+              "    phi, delta = _abstract_terms(xi)", "    v = numpy.empty(N_ABSTRACT_INPUTS)",
+              f"    {_name(fn_law)}(0.0, xi, xi_ref, phi, delta, numpy.array([{values}], dtype=float), v)",
+              "    return v", "", ""]
+    return lines
+
+
+def python_source(design: Design, controller=None) -> str:
     """The numpy module of a design: the same functions as the C file, returning arrays.
 
     Parameters
     ----------
     design : Design
         From :func:`gather`.
+    controller : (Controller, prm), optional
+        As :func:`c_sources`.
 
     Returns
     -------
@@ -535,34 +588,8 @@ def python_source(design: Design) -> str:
               "    if not numpy.all((y >= M_DOMAIN[:, 0] - tol) & (y <= M_DOMAIN[:, 1] + tol)):",
               "        return OUTSIDE_CERTIFIED_SET, numpy.full(N_ABSTRACT_STATES, numpy.nan)", "    xi = _m_terms(x)",
               "    return (OK if numpy.all(numpy.isfinite(xi)) else NOT_REAL), xi", "", ""]
-    terms = ", ".join(a for a, _ in interface_outputs)
-    q_ls, sat = interface_codes(d.q, d.saturate)
-    called = {"setpoint", "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
-    lines += ["# The law of the interface and of the set-point controller: the compiled closed loops' own functions",
-              "# (closedloop/interface.py and laws.py of ashc), their source as it is (annotations: f1 a vector, f2 a matrix).", "", ""]
-    for fn in _needed(called):
-        lines += [*translate.python_source(fn).rstrip("\n").splitlines(), "", ""]
-    lines += ["def ashc_interface(xi, x, v):",
-              f'    """u = SAT(l(xi){" + K (x - p(xi))" if d.K is not None else ""}{" + q(xi, x) v" if ls else ""}), saturation: {_saturate_text(d.saturate)}."""',
-              "    xi = numpy.asarray(xi, dtype=float)", "    x = numpy.asarray(x, dtype=float)", "    v = numpy.asarray(v, dtype=float)",
-              f"    {terms} = _interface_terms({'xi, x' if uses_x else 'xi'})",
-              "    feedback = numpy.zeros(N_INPUTS)", "    qv = numpy.zeros(N_INPUTS)"]
-    if d.K is not None:
-        lines += ["    feedback_of(K, x, pm, feedback)  # K (x - p(xi)), eq. (15)"]
-    if ls:
-        lines += ["    q = numpy.empty((N_INPUTS, N_ABSTRACT_INPUTS))",
-                  f"    q_of(L, g, dpd, {q_ls}, q, numpy.empty((N_STATES, N_INPUTS)), numpy.empty((N_STATES, N_ABSTRACT_INPUTS)), "
-                  "numpy.empty((N_INPUTS, N_STATES)))  # eq. (43)", "    times(q, v, qv)"]
-    lines += ["    u = numpy.empty(N_INPUTS)", f"    apply(l, feedback, qv, 1.0, INPUT_BOUNDS, {sat}, numpy.empty(N_INPUTS), u)  # eq. (44)",
-              "    return u", "", ""]
-    args = "xi, xi_ref" if has_gain else "xi, xi_ref, gain, v_max"
-    lines += [f"def ashc_controller({args}):", '    """v = clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max)."""',
-              *(["    gain, v_max = GAIN, V_MAX"] if has_gain else []),
-              "    xi = numpy.asarray(xi, dtype=float)", "    xi_ref = numpy.asarray(xi_ref, dtype=float)",
-              "    phi, delta = _abstract_terms(xi)", "    v = numpy.empty(N_ABSTRACT_INPUTS)",
-              "    setpoint(delta, numpy.empty((N_ABSTRACT_INPUTS, N_ABSTRACT_STATES)), phi, xi, xi_ref, float(gain), float(v_max), v)",
-              "    return v", "", "",
-              "def ashc_abstract_rhs(xi, v):", '    """dxi = phi_bar(xi) + delta(xi) v."""',
+    lines += _py_laws(d, controller, interface_outputs)
+    lines += ["def ashc_abstract_rhs(xi, v):", '    """dxi = phi_bar(xi) + delta(xi) v."""',
               "    v = numpy.asarray(v, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    return phi + delta @ v", ""]
     text = "\n".join(lines)
     if "functools." not in text.split('"""', 2)[2]:   # sympy prints min/max of several arguments with functools.reduce

@@ -230,7 +230,7 @@ def jumps(exprs, symbols: Sequence[sp.Symbol]) -> list[sp.Expr]:
         e = sp.sympify(e)
         if not e.has(sp.sign, square, step, sp.Heaviside):
             continue
-        for a in e.atoms(sp.sign, square, step, sp.Heaviside):
+        for a in sorted(e.atoms(sp.sign, square, step, sp.Heaviside), key=sp.default_sort_key):
             if a.free_symbols & syms and a not in found:
                 found.append(a)
     return found
