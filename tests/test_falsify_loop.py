@@ -197,3 +197,25 @@ def test_compiled_search_breaks_a_planted_bound_on_the_manifold(tmp_path):
     assert art.meta["engine"].startswith("compiled")
     assert art.values["max_ratio_w0_zero"] > 1.0
     assert not art.checks["falsify_ratio"].passed
+
+
+def test_an_objective_hook_scores_the_runs(tmp_path):
+    # falsify scores a run by the bound ratio; another objective (a task's robustness, next) is one numba function
+    # of falsify_core.OBJECTIVE_SIGNATURE: here |psi - y| itself, so the largest score is the largest error.
+    from numba import njit
+
+    from ashc_cli.closedloop import falsify_core
+
+    @njit(falsify_core.OBJECTIVE_SIGNATURE)
+    def plain_error(t, z, err, bound, floor):
+        return err
+
+    st, batch = _setting(CUK, tmp_path, runs=8, t_final=1.0)
+    args = (st, batch, F.TOL, ST.unit_candidates(1), ST.w0(st, batch), ST.DIVERGED, ST.GUARD_LOOKAHEAD)
+    default = st.loop.run(*args, record=True)
+    scored = st.loop.run(*args, record=True, objective=plain_error)
+    np.testing.assert_array_equal(scored["ratio"], scored["max_error"])
+    assert not np.array_equal(scored["ratio"], default["ratio"])
+    # the runs themselves do not change with the score: the same states at every hold
+    np.testing.assert_array_equal(scored["Z"], default["Z"])
+    np.testing.assert_array_equal(default["ratio"], st.loop.run(*args, record=True, objective=falsify_core.bound_ratio)["ratio"])

@@ -27,6 +27,10 @@ I2 = types.int64[:, ::1]
 XI_KERNEL = types.FunctionType(types.void(F1, F1))
 X_KERNEL = types.FunctionType(types.void(F1, F1))
 OPTIONS = dict(cache=True, error_model="numpy")
+#: objective(t, z, err, bound, floor): a run's score at a hold boundary where it is active (the largest over the run
+#: is its ``ratio``): :func:`bound_ratio` by default; the hook for scoring runs by something else (a task's robustness).
+OBJECTIVE_SIGNATURE = types.float64(types.float64, F1, types.float64, types.float64, types.float64)
+OBJECTIVE = types.FunctionType(OBJECTIVE_SIGNATURE)
 
 SETPOINT, TABLE, GREEDY = 0, 1, 2
 
@@ -258,14 +262,30 @@ def _state_checks(Z, nh, scale, diverge, lo, hi):
     return finite, inside
 
 
+@njit(OBJECTIVE_SIGNATURE, **OPTIONS)
+def bound_ratio(t, z, err, bound, floor):
+    """The default objective: (|psi - y| - floor) / bound (Theorem 2's bound), 0 below the floor, inf where the bound
+    is 0 and the error is not.
+
+    Parameters
+    ----------
+    t : float
+    z : 1-D float array
+        [xi, x] (not read).
+    err, bound, floor : float
+        |kappa(xi) - h(x)|, the guaranteed bound and the floor of the integrator's accuracy.
+    """
+    if err > floor:
+        return (err - floor) / max(bound, 1e-300) if bound > 0 else np.inf
+    return 0.0
+
+
 @njit(inline="always", **OPTIONS)
-def _account(k, k_at, active, err, floor, bound, acc):
-    """Sample k into the run's tallies ``acc`` (fout's row: the largest error / bound ratio, the largest after t = 0,
-    the largest error and, at acc[5], bound while the run is active); the sample of the largest ratio is returned.
-    A local row, copied to fout at the end: threads writing neighbouring rows of fout every hold share cache lines."""
-    ratio = 0.0
-    if active and err > floor:
-        ratio = (err - floor) / max(bound, 1e-300) if bound > 0 else np.inf
+def _account(k, k_at, score, active, err, bound, acc):
+    """Sample k into the run's tallies ``acc`` (fout's row: the largest score, the largest after t = 0, the largest
+    error and, at acc[5], bound while the run is active); the sample of the largest score is returned.  A local
+    row, copied to fout at the end: threads writing neighbouring rows of fout every hold share cache lines."""
+    ratio = score if active else 0.0
     if ratio > acc[0]:
         acc[0] = ratio
         k_at = k
@@ -327,7 +347,7 @@ def _guard(T, D, W, Z, step, v_max, v_plan):
 
 
 @njit(**OPTIONS)
-def run_one(exi, ex, r, D, S, O):
+def run_one(exi, ex, objective, r, D, S, O):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
 
     Parameters
@@ -413,7 +433,7 @@ def run_one(exi, ex, r, D, S, O):
             if vn >= v_limit * (1 - 1e-9):
                 at_limit += 1.0
         bound = math.sqrt(w0 * math.exp(-(lam - eps) * D.tgrid[k]) / alpha_h) + G * vsup
-        k_at = _account(k, k_at, active, err, floor, bound, acc)
+        k_at = _account(k, k_at, objective(D.tgrid[k], Z, err, bound, floor) if active else 0.0, active, err, bound, acc)
         if record:
             _record(r, k, Z, err, bound, v_now, O.recZ, O.recE, O.recB, O.recV)
         if k == H:
@@ -475,14 +495,16 @@ def run_one(exi, ex, r, D, S, O):
     O.iout[r, 5] = rejected
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, DESIGN, STARTS, I1, OUTPUTS), nogil=True, **OPTIONS)
-def run_batch(exi, ex, design, starts, rows, outputs):
+@njit(types.void(XI_KERNEL, X_KERNEL, OBJECTIVE, DESIGN, STARTS, I1, OUTPUTS), nogil=True, **OPTIONS)
+def run_batch(exi, ex, objective, design, starts, rows, outputs):
     """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs.
 
     Parameters
     ----------
     exi, ex : XI_KERNEL, X_KERNEL
         The design's falsify_xi(z, A) and falsify_x(z, B) (:mod:`ashc_cli.closedloop.falsify_loop`).
+    objective : OBJECTIVE
+        A run's score at each hold boundary (:func:`bound_ratio`, or another of the signature).
     design : Design
         What every run shares (:class:`Design`).
     starts : Starts
@@ -493,4 +515,4 @@ def run_batch(exi, ex, design, starts, rows, outputs):
         Written at the rows ``rows`` (:class:`Outputs`).
     """
     for j in range(rows.size):
-        run_one(exi, ex, rows[j], design, starts, outputs)
+        run_one(exi, ex, objective, rows[j], design, starts, outputs)

@@ -174,7 +174,7 @@ class FalsifyLoop:
 
     def run(self, st, b, tol: dict, cand: np.ndarray, W0: np.ndarray, divergence: float, lookahead: float,
             record: bool = False, progress: Callable[[int, int, float], None] | None = None, chunk: int | None = None,
-            keep_inputs: bool = True) -> dict:
+            keep_inputs: bool = True, objective=None) -> dict:
         """Integrate the runs of batch ``b`` (strategies.Batch) with the setting ``st`` (strategies.Setup).
 
         Parameters
@@ -199,6 +199,9 @@ class FalsifyLoop:
             Return the held inputs (``vused``, N x holds x m_hat).  Without them the memory does not grow with
             runs x holds; a run's inputs are the same when it is integrated again alone (its integration does
             not depend on the other runs).
+        objective : numba function, optional
+            A run's score at each hold boundary, of the signature ``falsify_core.OBJECTIVE_SIGNATURE`` (t, z, err,
+            bound, floor); ``ratio`` is its largest [default ``falsify_core.bound_ratio``].
 
         Returns
         -------
@@ -238,9 +241,10 @@ class FalsifyLoop:
         design = core.Design(dims=dims, off=off, fprm=fprm, iprm=self.iprm, M=self.M, L=self.L, K=self.K, U=self.U, atol=atol,
                              scale=scale, lo=lo, hi=hi, centre=centre, cand=c(cand, dtype=float), tgrid=c(st.t, dtype=float))
         exi, ex = self.kernels.falsify_xi, self.kernels.falsify_x
+        score = core.bound_ratio if objective is None else objective
 
         def work(rows):
-            core.run_batch(exi, ex, design, starts, rows, outputs)
+            core.run_batch(exi, ex, score, design, starts, rows, outputs)
             return rows.size
 
         start = time.perf_counter()
