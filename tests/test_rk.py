@@ -146,3 +146,28 @@ def test_fixed_step_is_the_textbook_rk4_bit_for_bit_and_of_order_four():
         return abs(z[0] - np.exp(-1.0))
 
     assert 14.0 < error(20) / error(40) < 18.0   # halving the step divides the error by 2^4
+
+
+@njit(inline="always")
+def _decay(t, y, K, row, ctx):
+    for i in range(y.size):
+        K[row, i] = -ctx[0] * y[i]
+
+
+@njit
+def _hold_decay(lam, h0, h_min, rtol):
+    y, K, ys, y_new = np.ones(1), np.empty((rk.DP54[0].shape[0], 1)), np.empty(1), np.empty(1)
+    K[0, 0] = -lam                                           # f at the hold's start, given (FSAL)
+    h, accepted, rejected, forced = rk.hold(_decay, (lam,), (rk.DP54, rk.DP54_EXPONENT), (0.0, 1.0), y, h0,
+                                            (h_min, 1.0, 0.9, 0.2, 5.0), (K, ys, y_new), (rtol, np.full(1, 1e-14)))
+    return y[0], h, accepted, rejected, forced, K[0, 0]
+
+
+def test_a_hold_reaches_its_end_to_its_tolerance_and_forces_only_at_its_least_step():
+    # falsify's driver: y' = -4 y over one hold from a step too long to accept
+    y, h, accepted, rejected, forced, k0 = _hold_decay(4.0, 1.0, 1.0 / 4096, 1e-8)
+    assert abs(y - np.exp(-4.0)) <= 1e-8 * 10 and forced == 0 and rejected >= 1 and accepted > 1
+    assert k0 == -4.0 * y                                    # K[0] holds f at the end (the next hold's first stage)
+    # with a least step of a quarter hold and a tolerance no step meets, the steps are accepted by force
+    y, h, accepted, rejected, forced, _ = _hold_decay(4.0, 1.0, 0.25, 1e-16)
+    assert forced == accepted == 4 and h == 0.25 and np.isfinite(y)

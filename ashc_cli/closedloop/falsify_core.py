@@ -17,7 +17,7 @@ from numba.extending import intrinsic
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, times
 from ashc_cli.closedloop.laws import F1, F2, pinv_into, setpoint_direction
-from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, error_norm, stage_input, step_factor
+from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, hold
 
 F3 = types.float64[:, :, ::1]
 I1 = types.int64[::1]
@@ -346,6 +346,63 @@ def _guard(T, D, W, Z, step, v_max, v_plan):
         v_plan[a] = T.vin[a] * (v_max / max(nin, 1e-300))
 
 
+#: The step control of a hold (rk.hold): the least step as a fraction of the hold (accepted by force), and the
+#: safety factor and the bounds of a step's change.
+H_MIN_HOLDS, SAFETY, MIN_FACTOR, MAX_FACTOR = 1.0 / 4096.0, 0.9, 0.2, 5.0
+
+
+@njit(inline="always", **OPTIONS)
+def _v1(a):
+    """The whole 1-D array ``a`` as a view without a reference count (:func:`_vec`; ``a`` must outlive it)."""
+    return _vec(a, 0, a.size)
+
+
+@njit(inline="always", **OPTIONS)
+def _v2(a):
+    """The whole 2-D (C-order) array ``a`` as a view without a reference count (:func:`_mat`)."""
+    return _mat(a, 0, a.shape[0], a.shape[1])
+
+
+@njit(inline="always", **OPTIONS)
+def _stage_context(exi, ex, A, B, T, D, W, law):
+    """rk.hold's ctx for :func:`_stage`, every array in it a view without a reference count: the engine unpacks
+    the context at every stage, and with the arrays themselves each paid its count (1.53x the time of a campaign).
+    The arrays are the run's, alive for the whole hold (A, B, T, W, the law's v) or the caller's (D, the starts)."""
+    Dv = Design(_v1(D.dims), _v1(D.off), _v1(D.fprm), _v1(D.iprm), _v2(D.M), _v2(D.L), _v2(D.K), _v2(D.U), _v1(D.atol),
+                _v1(D.scale), _v1(D.lo), _v1(D.hi), _v1(D.centre), _v2(D.cand), _v1(D.tgrid))
+    Wv = Work(_v1(W.u), _v1(W.dxi), _v1(W.dxi_r), _v1(W.dx), _v1(W.ee), _v1(W.vc), _v1(W.choice), _v1(W.plan0), _v1(W.neg))
+    Tv = Terms(T.phi, T.delta, T.l, T.dpd, T.kap, T.pm, T.dp, T.fb, T.g, T.h, T.dh, T.kx, T.q, T.ltg, T.ltd, T.pg, T.dplus,
+               T.corr, T.vin, T.qv, 0)
+    setpoint, ref, gain, nz, v_limit, v, v_now = law
+    return (exi, ex, _v1(A), _v1(B), Tv, Dv, Wv, (setpoint, _v1(ref), gain, _v1(nz), v_limit, _v1(v), _v1(v_now)))
+
+
+@njit(inline="always", **OPTIONS)
+def _derivative(z, K, row, T, D, W, law):
+    """[xi', x'] at z into K[row] (non-finite entries 0), the terms T already at z: the input is the set-point law
+    at z or the held v (law = (setpoint, ref, gain, noise, v_limit, v, v_now))."""
+    setpoint, ref, gain, nz, v_limit, v, v_now = law
+    nh, n = D.dims[0], D.dims[1]
+    if setpoint:
+        _setpoint_v(z, T, ref, gain, nz, v_limit, v)
+    else:
+        for a in range(v.size):
+            v[a] = v_now[a]
+    _apply(T, D, v, W.u, W.dxi, W.dx)
+    for i in range(nh):
+        K[row, i] = W.dxi[i] if math.isfinite(W.dxi[i]) else 0.0
+    for i in range(n):
+        K[row, nh + i] = W.dx[i] if math.isfinite(W.dx[i]) else 0.0
+
+
+@njit(inline="always", **OPTIONS)
+def _stage(t, y, K, row, ctx):
+    """rk.hold's call: the terms at the stage y, then :func:`_derivative` (ctx = (exi, ex, A, B, T, D, W, law))."""
+    exi, ex, A, B, T, D, W, law = ctx
+    _terms(exi, ex, y, _vec(y, D.dims[0], D.dims[1]), A, B, T, D)
+    _derivative(y, K, row, T, D, W, law)
+
+
 @njit(**OPTIONS)
 def run_one(exi, ex, objective, r, D, S, O):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
@@ -360,11 +417,10 @@ def run_one(exi, ex, objective, r, D, S, O):
     A, B, wk = np.empty(D.off[19]), np.empty(D.off[20]), np.empty(D.off[21])     # the kernels' buffers and the loop's work
     T = _views(D, A, B, wk, np.empty(m))
     W = Work(np.empty(m), np.empty(nh), np.empty(nh), np.empty(n), np.empty(n), np.empty(mh), np.empty(mh), np.empty(mh), np.empty(mh))
-    u, dxi, dx = W.u, W.dxi, W.dx
     v, v_plan = np.empty(mh), np.empty(mh)
     v_now, prev = np.zeros(mh), np.zeros(mh)
-    Z, Zs, zs, ks = np.empty(d), np.empty(d), np.empty(d), np.empty((DP54[0].shape[0], d))
-    xs, xzs = Zs[nh:], zs[nh:]                # x of the hold start and of a stage (views made once)
+    Z, Zs, zs, z_new, ks = np.empty(d), np.empty(d), np.empty(d), np.empty(d), np.empty((DP54[0].shape[0], d))
+    xs = Zs[nh:]                              # x of the hold start (a view made once)
     for i in range(nh):
         Z[i] = S.xi0[r, i]
     for i in range(n):
@@ -384,8 +440,8 @@ def run_one(exi, ex, objective, r, D, S, O):
     forced = 0
     accepted = 0
     rejected = 0
-    h_min = dt / 4096.0
-    rtol = fprm[7]
+    control = (dt * H_MIN_HOLDS, dt, SAFETY, MIN_FACTOR, MAX_FACTOR)
+    tol = (fprm[7], D.atol)
     last_switch = -(10 ** 9)
     acc = np.zeros(6)                # ratio, ratio_late, max_err, vsup, at_limit, largest_bound (fout's row)
     k_at = 0
@@ -441,50 +497,14 @@ def run_one(exi, ex, objective, r, D, S, O):
         if not active:
             continue
 
-        t = D.tgrid[k]
-        t_end = D.tgrid[k + 1]
-        tab = DP54
-        ns = tab[1].size
-        first = 0
-        while t < t_end - 1e-14 * max(1.0, t_end):
-            h_nat = h_step
-            h_step = min(h_step, t_end - t)
-            for s in range(first, ns + 1):
-                # [xi', x'] at zs, held input or set-point law, non-finite entries 0.  Stage 0 runs at the hold's start
-                # only: zs = Z, and the terms in A, B and wk are still those of the hold-start check.
-                if s == 0:
-                    zs[:] = Z
-                else:
-                    stage_input(tab, s, h_step, Z, ks, zs)
-                    _terms(exi, ex, zs, xzs, A, B, T, D)
-                if setpoint:
-                    _setpoint_v(zs, T, ref, gain, nz, v_limit, v)
-                else:
-                    for a in range(mh):
-                        v[a] = v_now[a]
-                _apply(T, D, v, u, dxi, dx)
-                for i in range(nh):
-                    ks[s, i] = dxi[i] if math.isfinite(dxi[i]) else 0.0
-                for i in range(n):
-                    ks[s, nh + i] = dx[i] if math.isfinite(dx[i]) else 0.0
-            first = 1
-            E = error_norm(tab, ks, h_step, Z, zs, D.atol, rtol)
-            if not math.isfinite(E):
-                E = 0.0
-            if E <= 1.0 or h_step <= h_min:
-                if E > 1.0:
-                    forced += 1
-                accepted += 1
-                for i in range(d):
-                    Z[i] = zs[i]
-                    ks[0, i] = ks[ns, i]
-                t += h_step
-                h_step = h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0)
-                restore = h_nat if (h_step < h_nat and E <= 0.5) else 0.0
-                h_step = min(max(h_step, h_min, restore), dt)
-            else:
-                rejected += 1
-                h_step = max(h_min, h_step * step_factor(E, DP54_EXPONENT, 0.9, 0.2, 5.0))
+        # the hold: its first stage at the hold's start, with the terms of the hold-start check (the same point)
+        law = (setpoint, ref, gain, nz, v_limit, v, v_now)
+        _derivative(Z, ks, 0, T, D, W, law)
+        h_step, n_acc, n_rej, n_forced = hold(_stage, _stage_context(exi, ex, A, B, T, D, W, law), (DP54, DP54_EXPONENT),
+                                             (D.tgrid[k], D.tgrid[k + 1]), Z, h_step, control, (ks, zs, z_new), tol)
+        accepted += n_acc
+        rejected += n_rej
+        forced += n_forced
     acc[3], acc[4] = vsup, at_limit
     O.fout[r, :6] = acc
     O.iout[r, 0] = k_at

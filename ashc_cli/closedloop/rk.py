@@ -7,6 +7,8 @@ D its dense output) or Dormand-Prince 5(4) (E3 empty, D = P).  The loop's right-
 inlined into its caller, so the compiled cores (tracking, governor, m-relation, falsify) are one engine
 specialised for each loop, and numba still caches them (docs/guide.md, "Compiled closed loops").
 """
+import math
+
 import numpy as np
 from numba import njit
 from scipy.integrate._ivp import dop853_coefficients as _dop853, rk as _rk
@@ -440,6 +442,67 @@ def _advance(call, ctx, method, span, y, h_abs, min_step, work, tol):
             return True, t_new, h, h_abs * factor, nfev
         rejected = True
         h_abs *= factor
+
+
+@njit(**INLINE)
+def hold(call, ctx, method, span, y, h, control, work, tol):
+    """Integrate y from span[0] to span[1] (one hold of falsify, whose input changes at its ends) with a step control
+    of its own: a step of h_min is accepted even when its error exceeds the tolerance (``forced``: a run whose
+    interface kinks would otherwise stall), a non-finite error norm counts as 0 (the caller's state checks stop a
+    diverged run), and a step cut within the hold grows back to the one before the cut when its error was at
+    most 0.5 (the hold's end is not the run's).  K[0] must hold f(span[0], y) (FSAL: it holds f at the end on
+    return).
+
+    Parameters
+    ----------
+    call, ctx
+        As :func:`attempt`.
+    method : (tab, exponent)
+    span : (float, float)
+        (t, t_end).
+    y : 1-D array
+        The state at t; written: at t_end.
+    h : float
+        The first step to try.
+    control : (float, float, float, float, float)
+        (h_min, h_max, safety, min_factor, max_factor) of :func:`step_factor`.
+    work : (K, ys, y_new)
+        As :func:`attempt`.
+    tol : (float, 1-D array)
+        (rtol, atol per component).
+
+    Returns
+    -------
+    h, accepted, rejected, forced : float, int, int, int
+        The step to try next, and the steps accepted, rejected and accepted by force.
+    """
+    (tab, exponent), (t, t_end), (K, ys, y_new), (rtol, atol), (h_min, h_max, safety, lo, hi) = method, span, work, tol, control
+    ns = tab[1].size
+    accepted = 0
+    rejected = 0
+    forced = 0
+    while t < t_end - 1e-14 * max(1.0, t_end):
+        h_nat = h
+        h = min(h, t_end - t)
+        attempt(call, ctx, tab, t, y, h, K, ys, y_new)
+        E = error_norm(tab, K, h, y, y_new, atol, rtol)
+        if not math.isfinite(E):
+            E = 0.0
+        if E <= 1.0 or h <= h_min:
+            if E > 1.0:
+                forced += 1
+            accepted += 1
+            for i in range(y.size):
+                y[i] = y_new[i]
+                K[0, i] = K[ns, i]
+            t += h
+            h = h * step_factor(E, exponent, safety, lo, hi)
+            restore = h_nat if (h < h_nat and E <= 0.5) else 0.0
+            h = min(max(h, h_min, restore), h_max)
+        else:
+            rejected += 1
+            h = max(h_min, h * step_factor(E, exponent, safety, lo, hi))
+    return h, accepted, rejected, forced
 
 
 @njit(**INLINE)
