@@ -84,6 +84,25 @@ def feedback_of(K: F2, x: F1, pm: F1, feedback: F1):
 
 
 @njit(**INLINE)
+def lt_times(L: F2, X: F2, out: F2):
+    """out = L^T X (the sums over L's rows in order), for L^T g and L^T dp/dxi delta of eq. (43).
+
+    Parameters
+    ----------
+    L : 2-D float array (n, n)
+    X : 2-D float array (n, c)
+    out : 2-D float array (n, c)
+        Written.
+    """
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            s = 0.0
+            for k in range(X.shape[0]):
+                s += L[k, i] * X[k, j]
+            out[i, j] = s
+
+
+@njit(**INLINE)
 def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
     """q(xi, x) of u* = q v (eq. (20)) into ``q``: the least-squares q = pinv(L^T g) (L^T dp/dxi delta) of eq. (43)
     when ``q_ls`` is 1, else 0.
@@ -107,17 +126,8 @@ def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
             for a in range(MH):
                 q[j, a] = 0.0
         return
-    for i in range(N):
-        for j in range(M):
-            s = 0.0
-            for k in range(N):
-                s += L[k, i] * g[k, j]
-            ltg[i, j] = s
-        for a in range(MH):
-            s = 0.0
-            for k in range(N):
-                s += L[k, i] * dpd[k, a]
-            ltd[i, a] = s
+    lt_times(L, g, ltg)
+    lt_times(L, dpd, ltd)
     pinv_into(ltg, pg)
     for j in range(M):
         for a in range(MH):

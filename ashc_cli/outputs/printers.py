@@ -36,7 +36,7 @@ PINV_RCOND = 1e-15
 JACOBI_SWEEPS = 60
 #: The laws the exported interface and controller run: the compiled loops' own functions, printed (callees first).
 #: pinv_into is numpy's pinv in Python and the Jacobi SVD below in C.
-LAWS = (pinv_into, law.saturate, law.feedback_of, law.q_of, law.times, law.apply, setpoint_direction, setpoint, setpoint_law)
+LAWS = (pinv_into, law.saturate, law.feedback_of, law.lt_times, law.q_of, law.times, law.apply, setpoint_direction, setpoint, setpoint_law)
 
 
 def _name(fn) -> str:
