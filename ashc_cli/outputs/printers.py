@@ -5,11 +5,8 @@ out as :mod:`ashc_cli.outputs.export` describes."""
 
 from __future__ import annotations
 
-import ast
-import inspect
 import math
 import re
-import textwrap
 from collections.abc import Sequence
 
 import numpy as np
@@ -47,10 +44,7 @@ def _needed(called: set[str], extra=()) -> list:
     """The functions of :data:`LAWS` and ``extra`` (a registered controller's law) that ``called`` (names) reach,
     callees first."""
     laws = LAWS + tuple(fn for fn in extra if fn not in LAWS)
-    calls = {}
-    for fn in laws:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(getattr(fn, "py_func", fn))))
-        calls[_name(fn)] = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    calls = {_name(fn): translate.calls(fn) for fn in laws}
     want, todo = set(), list(called)
     while todo:
         name = todo.pop()

@@ -56,6 +56,16 @@ def kinds(fn: Callable) -> dict[str, str]:
     return out
 
 
+def calls(fn: Callable) -> set[str]:
+    """The names of the functions ``fn``'s body calls by name (its callees among the printed laws, and builtins).
+
+    Parameters
+    ----------
+    fn : function or numba dispatcher
+    """
+    return {n.func.id for n in ast.walk(_tree(fn)) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+
+
 def python_source(fn: Callable) -> str:
     """The function's source without its decorator and annotations, its docstring cut to the first paragraph:
     plain Python over numpy arrays (``np``).
