@@ -8,10 +8,10 @@ Adding a controller (docs/guide.md, "Adding a controller"; tests/test_controller
     @njit(LAW_SIGNATURE, cache=True)
     def proportional(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
         for a in range(v.size):
-            v[a] = prm[0] * (ref[a] - z[a])
+            v[a] = min(max(prm[0] * (ref[a] - z[a]), -prm[1]), prm[1])
 
-    register(Controller("proportional", lambda model: proportional, lambda law: np.array([law.params[0]]),
-                        "v = k (xi_ref - xi)", printed=proportional))
+    register(Controller("proportional", lambda model: proportional, lambda law: np.array([law.gain, law.v_max]),
+                        "v = clip(k (xi_ref - xi), -v_max, v_max)", printed=proportional))
 
 The governor of the guaranteed controller is not a law of this kind: it scales the set-point law's v by the
 largest s that keeps the comparison system's w below its level, with a loop of its own
@@ -50,7 +50,7 @@ class Controller:
     prm : callable
         ``prm(law)``: the law's parameters (1-D float array) from the run's :class:`~ashc_cli.closedloop.plan.Law`.
     says : str
-        The law in one line (the report, ``--help``).
+        The law in one line (the comment of the exported ``ashc_controller``).
     printed : function, optional
         The law in the subset ``ashc export`` prints (usually the same numba function); None: not exported.
     """
