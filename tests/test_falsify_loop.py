@@ -11,7 +11,7 @@ import scipy.integrate as sint
 
 from ashc_cli.products import falsify as F
 from . import oracle as reference
-from ashc_cli.products import strategies as ST
+from ashc_cli.products import falsify_linear, strategies as ST
 from ashc_cli.closedloop.compiled import Unsupported
 from ashc_cli.errors import NumericalError
 from ashc_cli.numerics.linalg import pinv
@@ -34,7 +34,7 @@ def _setting(spec_path, out, runs: int, t_final: float):
     model = design_model(spec, arts)
     with np.errstate(all="ignore"):
         st = F._setup(model, arts, t_final)
-        disc = ST._discrete(st, st.lin)
+        disc = falsify_linear.discrete(st, st.lin)
         batch = ST._first_batch(st, ST._allocate(runs), np.random.default_rng(1), st.lin, disc)
     return st, batch
 

@@ -28,7 +28,8 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
             frozen: frozen_opt("Never rerun a design stage: fail (exit 5, naming the stage) if one is stale.") = False) -> None:
     """Search for a run that breaks the certified error bound (compiled closed loops over every core).
 
-    Strategies share the runs: random set-point runs; an adversary on the manifold (W0 = 0) choosing the
+    Strategies share the runs: random set-point runs (with abstract_controller.kind: registered, every other one
+    closes the loop with that registered law as it is); an adversary on the manifold (W0 = 0) choosing the
     sign of v that makes W grow fastest; bang-bang square waves; the linearised worst case at points of V;
     starts on the boundary of the certified region W0 = w0_max_certified (or over a wide range of W0 when
     the bound is global); and a refinement of the best runs by an evolution strategy. Every run keeps

@@ -33,7 +33,14 @@ from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.expr import parse_expression
 from ashc_cli.problem.model import TIME, Model
 
-__all__ = ["Controller", "register", "controller", "names", "REGISTRY", "abstract_input"]
+__all__ = ["Controller", "register", "controller", "names", "REGISTRY", "abstract_input", "law_of", "ENTRY_POINTS"]
+
+#: The entry-point group an installed package registers its controllers under: each entry point names a
+#: :class:`Controller` (or a function returning one), loaded the first time a spec names a controller not
+#: registered yet.
+ENTRY_POINTS = "ashc.controllers"
+#: Names the spec's kinds use for other things: not registrable.
+_RESERVED = frozenset({"guaranteed", "governor", "registered", "budget"})
 
 
 @dataclass(frozen=True)
@@ -78,6 +85,8 @@ def register(c: Controller) -> Controller:
     Controller
         ``c``.
     """
+    if c.name in _RESERVED:
+        raise DesignError("Controller.name", repr(c.name), f"a name other than {sorted(_RESERVED)}")
     REGISTRY[c.name] = c
     return c
 
@@ -99,10 +108,55 @@ def controller(name: str) -> Controller:
     DesignError
         Naming the registered ones.
     """
+    if name not in REGISTRY:
+        _load_entry_points()
     try:
         return REGISTRY[name]
     except KeyError:
-        raise DesignError("abstract_controller.kind", repr(name), f"one of {names()} (or guaranteed)") from None
+        raise DesignError("simulate.tracking.abstract_controller.name", repr(name),
+                          f"a registered controller: one of {names()} (or an installed package's, entry points {ENTRY_POINTS})") from None
+
+
+def _load_entry_points() -> None:
+    """Register the controllers installed packages declare under :data:`ENTRY_POINTS` (an entry point that fails
+    to load is named in the error)."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=ENTRY_POINTS):
+        try:
+            obj = ep.load()
+            c = obj if isinstance(obj, Controller) else obj()
+        except Exception as exc:          # a broken plugin: its name and why, not a traceback
+            raise DesignError(f"entry point {ENTRY_POINTS}:{ep.name}", f"{ep.value} did not load ({type(exc).__name__}: {exc})",
+                              "a Controller or a function returning one") from exc
+        if not isinstance(c, Controller):
+            raise DesignError(f"entry point {ENTRY_POINTS}:{ep.name}", f"{ep.value} gave a {type(c).__name__}", "a Controller")
+        REGISTRY.setdefault(c.name, c)
+
+
+def law_of(ctl) -> Law:
+    """The run's :class:`~ashc_cli.closedloop.plan.Law` from the spec's ``abstract_controller`` of kind setpoint,
+    signal or registered (a guaranteed controller's law comes from its plan, :mod:`~ashc_cli.closedloop.plan`).
+
+    Parameters
+    ----------
+    ctl : SetpointController, SignalController or RegisteredController
+
+    Returns
+    -------
+    Law
+
+    Raises
+    ------
+    DesignError
+        If a registered name is not registered (naming those that are).
+    """
+    if ctl.kind == "signal":
+        return Law("signal", 0.0, 0.0)
+    if ctl.kind == "registered":
+        controller(ctl.name)
+        return Law(ctl.name, float(ctl.gain), float(ctl.v_max), params=tuple(float(x) for x in ctl.params))
+    return Law("setpoint", float(ctl.gain), float(ctl.v_max))
 
 
 def abstract_input(model: Model) -> sp.Matrix:

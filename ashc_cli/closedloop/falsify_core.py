@@ -16,7 +16,7 @@ from numba import carray, njit, types
 from numba.extending import intrinsic
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, times
-from ashc_cli.closedloop.laws import F1, F2, pinv_into, setpoint_direction
+from ashc_cli.closedloop.laws import F1, F2, LAW_SIGNATURE, pinv_into, setpoint_direction
 from ashc_cli.closedloop.rk import DP54, DP54_EXPONENT, hold
 
 F3 = types.float64[:, :, ::1]
@@ -31,8 +31,13 @@ OPTIONS = dict(cache=True, error_model="numpy")
 #: is its ``ratio``): :func:`bound_ratio` by default; the hook for scoring runs by something else (a task's robustness).
 OBJECTIVE_SIGNATURE = types.float64(types.float64, F1, types.float64, types.float64, types.float64)
 OBJECTIVE = types.FunctionType(OBJECTIVE_SIGNATURE)
+#: A registered abstract controller's law (:data:`~ashc_cli.closedloop.laws.LAW_SIGNATURE`), run by the CONTROLLER
+#: runs with the parameters ``Design.lprm`` (z = [xi, x]: falsify carries no w).
+LAW = types.FunctionType(LAW_SIGNATURE)
 
-SETPOINT, TABLE, GREEDY = 0, 1, 2
+#: How a run chooses v: the random strategy's set-point law, a table held per hold, the greedy adversary, or the
+#: spec's registered controller (:mod:`~ashc_cli.closedloop.controllers`) as it is, its norm clipped to v_limit.
+SETPOINT, TABLE, GREEDY, CONTROLLER = 0, 1, 2, 3
 
 #: Where each term lives in the flat buffers (indices into ``off``): A holds the xi kernel's output, B the x
 #: kernel's, wk the loop's work (row-major matrices).
@@ -43,10 +48,10 @@ O_PHI, O_DEL, O_L, O_DPD, O_KAP, O_PM, O_DP, O_FB, O_G, O_H, O_DH, O_KX, O_Q, O_
 #: lookahead (in holds)]; iprm = [q_ls, sat] (:mod:`~ashc_cli.closedloop.interface`); M, L, K, U: the metric, its
 #: Cholesky factor, the feedback gain, the input box; atol and scale per state (a run diverges where |z_i| >
 #: divergence scale_i); lo, hi, centre: V's bounds and centre; cand: the greedy adversary's unit inputs (C, m_hat);
-#: tgrid: the hold boundaries (H + 1,).
-Design = namedtuple("Design", "dims off fprm iprm M L K U atol scale lo hi centre cand tgrid")
-DESIGN = types.NamedTuple((I1, I1, F1, I1, F2, F2, F2, F2, F1, F1, F1, F1, F1, F2, F1), Design)
-#: One row per run (N runs): the start xi0 (N, n_hat), x0 (N, n) and W0 = W(xi0, x0) (N,); mode SETPOINT, TABLE or
+#: tgrid: the hold boundaries (H + 1,); lprm: the registered controller's parameters (CONTROLLER runs).
+Design = namedtuple("Design", "dims off fprm iprm M L K U atol scale lo hi centre cand tgrid lprm")
+DESIGN = types.NamedTuple((I1, I1, F1, I1, F2, F2, F2, F2, F1, F1, F1, F1, F1, F2, F1, F1), Design)
+#: One row per run (N runs): the start xi0 (N, n_hat), x0 (N, n) and W0 = W(xi0, x0) (N,); mode SETPOINT, TABLE, GREEDY or
 #: GREEDY; vtab (N, H, m_hat) the input held at each hold (TABLE); the greedy adversary's weight rho (it maximises
 #: rho e^T M e / alpha_h + (1 - rho) |dh/dx e|^2, e = p - x a hold ahead), the fewest holds between its switches
 #: (dwell, int) and its input norm (and the guard's) as a fraction of v_limit (amp); guard != 0: a held input that
@@ -152,9 +157,23 @@ def _setpoint_v(z, T, ref, gain, noise, v_limit, v):
     setpoint_direction(T.dplus, T.phi, z, ref, gain, v)
     for a in range(v.size):
         v[a] = v[a] + noise[a]
+    _clip_norm(v, v_limit)
+
+
+@njit(inline="always", **OPTIONS)
+def _clip_norm(v, v_limit):
+    """v scaled down to |v| <= v_limit (the limit the bound is certified for)."""
     shrink = min(1.0, v_limit / max(_norm(v), 1e-300))
     for a in range(v.size):
         v[a] *= shrink
+
+
+@njit(inline="always", **OPTIONS)
+def _controller_v(t, z, T, ref, law, lprm, v_limit, v):
+    """A CONTROLLER run's v: the registered law at (t, z = [xi, x]) with the segment's reference, |v| clipped to
+    v_limit."""
+    law(t, z, ref, T.phi, T.delta, lprm, v)
+    _clip_norm(v, v_limit)
 
 
 @njit(**OPTIONS)
@@ -369,22 +388,24 @@ def _stage_context(exi, ex, A, B, T, D, W, law):
     the context at every stage, and with the arrays themselves each paid its count (1.53x the time of a campaign).
     The arrays are the run's, alive for the whole hold (A, B, T, W, the law's v) or the caller's (D, the starts)."""
     Dv = Design(_v1(D.dims), _v1(D.off), _v1(D.fprm), _v1(D.iprm), _v2(D.M), _v2(D.L), _v2(D.K), _v2(D.U), _v1(D.atol),
-                _v1(D.scale), _v1(D.lo), _v1(D.hi), _v1(D.centre), _v2(D.cand), _v1(D.tgrid))
+                _v1(D.scale), _v1(D.lo), _v1(D.hi), _v1(D.centre), _v2(D.cand), _v1(D.tgrid), _v1(D.lprm))
     Wv = Work(_v1(W.u), _v1(W.dxi), _v1(W.dxi_r), _v1(W.dx), _v1(W.ee), _v1(W.vc), _v1(W.choice), _v1(W.plan0), _v1(W.neg))
     Tv = Terms(T.phi, T.delta, T.l, T.dpd, T.kap, T.pm, T.dp, T.fb, T.g, T.h, T.dh, T.kx, T.q, T.ltg, T.ltd, T.pg, T.dplus,
                T.corr, T.vin, T.qv, 0)
-    setpoint, ref, gain, nz, v_limit, v, v_now = law
-    return (exi, ex, _v1(A), _v1(B), Tv, Dv, Wv, (setpoint, _v1(ref), gain, _v1(nz), v_limit, _v1(v), _v1(v_now)))
+    md, ref, gain, nz, v_limit, v, v_now, kernel = law
+    return (exi, ex, _v1(A), _v1(B), Tv, Dv, Wv, (md, _v1(ref), gain, _v1(nz), v_limit, _v1(v), _v1(v_now), kernel))
 
 
 @njit(inline="always", **OPTIONS)
-def _derivative(z, K, row, T, D, W, law):
-    """[xi', x'] at z into K[row] (non-finite entries 0), the terms T already at z: the input is the set-point law
-    at z or the held v (law = (setpoint, ref, gain, noise, v_limit, v, v_now))."""
-    setpoint, ref, gain, nz, v_limit, v, v_now = law
+def _derivative(t, z, K, row, T, D, W, law):
+    """[xi', x'] at (t, z) into K[row] (non-finite entries 0), the terms T already at z: the input is the set-point
+    law or the registered controller at z, or the held v (law = (mode, ref, gain, noise, v_limit, v, v_now, kernel))."""
+    md, ref, gain, nz, v_limit, v, v_now, kernel = law
     nh, n = D.dims[0], D.dims[1]
-    if setpoint:
+    if md == SETPOINT:
         _setpoint_v(z, T, ref, gain, nz, v_limit, v)
+    elif md == CONTROLLER:
+        _controller_v(t, z, T, ref, kernel, D.lprm, v_limit, v)
     else:
         for a in range(v.size):
             v[a] = v_now[a]
@@ -400,11 +421,11 @@ def _stage(t, y, K, row, ctx):
     """rk.hold's call: the terms at the stage y, then :func:`_derivative` (ctx = (exi, ex, A, B, T, D, W, law))."""
     exi, ex, A, B, T, D, W, law = ctx
     _terms(exi, ex, y, _vec(y, D.dims[0], D.dims[1]), A, B, T, D)
-    _derivative(y, K, row, T, D, W, law)
+    _derivative(t, y, K, row, T, D, W, law)
 
 
 @njit(**OPTIONS)
-def run_one(exi, ex, objective, r, D, S, O):
+def run_one(exi, ex, objective, kernel, r, D, S, O):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
 
     Parameters
@@ -426,9 +447,8 @@ def run_one(exi, ex, objective, r, D, S, O):
     for i in range(n):
         Z[nh + i] = S.x0[r, i]
     md = S.mode[r]
-    held = md != SETPOINT
+    held = md == TABLE or md == GREEDY
     greedy = md == GREEDY
-    setpoint = md == SETPOINT
     guarded = S.guard[r] != 0
     w0 = S.W0[r]
     gain = S.gains[r]
@@ -463,26 +483,25 @@ def run_one(exi, ex, objective, r, D, S, O):
         err = _output_error(T)
 
         v_now[:] = 0.0
-        if k < H:
-            if held:
-                v_plan[:] = S.vtab[r, k]
-                if greedy and not (active and k - last_switch >= S.dwell[r]):
-                    v_plan[:] = prev                      # the adversary keeps its choice for dwell holds after a switch
-                elif greedy:
-                    last_switch = _greedy(T, D, W, Z, v_limit * S.amp[r], S.rho[r], guarded, k, last_switch, prev, v_plan)
-                if guarded and active:                    # out of V: the input reversed, else turned to V's centre
-                    _guard(T, D, W, Z, lookahead * dt, v_limit * S.amp[r], v_plan)
-                _nan_to_num(v_plan)
-                if greedy:
-                    prev[:] = v_plan
-                v_now[:] = v_plan
-            if setpoint:
-                _setpoint_v(Zs, T, ref, gain, nz, v_limit, v_now)
-            if keep_v:
-                for a in range(mh):
-                    O.vused[r, k, a] = v_now[a]
-        elif setpoint:
+        if k < H and held:
+            v_plan[:] = S.vtab[r, k]
+            if greedy and not (active and k - last_switch >= S.dwell[r]):
+                v_plan[:] = prev                          # the adversary keeps its choice for dwell holds after a switch
+            elif greedy:
+                last_switch = _greedy(T, D, W, Z, v_limit * S.amp[r], S.rho[r], guarded, k, last_switch, prev, v_plan)
+            if guarded and active:                        # out of V: the input reversed, else turned to V's centre
+                _guard(T, D, W, Z, lookahead * dt, v_limit * S.amp[r], v_plan)
+            _nan_to_num(v_plan)
+            if greedy:
+                prev[:] = v_plan
+            v_now[:] = v_plan
+        elif md == SETPOINT:
             _setpoint_v(Zs, T, ref, gain, nz, v_limit, v_now)
+        elif md == CONTROLLER:
+            _controller_v(D.tgrid[k], Zs, T, ref, kernel, D.lprm, v_limit, v_now)
+        if k < H and keep_v:
+            for a in range(mh):
+                O.vused[r, k, a] = v_now[a]
         vn = _norm(v_now)
         if active:
             vsup = max(vsup, vn)
@@ -498,8 +517,8 @@ def run_one(exi, ex, objective, r, D, S, O):
             continue
 
         # the hold: its first stage at the hold's start, with the terms of the hold-start check (the same point)
-        law = (setpoint, ref, gain, nz, v_limit, v, v_now)
-        _derivative(Z, ks, 0, T, D, W, law)
+        law = (md, ref, gain, nz, v_limit, v, v_now, kernel)
+        _derivative(D.tgrid[k], Z, ks, 0, T, D, W, law)
         h_step, n_acc, n_rej, n_forced = hold(_stage, _stage_context(exi, ex, A, B, T, D, W, law), (DP54, DP54_EXPONENT),
                                              (D.tgrid[k], D.tgrid[k + 1]), Z, h_step, control, (ks, zs, z_new), tol)
         accepted += n_acc
@@ -515,8 +534,8 @@ def run_one(exi, ex, objective, r, D, S, O):
     O.iout[r, 5] = rejected
 
 
-@njit(types.void(XI_KERNEL, X_KERNEL, OBJECTIVE, DESIGN, STARTS, I1, OUTPUTS), nogil=True, **OPTIONS)
-def run_batch(exi, ex, objective, design, starts, rows, outputs):
+@njit(types.void(XI_KERNEL, X_KERNEL, OBJECTIVE, LAW, DESIGN, STARTS, I1, OUTPUTS), nogil=True, **OPTIONS)
+def run_batch(exi, ex, objective, law, design, starts, rows, outputs):
     """The runs ``rows`` (indices into the per-run arrays); without the GIL, so that threads share the runs.
 
     Parameters
@@ -525,6 +544,8 @@ def run_batch(exi, ex, objective, design, starts, rows, outputs):
         The design's falsify_xi(z, A) and falsify_x(z, B) (:mod:`ashc_cli.closedloop.falsify_loop`).
     objective : OBJECTIVE
         A run's score at each hold boundary (:func:`bound_ratio`, or another of the signature).
+    law : LAW
+        The registered controller the CONTROLLER runs close the loop with (any law where no run is one).
     design : Design
         What every run shares (:class:`Design`).
     starts : Starts
@@ -535,4 +556,4 @@ def run_batch(exi, ex, objective, design, starts, rows, outputs):
         Written at the rows ``rows`` (:class:`Outputs`).
     """
     for j in range(rows.size):
-        run_one(exi, ex, objective, rows[j], design, starts, outputs)
+        run_one(exi, ex, objective, law, rows[j], design, starts, outputs)

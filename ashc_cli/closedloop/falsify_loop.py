@@ -22,6 +22,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.closedloop.compiled import Unsupported, emit_kernel, available, interface_codes, load_source
+from ashc_cli.closedloop.laws import no_law
 from ashc_cli.closedloop.terms import design_matrices
 
 __all__ = ["FalsifyLoop", "falsify_loop", "threads"]
@@ -180,7 +181,8 @@ class FalsifyLoop:
         Parameters
         ----------
         st, b :
-            The search's setting and the runs (their laws, starts, references).
+            The search's setting and the runs (their laws, starts, references); ``st.controller``: the registered
+            controller the CONTROLLER runs close the loop with and its parameters (needed when ``b`` has such runs).
         tol : dict
             ``rtol`` and ``atol`` (the latter times ``st.scale`` per state).
         cand : ndarray (C, m_hat)
@@ -238,29 +240,20 @@ class FalsifyLoop:
         # the next piece when it is done, so a stiff run holds up one thread only.
         step = int(chunk) if chunk else int(np.clip(N // (8 * self.threads), 1, 64))
         pieces = [np.arange(a, min(N, a + step), dtype=np.int64) for a in range(0, N, step)]
+        if st.controller is None and np.any(b.mode == core.CONTROLLER):
+            raise ValueError("runs of mode CONTROLLER need the controller's law (st.controller)")
+        kernel, lprm = st.controller or (no_law, np.zeros(0))
         design = core.Design(dims=dims, off=off, fprm=fprm, iprm=self.iprm, M=self.M, L=self.L, K=self.K, U=self.U, atol=atol,
-                             scale=scale, lo=lo, hi=hi, centre=centre, cand=c(cand, dtype=float), tgrid=c(st.t, dtype=float))
+                             scale=scale, lo=lo, hi=hi, centre=centre, cand=c(cand, dtype=float), tgrid=c(st.t, dtype=float),
+                             lprm=c(lprm, dtype=float).reshape(-1))
         exi, ex = self.kernels.falsify_xi, self.kernels.falsify_x
         score = core.bound_ratio if objective is None else objective
 
         def work(rows):
-            core.run_batch(exi, ex, score, design, starts, rows, outputs)
+            core.run_batch(exi, ex, score, kernel, design, starts, rows, outputs)
             return rows.size
 
-        start = time.perf_counter()
-        done = 0
-        if self.threads == 1 or len(pieces) == 1:
-            finished = map(work, pieces)
-            for count in finished:
-                done += count
-                if progress is not None:
-                    progress(done, N, time.perf_counter() - start)
-        else:
-            with ThreadPoolExecutor(max_workers=self.threads) as pool:
-                for count in pool.map(work, pieces):
-                    done += count
-                    if progress is not None:
-                        progress(done, N, time.perf_counter() - start)
+        self._dispatch(work, pieces, N, progress)
         out = {"ratio": fout[:, 0].copy(), "ratio_late": fout[:, 1].copy(), "k_at": iout[:, 0].copy(), "max_error": fout[:, 2].copy(),
                "left_V": iout[:, 1].astype(bool), "diverged": iout[:, 2].astype(bool), "W0": np.asarray(W0, dtype=float),
                "forced": iout[:, 3].copy(), "vsup": fout[:, 3].copy(), "at_limit": fout[:, 4].copy(),
@@ -270,6 +263,23 @@ class FalsifyLoop:
         if record:
             out.update({"Z": recZ, "err": recE, "bound": recB, "v": recV})
         return out
+
+    def _dispatch(self, work: Callable, pieces: list, N: int, progress: Callable[[int, int, float], None] | None) -> None:
+        """``work`` on every piece, over the pool of threads (in order on one), ``progress`` after each."""
+        start = time.perf_counter()
+        done = 0
+        if self.threads == 1 or len(pieces) == 1:
+            finished = map(work, pieces)
+            for count in finished:
+                done += count
+                if progress is not None:
+                    progress(done, N, time.perf_counter() - start)
+            return
+        with ThreadPoolExecutor(max_workers=self.threads) as pool:
+            for count in pool.map(work, pieces):
+                done += count
+                if progress is not None:
+                    progress(done, N, time.perf_counter() - start)
 
 
 def falsify_loop(model, arts, M: np.ndarray, L: np.ndarray, K: np.ndarray) -> FalsifyLoop:

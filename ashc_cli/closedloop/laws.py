@@ -141,6 +141,18 @@ def setpoint_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
     setpoint(delta, dplus, phi, z, ref, prm[0], prm[1], v)
 
 
+@njit(LAW_SIGNATURE, **OPTIONS)
+def no_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
+    """The law of runs that close no loop with one (the m-relation's runs, falsify's batches without a registered
+    controller): a law's arguments, never called there.
+
+    Parameters
+    ----------
+    t, z, ref, phi, delta, prm, v
+        A law's arguments, neither read nor written.
+    """
+
+
 @njit(**INLINE)
 def state_derivatives(phi, delta, v, fb, g, u, dz):
     """dz[:n_hat] = phi_bar + delta v and dz[n_hat:n_hat + n] = f_bar + g u.

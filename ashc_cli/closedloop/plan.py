@@ -40,6 +40,8 @@ class Law:
         Governor: the level W_max that it keeps w below.
     rate : float
         Governor: the design constant c.
+    params : tuple of float
+        A registered controller's further parameters (``abstract_controller.params``).
     """
 
     kind: str
@@ -47,6 +49,7 @@ class Law:
     v_max: float
     w_level: float = np.inf
     rate: float = 0.0
+    params: tuple = ()
 
 
 #: Governor: the design constant c of its invariance condition |L^T r|^2 / eps <= (lambda - eps) W_max + c (W_max - w),

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit, types
 
 from ashc_cli.closedloop.interface import apply, feedback_of, q_of, residual, times
-from ashc_cli.closedloop.laws import F1, F2, LAW_SIGNATURE, state_derivatives, weighted_norm2
+from ashc_cli.closedloop.laws import F1, F2, LAW_SIGNATURE, no_law, state_derivatives, weighted_norm2  # noqa: F401  (no_law: the m-relation runs pass core.no_law)
 from ashc_cli.closedloop.rk import DOP853_EXPONENT, DP54_EXPONENT, solve
 
 I1 = types.int64[::1]
@@ -304,17 +304,6 @@ def no_link(x, b, c, m):
     ----------
     x, b, c, m : float arrays, 1-D, 1-D, 2-D, 1-D
         eval_link's arguments, neither read nor written.
-    """
-
-
-@njit(LAW_SIGNATURE, **OPTIONS)
-def no_law(t, z, ref, phi, delta, prm, v):
-    """The law of the m-relation runs (``integrate`` takes one; it is never called there).
-
-    Parameters
-    ----------
-    t, z, ref, phi, delta, prm, v
-        A law's arguments, neither read nor written.
     """
 
 

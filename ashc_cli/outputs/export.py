@@ -18,7 +18,9 @@
 ``ashc_controller(xi, xi_ref)``
     The set-point abstract controller of the tracking scenario, v = clip(delta^+ (gain (xi_ref - xi) -
     phi_bar(xi)), -v_max, v_max), with gain and v_max from ``simulate.tracking.abstract_controller`` when the
-    spec gives one, else as two more arguments.
+    spec gives one, else as two more arguments; with ``abstract_controller.kind: registered`` the registered
+    controller's own law (:mod:`ashc_cli.closedloop.controllers`, printed when it keeps to the subset
+    :mod:`ashc_cli.outputs.translate` reads) with the spec's parameters.
 ``ashc_abstract_rhs(xi, v)``
     The abstract system's right-hand side phi_bar(xi) + delta(xi) v, to integrate xi on the controller.
 
@@ -48,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
+from ashc_cli.closedloop import controllers
 from ashc_cli.closedloop.interface import interface_codes, interface_u
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import DesignError, SpecError
@@ -136,10 +139,22 @@ def export_sources(spec: Spec, arts: Mapping[str, Artefact], lang: str, stem: st
     """
     lang = _check_lang(lang)
     design = gather(spec, arts)
+    controller = _registered(spec)
     if lang == "c":
-        source, header = c_sources(design, f"{stem}.h")
+        source, header = c_sources(design, f"{stem}.h", controller)
         return {f"{stem}.c": source, f"{stem}.h": header}
-    return {f"{stem}.py": python_source(design)}
+    return {f"{stem}.py": python_source(design, controller)}
+
+
+def _registered(spec: Spec) -> tuple | None:
+    """(Controller, its parameters) when the spec's tracking controller is ``kind: registered``, else None (the
+    set-point law is printed)."""
+    tr = spec.simulate.tracking
+    if tr is None or tr.abstract_controller.kind != "registered":
+        return None
+    law = controllers.law_of(tr.abstract_controller)
+    c = controllers.controller(law.kind)
+    return c, np.asarray(c.prm(law), dtype=float)
 
 
 def write_export(spec: Spec, arts: Mapping[str, Artefact], lang: str, output: str | Path) -> list[Path]:

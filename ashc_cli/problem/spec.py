@@ -241,10 +241,24 @@ class SignalController(_Strict):
         return list(self.v) if isinstance(self.v, list) else [self.v]
 
 
+class RegisteredController(_Strict):
+    """A controller registered by name (docs/guide.md, "Adding a controller"): in Python with
+    ``ashc_cli.closedloop.controllers.register``, or by an installed package under the entry-point group
+    ``ashc.controllers``.  Its law reads its parameters from ``gain``, ``v_max`` and ``params`` (as its registration
+    says); ``falsify`` runs it clipped to |v| <= min(v_max, the certified limit)."""
+
+    kind: Literal["registered"]
+    name: Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=64)]
+    v_max: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    gain: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
+    params: list[FiniteFloat] = Field(default_factory=list, max_length=64)
+
+
 #: The abstract controllers, told apart by ``kind``.
-AbstractController = Annotated[SetpointController | GuaranteedController | SignalController, Field(discriminator="kind")]
+AbstractController = Annotated[SetpointController | GuaranteedController | SignalController | RegisteredController,
+                               Field(discriminator="kind")]
 #: The tags of the discriminated unions: pydantic puts them in an error's location, the messages leave them out.
-_UNION_TAGS = {"setpoint", "guaranteed", "signal", "TimedLevel"}
+_UNION_TAGS = {"setpoint", "guaranteed", "signal", "registered", "TimedLevel"}
 
 
 class TimedLevel(_Strict):

@@ -40,12 +40,23 @@ from ashc_cli.products.disturbance_attack import attack_disturbances, wanted
 from ashc_cli.problem.model import Model
 from ashc_cli.numerics.proofs import SIMULATED
 from ashc_cli.closedloop.batch import BatchPlant
-from ashc_cli.products.strategies import (DEFAULT_T_FINAL, DIVERGED, FLOOR_RTOL, MAX_HOLDS, MIN_HOLDS, REF_SEGMENTS, STRATEGIES, TOL, TOL_FINE, TOL_VERIFY, VERIFY_ABOVE_ONE, VERIFY_ROUNDS,
-                                          VERIFY_TOP, Batch, Setup, integrate, linearise, replay, search)
+from ashc_cli.closedloop import controllers
+from ashc_cli.products.strategies import (CONTROLLER_STRATEGY, DEFAULT_T_FINAL, DIVERGED, FLOOR_RTOL, MAX_HOLDS, MIN_HOLDS, REF_SEGMENTS, STRATEGIES, TOL,
+                                          TOL_FINE, TOL_VERIFY, VERIFY_ABOVE_ONE, VERIFY_ROUNDS, VERIFY_TOP, Batch, Setup, integrate, replay, search)
+from ashc_cli.products.falsify_linear import linearise
 
 NAME = "falsify"
 #: Progress steps reported to the caller (the CLI's progress bar has this length).
 SEGMENTS = 20
+
+
+def _registered(model: Model, ac) -> tuple | None:
+    """(compiled law, parameters) of the spec's registered controller (``kind: registered``), else None."""
+    if ac is None or ac.kind != "registered":
+        return None
+    law = controllers.law_of(ac)
+    c = controllers.controller(law.kind)
+    return c.law(model), np.ascontiguousarray(c.prm(law), dtype=float).reshape(-1)
 
 
 def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Setup:
@@ -71,7 +82,7 @@ def _setup(model: Model, arts: dict[str, Artefact], t_final: float | None) -> Se
     st = Setup(model=model, plant=plant, t_final=t_final, holds=MIN_HOLDS, hold=t_final / MIN_HOLDS, v_limit=v_limit,
                w0_max=w0_max, v_max_certified=v_cert, lam=lam, eps=eps, alpha_h=alpha_h, G=G, span=span,
                floor=FLOOR_RTOL * max(1.0, span), scale=scale, gain0=gain0, v_max_spec=v_max_spec,
-               delta_max=float(arts["delta"].value("max_singular_value")))
+               delta_max=float(arts["delta"].value("max_singular_value")), controller=_registered(model, ac))
     # The hold: at most the fastest linearised time constant and 1/16 of the shortest linearised oscillation
     # period, and short enough for xi to move at most 2 % of V per hold at the median speed; between
     # t_final / MAX_HOLDS and t_final / MIN_HOLDS.
@@ -296,7 +307,8 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
     max_ratio0 = float(ratio[worst0]) if worst0 >= 0 else 0.0
     t = st.t
     by = {}
-    for name in STRATEGIES:
+    names = STRATEGIES + ((CONTROLLER_STRATEGY,) if st.controller is not None else ())
+    for name in names:
         sel = np.array([s == name for s in batch.strategy])
         if sel.any():
             by[name] = float(ratio[sel].max())
@@ -310,7 +322,7 @@ def _artefact(st: Setup, batch: Batch, res: dict, verified: np.ndarray, series: 
         "runs": runs, "seed": seed, "segments": SEGMENTS, "integrator": str(TOL), "verification": str(TOL_VERIFY),
         "bound": "sqrt(W0 exp(-(lambda - eps) t) / alpha_h) + G sup_{s<=t} ||v(s)||",
         "engine": f"compiled (numba): one integration per run with its own step-size control, {st.loop.threads} threads",
-        "strategies": ", ".join(STRATEGIES), "runs_per_strategy": {k: int(v) for k, v in counts.items()},
+        "strategies": ", ".join(names), "runs_per_strategy": {k: int(v) for k, v in counts.items()},
     })
     vals = {
         "max_ratio": max_ratio, "max_ratio_w0_zero": max_ratio0, "run_ratio": ratio, "run_ratio_after_start": res["ratio_late"],

@@ -11,6 +11,9 @@ reversed (or pointed at V's centre).  The strategies, each a share of the runs (
     today's draws: xi0 in V, x0 near p(xi0) (a quarter on the manifold), random references with kappa in Y,
     random set-point gains and random piecewise-constant disturbances on v (the set-point law, continuous in
     the state, its norm clipped to v_limit).
+``controller`` (only with ``abstract_controller.kind: registered``)
+    every other random run, closed with the spec's registered law as it is: no noise, no guard, its norm
+    clipped to v_limit (mode CONTROLLER; :mod:`~ashc_cli.closedloop.controllers`).
 ``greedy`` and ``square`` (on the manifold, x0 = p(xi0), xi0 across V including near both edges)
     ``greedy``: a state-feedback adversary; at the start of every hold it picks, among the inputs of its
     amplitude (+-v for one abstract input), the one that maximises a one-hold look-ahead of
@@ -44,11 +47,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 
 import numpy as np
-import scipy.linalg as sla
 
 from ashc_cli.errors import DesignError
 from ashc_cli.problem.model import Model
-from ashc_cli.closedloop.batch import BatchPlant, interface
+from ashc_cli.closedloop.batch import BatchPlant
+from ashc_cli.products.falsify_linear import discrete
 
 #: Reference segments of the random strategy.
 REF_SEGMENTS = 3
@@ -89,10 +92,12 @@ W0_DECADES = (-2.0, 6.0)
 #: A run whose state exceeds this multiple of its scale has diverged (counted up to there, then frozen).
 DIVERGED = 1e12
 STRATEGIES = ("random", "greedy", "square", "linearised", "off_manifold", "refined")
+#: The runs that close the loop with the spec's registered controller (half the random runs, when it has one).
+CONTROLLER_STRATEGY = "controller"
 #: Length of each run when neither --t-final nor the spec's tracking scenario gives one.
 DEFAULT_T_FINAL = 10.0
 
-SETPOINT, TABLE, GREEDY = 0, 1, 2
+SETPOINT, TABLE, GREEDY, CONTROLLER = 0, 1, 2, 3
 
 
 def _reference_pool(model: Model, plant: BatchPlant, rng: np.random.Generator, margin: float, count: int = 20000) -> np.ndarray:
@@ -134,6 +139,7 @@ class Setup:
     lin: dict | None = None
     loop: object | None = None          # the compiled runs (falsify_loop.FalsifyLoop)
     on_runs: Callable[[int, int, float], None] | None = None   # (runs done, of, seconds) after each compiled chunk
+    controller: tuple | None = None     # the spec's registered controller: (compiled law, its parameters)
 
     @property
     def t(self) -> np.ndarray:
@@ -262,89 +268,6 @@ def integrate(st: Setup, b: Batch, tol: dict, record: bool = False, progress: Ca
             progress(done / max(total, 1))
     return st.loop.run(st, b, tol, unit_candidates(st.model.m_hat), w0(st, b), DIVERGED, GUARD_LOOKAHEAD, record, report,
                        keep_inputs=False)
-
-
-def linearise(st: Setup, xi_grid: np.ndarray) -> dict:
-    """The loop linearised about (xi, p(xi)), v = 0, at the columns of xi_grid: e' = J e + theta v, e_y = C e
-    with e = p - x, theta = dp/dxi delta - g q (the unsaturated interface).
-
-    Parameters
-    ----------
-    st : Setup
-    xi_grid : ndarray (n_hat, N)
-    """
-    model, plant = st.model, st.plant
-    n, Ng = model.n, xi_grid.shape[1]
-    a = plant.at_xi(xi_grid)
-    p, l = a["p"][:, :, 0], a["l"][:, :, 0]
-    step = 1e-6 * np.maximum(1.0, np.abs(p))                                        # (Ng, n)
-    X = np.repeat(p[None], 2 * n, axis=0)                                           # (2n, Ng, n)
-    for j in range(n):
-        X[2 * j, :, j] += step[:, j]
-        X[2 * j + 1, :, j] -= step[:, j]
-    Xf = X.reshape(-1, n)
-    u = np.tile(l, (2 * n, 1)) + (Xf - np.tile(p, (2 * n, 1))) @ plant.K.T
-    bx = plant.at_x(Xf.T, u.T)
-    F = (bx["f_bar"][:, :, 0] + np.einsum("Nij,Nj->Ni", bx["g"], u)).reshape(2 * n, Ng, n)
-    J = np.stack([(F[2 * j] - F[2 * j + 1]) / (2 * step[:, j:j + 1]) for j in range(n)], axis=2)   # (Ng, n, n)
-    b0 = plant.at_x(p.T)
-    pre = interface(model, plant, xi_grid, p.T)
-    theta = a["dpd"] - b0["g"] @ pre["q"]
-    return {"xi": xi_grid, "J": J, "theta": theta, "C": b0["dh"], "p": p}
-
-
-def _discrete(st: Setup, lin: dict) -> dict:
-    """E = exp(J hold), Gamma = int_0^hold exp(J s) ds theta; the Markov parameters C E^k Gamma over the window
-    where they matter; the linearised worst ratio per point and the output direction that reaches it."""
-    J, theta, C = lin["J"], lin["theta"], lin["C"]
-    Ng, n, mh = theta.shape
-    p = C.shape[1]
-    aug = np.zeros((Ng, n + mh, n + mh))
-    aug[:, :n, :n] = J * st.hold
-    aug[:, :n, n:] = theta * st.hold
-    with np.errstate(all="ignore"):
-        Ea = sla.expm(aug)
-    E, Gam = Ea[:, :n, :n], Ea[:, :n, n:]
-    ok = np.all(np.isfinite(Ea), axis=(1, 2))
-    E, Gam = np.where(ok[:, None, None], E, 0.0), np.where(ok[:, None, None], Gam, 0.0)
-    marks = []
-    Xk = Gam
-    top = 0.0
-    for k in range(st.holds):
-        mk = C @ Xk                                                                 # (Ng, p, mh)
-        marks.append(mk)
-        size = float(np.max(np.abs(mk)))
-        top = max(top, size)
-        if k > 8 and size < 1e-4 * top:
-            break
-        Xk = E @ Xk
-    mk = np.stack(marks, axis=1)                                                    # (Ng, K, p, mh)
-    if p == 1:
-        W = np.ones((1, 1))
-    else:
-        if p == 2:
-            ang = np.linspace(0, np.pi, 16, endpoint=False)
-            W = np.c_[np.cos(ang), np.sin(ang)]
-        else:
-            W = np.random.default_rng(0).standard_normal((32, p))
-            W = np.r_[np.eye(p), W / np.linalg.norm(W, axis=1, keepdims=True)]
-    gain = np.stack([np.linalg.norm(np.einsum("p,NKpm->NKm", w, mk), axis=2).sum(axis=1) for w in W], axis=1)   # (Ng, w)
-    wbest = np.argmax(gain, axis=1)
-    ratio = gain[np.arange(Ng), wbest] / st.G if st.G > 0 else np.full(Ng, np.inf)
-    # Frequency of the largest sinusoidal gain sigma_max(C (j w - J)^-1 theta).
-    omegas = np.geomspace(2 * np.pi / st.t_final, np.pi / st.hold, 48)
-    sig = np.zeros((Ng, omegas.size))
-    eye = np.eye(n)
-    for i, w in enumerate(omegas):
-        with np.errstate(all="ignore"):
-            try:
-                Hm = C @ np.linalg.solve(1j * w * eye - J, theta.astype(complex))
-            except np.linalg.LinAlgError:
-                continue
-        sig[:, i] = np.linalg.norm(Hm, ord=2, axis=(1, 2)) if min(p, mh) > 1 else np.sqrt(np.sum(np.abs(Hm) ** 2, axis=(1, 2)))
-    sig = np.where(np.isfinite(sig), sig, 0.0)
-    f_star = omegas[np.argmax(sig, axis=1)] / (2 * np.pi)
-    return {"marks": mk, "W": W, "wbest": wbest, "ratio": np.where(ok, ratio, 0.0), "f_star": f_star}
 
 
 def _pattern(st: Setup, disc: dict, g: int, length: int, offset: float, wsel: int | None = None) -> np.ndarray:
@@ -602,6 +525,11 @@ def _first_batch(st: Setup, counts: dict, rng: np.random.Generator, lin: dict, d
     w0_free = not np.isfinite(st.w0_max)
     f_lo, f_hi = 1.0 / st.t_final, 0.25 / st.hold
     rand = _random_runs(st, counts["random"], rng)
+    if st.controller is not None:       # every other random run closes the loop with the spec's controller as it is
+        own = np.arange(len(rand)) % 2 == 1
+        rand.mode[own], rand.noise[:, own], counts[CONTROLLER_STRATEGY] = CONTROLLER, 0.0, int(own.sum())
+        rand.strategy = [CONTROLLER_STRATEGY if o else s for o, s in zip(own, rand.strategy)]
+        counts["random"] -= counts[CONTROLLER_STRATEGY]
 
     def direction():
         return list(rng.standard_normal(mh)) if mh > 1 else []
@@ -666,7 +594,6 @@ def _first_batch(st: Setup, counts: dict, rng: np.random.Generator, lin: dict, d
             specs.append(("greedy", True, np.r_[xs[j], 1.0, 0.0, 0.0, tail]))
     off = _runs(st, specs, disc, lin, "off_manifold")
     return Batch.concat([rand, man, sq, lin_runs, off])
-
 
 
 def _refine(st: Setup, first: Batch, res: dict, budget: int, rng: np.random.Generator, lin: dict, disc: dict,
@@ -762,7 +689,7 @@ def replay(st: Setup, batch: Batch, res: dict, idx: np.ndarray) -> Batch:
         The runs.
     """
     b = batch.take(idx)
-    held = b.mode != SETPOINT
+    held = (b.mode == TABLE) | (b.mode == GREEDY)
     # the inputs the runs held (integrate keeps none): run them again, recording them
     vused = st.loop.run(st, b, TOL, unit_candidates(st.model.m_hat), w0(st, b), DIVERGED, GUARD_LOOKAHEAD)["vused"]
     b.vtab = np.where(held[:, None, None], vused, b.vtab)
@@ -789,7 +716,7 @@ def search(st: Setup, runs: int, rng: np.random.Generator, progress: Callable[[f
         The runs, their results (:func:`integrate`), the runs per strategy and the discretised linearisation.
     """
     report = progress or (lambda frac: None)
-    disc = _discrete(st, st.lin)
+    disc = discrete(st, st.lin)
     counts = _allocate(runs)
     first = _first_batch(st, counts, rng, st.lin, disc)
     res = integrate(st, first, TOL, progress=lambda frac: report(0.7 * frac))

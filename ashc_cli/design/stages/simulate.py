@@ -37,6 +37,7 @@ from dataclasses import replace
 import numpy as np
 
 from ashc_cli.closedloop import compiled  # noqa: F401  (the tests' oracles replace its loops through this name)
+from ashc_cli.closedloop.controllers import law_of
 from ashc_cli.closedloop.plan import GOVERNOR_MARGIN, GuaranteedPlan, Law, guaranteed_plan
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design.artefacts import Artefact, Check
@@ -202,11 +203,12 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
 
 
 def _law(ctl, model: Model, up: dict[str, Artefact], W0: float, v_cert: float, lam: float, eps: float) -> tuple[Law, GuaranteedPlan | None]:
-    """The tracking run's abstract controller: the set-point law, v(t) (``kind: signal``), or a guaranteed plan's law."""
+    """The tracking run's abstract controller: the set-point law, v(t) (``kind: signal``), a registered law by its
+    name, or a guaranteed plan's law."""
     if ctl.kind == "guaranteed":
         plan = guaranteed_plan(ctl.tolerance, ctl.mode, W0, up)
         return plan.law(plan.mode, ctl.gain, model.m_hat, v_cert, lam, eps), plan
-    return (Law("signal", 0.0, 0.0) if ctl.kind == "signal" else Law("setpoint", ctl.gain, ctl.v_max)), None
+    return law_of(ctl), None
 
 
 def _disturbance_of(tr, up: dict[str, Artefact], v_cert: float) -> tuple[float, float]:
