@@ -56,7 +56,9 @@ def draw(fn, spec, arts):
 
 
 def all_figures(spec, arts):
-    return {name: draw(fn, spec, arts) for name, (fn, _, _) in plots.FIGURES.items()}
+    """Every figure the artefacts allow (as write_all: the task figure only with a task scenario)."""
+    return {name: draw(fn, spec, arts) for name, (fn, needs, key) in plots.FIGURES.items()
+            if all(n in arts for n in needs) and (key is None or key in arts["simulate"].values)}
 
 
 def texts(fig) -> list[str]:

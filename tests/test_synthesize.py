@@ -227,3 +227,45 @@ def test_a_task_that_cannot_be_met_names_the_part_that_blocks_it(tmp_path):
     # a set that meets kappa(V) only in part is aimed at where it does (its centre, 1.55, is off the curve)
     spec, _, art = _synthesized(LAG_TASK.replace("[[0.5, 0.9]]", "[[1.0, 2.1]]").replace("by: 8.0", "by: 9.0"), tmp_path / "part")
     assert art.checks["task_certified"].passed
+
+
+@pytest.fixture(scope="module")
+def simulated(synthesized):
+    out = synthesized[0]
+    ashc("simulate", str(TASK_SPEC), "--out", str(out), check=True)
+    return out, read_artefact(out / "simulate.h5")
+
+
+def test_rtamt_on_simulates_stored_task_run_is_its_robustness(simulated):
+    # the task group of simulate.h5 (t, y, psi, xi, v) lets anyone monitor the run again: rtamt's discrete-time
+    # monitor over every stored sample (time in units of the sampling step) gives simulate.task.robustness
+    out, art = simulated
+    v, task = art.values, load_spec(TASK_SPEC).task
+    t, y = np.asarray(v["task/t"]), np.atleast_2d(np.asarray(v["task/y"]))
+    assert {"task/psi", "task/xi", "task/v"} <= set(v) and np.asarray(v["task/xi"]).shape[1] == t.size
+    dt = float(t[-1] - t[0]) / (t.size - 1)          # a uniform grid (checked below)
+    steps = t / dt
+    assert np.allclose(steps, np.round(steps), atol=1e-6) and np.all(np.diff(np.round(steps)) == 1)
+    for x in (task.horizon, *(r.by for r in task.reach), *(r.hold for r in task.reach)):
+        assert abs(x / dt - round(x / dt)) < 1e-9
+    scaled = Task(horizon=task.horizon / dt, always=task.always,
+                  reach=[{"set": r.set, "by": r.by / dt, "hold": r.hold / dt} for r in task.reach],
+                  avoid=[{"set": a.set, "during": [a.during[0] / dt, a.during[1] / dt]} for a in task.avoid])
+    span = float(np.ptp(np.asarray(load_spec(TASK_SPEC).concrete.output_set, dtype=float), axis=1).max())      # the output range
+    assert _rtamt(scaled, np.round(steps), y) == pytest.approx(float(v["task/robustness"]), abs=1e-9 * span)
+
+
+def test_check_report_and_plot_carry_the_task(simulated):
+    out, art = simulated
+    proc = ashc("check", str(TASK_SPEC), "--out", str(out), check=True)
+    line = [s for s in proc.stdout.splitlines() if s.startswith("Task on the output")]
+    assert len(line) == 1 and "not part of Problem 1's verdict" in line[0] and "met on the plant" in line[0]
+    assert f"robustness {float(art.values['task/robustness']):.4g}" in line[0]
+    ashc("report", str(TASK_SPEC), "--out", str(out), "--runs", "8", "--t-final", "2", check=True)
+    page = (out / "report.html").read_text()
+    section = page[page.index("<h2>Task on the output"):page.index("<h2>Figures")]
+    eps = float(art.values["task/tolerance"])
+    assert "as deflated by EPS" in section and "falsify: smallest robustness" in section
+    lo, hi = load_spec(TASK_SPEC).task.reach[0].set[0]
+    assert f"[{lo + eps:.5g}, {hi - eps:.5g}]" in section          # reach[0] shrunk by EPS on both sides
+    assert "The task: y of the plant" in page and (out / "plots" / "task.png").stat().st_size > 10_000

@@ -265,19 +265,20 @@ def report(spec: SpecArg, out: OutOpt = None, runs: ReportRunsOpt = None, seed: 
             arts.update(run(spec_obj, seen, ["simulate"], force=force, frozen=needed(["simulate"]) if frozen else False,
                             on_stage=progress.on_stage, on_start=progress.on_start))
             arts[FALSIFY] = _falsify_for_report(spec_obj, seen, arts, runs, seed, t_final, force, frozen, progress)
-            violated = float(arts[FALSIFY].value("max_ratio")) > 1.0
+            fv = arts[FALSIFY].values
+            violated = float(fv["max_ratio"]) > 1.0 or min(float(fv.get(k, 0.0)) for k in ("task/min_robustness", "task_disturbed/min_robustness")) < 0
         elif runs is not None or seed is not None or t_final is not None:
             progress.line(f"note: --runs, --seed and --t-final not used: the design stopped at {stopped[0]}, so falsify does not run")
         progress.start("report: drawing the figures")
         figures = plots.write_all(spec_obj, arts, path / "plots")
-    page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, result, figures)
+    page = render(Path(spec).read_text(encoding="utf-8"), spec_obj.name, arts, result, figures, task=spec_obj.task)
     target = path / "report.html"
     tmp = target.with_suffix(".html.tmp")
     tmp.write_text(page, encoding="utf-8")
     tmp.replace(target)
     typer.echo(f"{target} ({len(page) // 1024} KiB): {result.line()}")
     if violated:
-        typer.echo("error: report: the falsification run violates the bound (see the report)", err=True)
+        typer.echo("error: report: the falsification run violates the bound or the task (see the report)", err=True)
         raise typer.Exit(3)
 
 

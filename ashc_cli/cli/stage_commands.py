@@ -138,10 +138,11 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     sim = None if force or stale else folder.read("simulate")
     simulated = [] if sim is None else [{"check": name, "status": "pass" if c.passed else "fail", "value": c.value if np.isfinite(c.value) else None,
                                          "detail": c.description, "evidence": c.evidence} for name, c in sim.checks.items()]
+    task = _task_line(spec_obj, sim, path)
     if as_json:
         emit_json({"spec": spec_obj.name, "solved": result.solved, "verdict": result.kind, "sampled": result.sampled_rows,
                     "rows": [r.as_dict() for r in result.rows], "simulated": simulated,
-                    "simulated_stale": stale if stale not in (None, "no artefact yet") else None})
+                    "simulated_stale": stale if stale not in (None, "no artefact yet") else None, **({"task": task} if task else {})})
     else:
         typer.echo(f"Problem 1 (nonlinear ASHC) for '{spec_obj.name}':")
         for r in result.rows:
@@ -150,6 +151,8 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
             if r.status == "fail":
                 typer.echo(plain_text(f"              {r.detail}"))
         _echo_simulated(simulated, stale, path)
+        if task:
+            typer.echo(task)
         typer.echo(result.line())
     if sim is not None and result.solved:
         _refuse_contradicted(arts, sim, path)
@@ -158,6 +161,21 @@ def check(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: J
     if require == Require.proved and not result.proved:
         typer.echo("error: check: --require proved: the verdict holds on samples only (" + ", ".join(result.sampled_rows) + ")", err=True)
         raise typer.Exit(3)
+
+def _task_line(spec, sim, path: Path) -> str | None:
+    """One line on the spec's task (None without one): the plant's robustness under the synthesised plan from
+    simulate.h5's task scenario, or what to run; not part of Problem 1's verdict."""
+    if spec.task is None:
+        return None
+    head = "Task on the output (not part of Problem 1's verdict): "
+    if sim is None or "task/robustness" not in sim.values:
+        return head + f"not simulated; `ashc synthesize SPEC --out {path}` plans it, `ashc simulate` runs the plan on the plant"
+    v = sim.values
+    met = "met" if bool(v["task/satisfied"]) else "NOT met"
+    return (head + f"{met} on the plant, robustness {number_text(float(v['task/robustness']), '.4g')} under the synthesised plan "
+            f"(EPS = {number_text(float(v['task/tolerance']), '.4g')}, certified margin {number_text(float(v['task/certified_margin']), '.4g')}; "
+            "`ashc falsify` attacks it)")
+
 
 def _echo_simulated(simulated: list[dict], stale: str | None, path: Path) -> None:
     """One line on the scenario checks of `ashc simulate` (simulated, not part of the verdict); a failed one in full;

@@ -341,14 +341,15 @@ def on_the_plant(model, plant: DesignTerms, plan: TaskPlan, res: dict) -> tuple[
         With ``certified`` less the deviation (the plan's RK4 against the run's adaptive integration of the same
         abstraction and law: what the plan's psi may be off by).
     values : dict
-        t, y, psi, max_abs_error, deviation, robustness, satisfied, reach_times, best_hold_starts, parts/<part>.
+        t, y, psi, xi, v (the run, so that anyone can monitor it again), max_abs_error, deviation, robustness,
+        satisfied, reach_times, best_hold_starts, parts/<part>.
     """
     t, y = res["t"], res["y"]
     psi = plant.kappa(*res["xi"])[:, 0, :]          # as simulate's tracking run records it
     on_y = robustness(model.spec.task, t, y)
     planned = np.stack([np.interp(t, plan.t, row) for row in plan.psi])
     deviation = float(np.abs(planned - psi).max())
-    values = {"t": t, "y": y, "psi": psi, "max_abs_error": float(np.abs(psi - y).max()), "deviation": deviation,
+    values = {"t": t, "y": y, "psi": psi, "xi": res["xi"], "v": res["v"], "max_abs_error": float(np.abs(psi - y).max()), "deviation": deviation,
               "robustness": on_y.robustness, "satisfied": on_y.satisfied, "reach_times": np.array(on_y.reach_times, dtype=float),
               "best_hold_starts": np.array(on_y.best_times, dtype=float)}
     values.update({f"parts/{part}": value for part, value in on_y.parts.items()})

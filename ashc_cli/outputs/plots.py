@@ -24,6 +24,7 @@ file                       the paper's figure
 from __future__ import annotations
 
 import re
+from collections import namedtuple
 from pathlib import Path
 
 import matplotlib
@@ -551,6 +552,90 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
 
 #: file name (PNG; the stem is kept for the other formats) -> (figure function, artefacts it needs, what it
 #: needs inside the simulate artefact)
+#: One task run to draw (:func:`draw_task`): the plant's output y at t; the abstraction's psi and xi at t_plan; the
+#: switching times, EPS, and per reach its reach time (first met, NaN: never) and the start of its deepest hold.
+TaskRun = namedtuple("TaskRun", "t y t_plan psi xi switches eps reach_times best_starts")
+
+
+def draw_task(task, run: TaskRun, unit: str | None = None):
+    """The task on the output: y of the plant's run and psi, the always box, each reach set over its hold from its
+    reach time (the number ``simulate`` and ``synthesize`` print; the deepest hold, hatched, where it is met later or
+    never), the sets deflated by EPS (what psi was held to), each deadline, each avoid set over its window; below,
+    xi with the switching times.  One IEEE column wide.
+
+    Parameters
+    ----------
+    task : Task
+        ``spec.task``.
+    run : TaskRun
+    unit : str, optional
+        The output's unit, on the y axis.
+
+    Returns
+    -------
+    matplotlib Figure
+    """
+    from matplotlib.patches import Rectangle
+
+    t, y = np.asarray(run.t), np.atleast_2d(np.asarray(run.y))
+    tp, psi, xi = np.asarray(run.t_plan), np.atleast_2d(np.asarray(run.psi)), np.atleast_2d(np.asarray(run.xi))
+    eps, width = float(run.eps), tp[-1] * 0.005
+    fig, (ax, ax_xi) = plt.subplots(2, 1, figsize=(COLUMN_WIDTH, 4.2), sharex=True, layout="constrained",
+                                    gridspec_kw={"height_ratios": [2.2, 1]})
+    if task.always is not None:
+        lo, hi = task.always[0]
+        ax.axhline(lo, color="0.35", linewidth=0.8, label="always")
+        ax.axhline(hi, color="0.35", linewidth=0.8)
+    for k, r in enumerate(task.reach):
+        lo, hi = r.set[0]
+        met, best = float(run.reach_times[k]), float(run.best_starts[k])
+        start = met if np.isfinite(met) else best
+        ax.add_patch(Rectangle((start, lo), max(r.hold, width), hi - lo, facecolor="#2ca02c" if np.isfinite(met) else "#d62728",
+                               alpha=0.25, linewidth=0, label="reach set, held" if k == 0 else None))
+        if np.isfinite(met) and abs(best - met) > r.hold:
+            ax.add_patch(Rectangle((best, lo), max(r.hold, width), hi - lo, fill=False, hatch="////", edgecolor="#2ca02c",
+                                   linewidth=0, alpha=0.5, label="deepest hold" if k == 0 else None))
+        ax.add_patch(Rectangle((start, lo + eps), max(r.hold, width), hi - lo - 2 * eps, fill=False, edgecolor="#2ca02c",
+                               linestyle="--", linewidth=0.8, label=r"deflated by $\varepsilon$" if k == 0 else None))
+        ax.plot([r.by, r.by], [lo, hi], color="#2ca02c", linewidth=1.2, label="deadline" if k == 0 else None)
+    for k, a in enumerate(task.avoid):
+        lo, hi = a.set[0]
+        ax.add_patch(Rectangle((a.during[0], lo), a.during[1] - a.during[0], hi - lo, facecolor="#d62728", alpha=0.2,
+                               linewidth=0, label="avoid" if k == 0 else None))
+    ax.plot(tp, psi[0], label=r"$\psi$", **PSI_STYLE)
+    ax.plot(t, y[0], label="$y$ (plant)", **Y_STYLE)
+    ax.set_ylabel("$y$" + (f" ({unit})" if unit else ""))
+    legend_above(ax, ncol=3)
+    ax_xi.plot(tp, xi[0], color="0.2", linewidth=1.0)
+    for sw in np.asarray(run.switches)[1:]:
+        ax_xi.axvline(float(sw), color="0.5", linestyle=":", linewidth=0.8)
+    ax_xi.set_ylabel(r"$\xi$")
+    ax_xi.set_xlabel("$t$ (s)")
+    return fig
+
+
+def task_figure(spec: Spec, arts: dict[str, Artefact]):
+    """The task scenario of ``simulate`` (its ``task/`` group: the synthesised plan run on the plant), drawn by
+    :func:`draw_task`.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (``task``, ``units``).
+    arts : dict of str to Artefact
+        ``simulate`` is read (``task/t``, ``/y``, ``/psi``, ``/xi``, ``/switch_times``, ``/tolerance``,
+        ``/reach_times``, ``/best_hold_starts``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
+    v = arts["simulate"].values
+    run = TaskRun(v["task/t"], v["task/y"], v["task/t"], v["task/psi"], v["task/xi"], v["task/switch_times"], v["task/tolerance"],
+                  v["task/reach_times"], v["task/best_hold_starts"])
+    return draw_task(spec.task, run, unit=spec.units.get("y1") or spec.units.get("y"))
+
+
 FIGURES = {
     "kappa_xi.png": (kappa_figure, ("kappa",), None),
     "delta_compare.png": (delta_figure, ("bound",), None),
@@ -559,6 +644,7 @@ FIGURES = {
     "m_relation_inputs.png": (m_relation_inputs_figure, ("simulate",), "m_relation/t"),
     "m_relation_outputs.png": (m_relation_outputs_figure, ("simulate",), "m_relation/t"),
     "falsify.png": (falsify_figure, ("falsify",), None),
+    "task.png": (task_figure, ("simulate",), "task/xi"),
 }
 
 #: Metadata that would change every run (creation date): left out, so the same design gives the same file.

@@ -62,6 +62,8 @@ CAPTIONS = {
     "falsify.png": "Falsification: largest |ψ − y| / guaranteed bound of each run by search strategy, log scale; "
                    "runs started on the manifold (W0 = 0) filled, the worst of them starred; off it hollow (the W0 term is "
                    "tight at t = 0 by construction), the worst overall crossed. Every point must stay at or below 1.",
+    "task.png": "The task: y of the plant and ψ under the synthesised plan; the always box, each reach set held from its reach "
+                "time (deflated by ε dashed, the deepest hold hatched), the deadlines, the avoid sets; below, ξ and the switches.",
 }
 
 #: CSS pixels per PNG pixel of a figure: a one-column figure (3.5 in at 200 dpi) is shown 420 px wide.
@@ -157,7 +159,65 @@ def _falsify_paragraph(f: dict) -> str:
             f"(every ratio must stay at or below 1). Runs that left V: {f['runs_leaving_V']} (not counted after that).</p>")
 
 
-def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path]) -> str:
+def _box_text(box, grow: float = 0.0) -> str:
+    """A box as [lo, hi] per output, each side moved out by ``grow`` (in by -grow); empty: 'empty'."""
+    sides = [(float(lo) - grow, float(hi) + grow) for lo, hi in box]
+    if any(lo > hi for lo, hi in sides):
+        return "empty"
+    return " x ".join(f"[{readable(lo, 5)}, {readable(hi, 5)}]" for lo, hi in sides)
+
+
+def _task_rows(task, eps: float) -> list[str]:
+    """One table row per part of the task: as stated, and as deflated by EPS (what psi was held to)."""
+    rows = []
+    if task.always is not None:
+        rows.append(("always", f"y in {_box_text(task.always)} on [0, {readable(task.horizon, 5)}] s", _box_text(task.always, -eps)))
+    for k, r in enumerate(task.reach):
+        rows.append((f"reach[{k}]", f"y in {_box_text(r.set)} for {readable(r.hold, 5)} s, starting by {readable(r.by, 5)} s",
+                     _box_text(r.set, -eps)))
+    for k, a in enumerate(task.avoid):
+        rows.append((f"avoid[{k}]", f"y outside {_box_text(a.set)} during [{readable(a.during[0], 5)}, {readable(a.during[1], 5)}] s",
+                     _box_text(a.set, eps)))
+    return [f"<tr><th>{name}</th><td>{html.escape(stated)}</td><td>{html.escape(deflated)}</td></tr>" for name, stated, deflated in rows]
+
+
+def _task_section(task, arts: dict[str, Artefact]) -> str:
+    """The task (``spec.task``): as stated and as deflated by EPS, EPS and the certified margin of the plan, the plant's
+    robustness and reach times (simulate's task scenario), falsify's smallest robustness; not part of Problem 1."""
+    if "simulate" not in arts or "task/robustness" not in arts["simulate"].values:
+        return ("<p class='na'>The spec has a task, but simulate.h5 holds no task scenario: run `ashc simulate` "
+                "(it synthesises the plan and runs it on the plant).</p>")
+    v = arts["simulate"].values
+    eps = float(v["task/tolerance"])
+    parts = {k.split("/", 2)[2]: float(x) for k, x in v.items() if k.startswith("task/parts/")}
+    reach = ", ".join(f"reach[{k}] {'never' if not np.isfinite(x) else readable(float(x), 5) + ' s'}"
+                      for k, x in enumerate(np.atleast_1d(v["task/reach_times"])))
+    out = ["<p>Not part of Problem 1's verdict: the task is solved on the abstraction by the synthesised plan (the set-point "
+           "law in the budget mode of the guaranteed controller, eq. (38)), which keeps |psi - y| &lt;= EPS, so a psi that meets "
+           "the task deflated by EPS is a plant that meets it as stated.</p>",
+           "<table class='wide'><tr><th>part</th><th>as stated</th><th>as deflated by EPS (psi's task)</th></tr>",
+           *_task_rows(task, eps), "</table><table class='wide'>",
+           f"<tr><th>EPS (tolerance), v_max</th><td>{readable(eps, 5)}, {readable(float(v['task/v_max']), 5)}</td></tr>",
+           f"<tr><th>certified margin of the plan</th><td>{readable(float(v['task/certified_margin']), 5)} (psi's robustness less EPS, "
+           f"the sampling margin and the plan's deviation; sampled in time) {_status(float(v['task/certified_margin']) >= 0)}</td></tr>",
+           f"<tr><th>plant run: robustness</th><td>{readable(float(v['task/robustness']), 5)} {_status(bool(v['task/satisfied']))} "
+           f"(max |psi - y| = {readable(float(v['task/max_abs_error']), 4)}; per part: "
+           f"{html.escape(', '.join(f'{k} {readable(x, 5)}' for k, x in parts.items()))})</td></tr>",
+           f"<tr><th>reach times (first met)</th><td>{html.escape(reach)}</td></tr>"]
+    f = arts["falsify"].values if "falsify" in arts else {}
+    if "task/min_robustness" in f:
+        out.append(f"<tr><th>falsify: smallest robustness</th><td>{readable(float(f['task/min_robustness']), 5)} "
+                   f"{_status(float(f['task/min_robustness']) >= 0)} over {int(f['task/runs'])} plant runs from starts with "
+                   f"W0 &lt;= {readable(float(f['task/start_region_W0']), 5)} (the certified start region; worst W0 "
+                   f"{readable(float(f['task/worst_W0']), 4)})</td></tr>")
+    if "task_disturbed/min_robustness" in f:
+        out.append(f"<tr><th>falsify: with disturbances</th><td>{readable(float(f['task_disturbed/min_robustness']), 5)} "
+                   f"{_status(float(f['task_disturbed/min_robustness']) >= 0)} (w held at each vertex of its box)</td></tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, figures: list[Path], task=None) -> str:
     """The HTML page.
 
     Parameters
@@ -172,6 +232,8 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
         The Problem 1 verdict and its rows (:func:`ashc_cli.design.verdict.verdict`).
     figures : list of Path
         PNG (or SVG) files to embed; other files are left out.
+    task : Task, optional
+        ``spec.task``: a section of its own (:func:`_task_section`).
     """
     summ = summary(arts)
     parts = [f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>ashc report: {html.escape(spec_name)}</title>",
@@ -222,6 +284,10 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
         parts.append(_falsify_paragraph(summ["falsify"]))
     else:
         parts.append("<p class=\"na\">not run</p>")
+
+    if task is not None:
+        parts.append("<h2>Task on the output</h2>")
+        parts.append(_task_section(task, arts))
 
     if figures:
         parts.append("<h2>Figures</h2>")

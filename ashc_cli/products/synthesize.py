@@ -144,15 +144,14 @@ def run_synthesize(spec: Spec, out, *, on_stage: Callable | None = None, on_star
 
 
 def plot(art: Artefact, task, path, unit: str | None = None):
-    """The task on the output: y of the plant's run and psi of the plan, the always box, each reach set over its hold
-    (from the reach time) with its deadline, the sets deflated by EPS (what psi was held to), each avoid set over its
-    window; below, the plan's xi with the switching times.  One IEEE column wide.
+    """The task figure of the synthesised plan (:func:`ashc_cli.outputs.plots.draw_task`): y of the plant's run, psi
+    and xi of the plan.
 
     Parameters
     ----------
     art : Artefact
         The synthesize artefact (``run/t``, ``run/y``, ``plan/t``, ``plan/psi``, ``plan/xi``, ``switch_times``,
-        ``tolerance``, ``task/best_hold_starts``).
+        ``tolerance``, ``task/reach_times``, ``task/best_hold_starts``).
     task : Task
         ``spec.task``.
     path : str or Path
@@ -166,43 +165,13 @@ def plot(art: Artefact, task, path, unit: str | None = None):
     """
     from pathlib import Path
 
-    from matplotlib.patches import Rectangle
-
-    from ashc_cli.outputs.plots import COLUMN_WIDTH, PSI_STYLE, STYLE, Y_STYLE, legend_above, plt, save
+    from ashc_cli.outputs.plots import STYLE, TaskRun, draw_task, plt, save
 
     v = art.values
-    eps = float(v["tolerance"])
-    t, y = np.asarray(v["run/t"]), np.atleast_2d(np.asarray(v["run/y"]))
-    tp, psi, xi = np.asarray(v["plan/t"]), np.atleast_2d(np.asarray(v["plan/psi"])), np.atleast_2d(np.asarray(v["plan/xi"]))
+    run = TaskRun(v["run/t"], v["run/y"], v["plan/t"], v["plan/psi"], v["plan/xi"], v["switch_times"], v["tolerance"],
+                  v["task/reach_times"], v["task/best_hold_starts"])
     with plt.rc_context(STYLE):
-        fig, (ax, ax_xi) = plt.subplots(2, 1, figsize=(COLUMN_WIDTH, 4.2), sharex=True, layout="constrained",
-                                        gridspec_kw={"height_ratios": [2.2, 1]})
-        if task.always is not None:
-            lo, hi = task.always[0]
-            ax.axhline(lo, color="0.35", linewidth=0.8, label="always")
-            ax.axhline(hi, color="0.35", linewidth=0.8)
-        for k, r in enumerate(task.reach):
-            lo, hi = r.set[0]
-            start = float(v["task/best_hold_starts"][k])      # the hold that gives the reach its robustness
-            ax.add_patch(Rectangle((start, lo), max(r.hold, tp[-1] * 0.005), hi - lo, facecolor="#2ca02c", alpha=0.25, linewidth=0,
-                                   label="reach set, held" if k == 0 else None))
-            ax.add_patch(Rectangle((start, lo + eps), max(r.hold, tp[-1] * 0.005), hi - lo - 2 * eps, fill=False, edgecolor="#2ca02c",
-                                   linestyle="--", linewidth=0.8, label=r"deflated by $\varepsilon$" if k == 0 else None))
-            ax.plot([r.by, r.by], [lo, hi], color="#2ca02c", linewidth=1.2, label="deadline" if k == 0 else None)
-        for k, a in enumerate(task.avoid):
-            lo, hi = a.set[0]
-            ax.add_patch(Rectangle((a.during[0], lo), a.during[1] - a.during[0], hi - lo, facecolor="#d62728", alpha=0.2,
-                                   linewidth=0, label="avoid" if k == 0 else None))
-        ax.plot(tp, psi[0], label=r"$\psi$ (plan)", **PSI_STYLE)
-        ax.plot(t, y[0], label="$y$ (plant)", **Y_STYLE)
-        ax.set_ylabel("$y$" + (f" ({unit})" if unit else ""))
-        legend_above(ax, ncol=3)
-        ax_xi.plot(tp, xi[0], color="0.2", linewidth=1.0)
-        for s in np.asarray(v["switch_times"])[1:]:
-            ax_xi.axvline(float(s), color="0.5", linestyle=":", linewidth=0.8)
-        ax_xi.set_ylabel(r"$\xi$ (plan)")
-        ax_xi.set_xlabel("$t$ (s)")
-        return save(fig, Path(path))
+        return save(draw_task(task, run, unit), Path(path))
 
 
 def summarise(art: Artefact) -> dict:

@@ -313,7 +313,7 @@ def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple
     -------
     values : dict
         ``task/robustness``, ``task/satisfied``, ``task/reach_times`` (NaN: not reached), the run (``task/t``,
-        ``task/y``, ``task/psi``), ``task/tolerance`` (EPS), ``task/v_max``, ``task/certified_margin``,
+        ``task/y``, ``task/psi``, ``task/xi``, ``task/v``), ``task/tolerance`` (EPS), ``task/v_max``, ``task/certified_margin``,
         ``task/start_region_W0`` and each part's robustness (``task/parts/<part>``).
     checks : dict
         ``task_met_on_the_plant``.
