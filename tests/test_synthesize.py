@@ -15,6 +15,7 @@ from ashc_cli.design.artefacts import read_artefact
 from ashc_cli.problem.spec import Task, load_spec
 
 from .conftest import CUK, ashc, edited
+from .test_export import CC, CFLAGS, needs_cc
 from .test_task_monitor import _rtamt
 
 TASK_SPEC = Path(__file__).resolve().parent / "specs" / "cuk_task.yaml"
@@ -269,3 +270,64 @@ def test_check_report_and_plot_carry_the_task(simulated):
     lo, hi = load_spec(TASK_SPEC).task.reach[0].set[0]
     assert f"[{lo + eps:.5g}, {hi - eps:.5g}]" in section          # reach[0] shrunk by EPS on both sides
     assert "The task: y of the plant" in page and (out / "plots" / "task.png").stat().st_size > 10_000
+
+
+def test_export_carries_the_plan_and_eval_replays_it(synthesized, tmp_path):
+    # ashc export writes the plan next to the interface (synthesize.h5's: switching times, references, gain, v_max);
+    # replayed with the exported abstraction on the plan's own RK4 grid it gives the plan's xi again; ashc eval plan
+    # says the same as the exported functions
+    out, entry, art = synthesized
+    ashc("export", str(TASK_SPEC), "--out", str(out), "--lang", "python", "--output", str(tmp_path / "task_design.py"), check=True)
+    space: dict = {}
+    exec(compile((tmp_path / "task_design.py").read_text(), "task_design.py", "exec"), space)
+    v = art.values
+    switches, refs = np.asarray(v["switch_times"]), np.asarray(v["references"]).T        # stored (n_hat, reach sets)
+    np.testing.assert_array_equal(space["PLAN_SWITCHES"], switches)
+    for k, s in enumerate(switches):
+        np.testing.assert_array_equal(space["ashc_plan_reference"](s), refs[k])
+        if k:
+            np.testing.assert_array_equal(space["ashc_plan_reference"](np.nextafter(s, -np.inf)), refs[k - 1])
+    t, xi_plan = np.asarray(v["plan/t"]), np.atleast_2d(np.asarray(v["plan/xi"]))
+    dt = t[1] - t[0]
+    z, xi = xi_plan[:, 0].copy(), [xi_plan[:, 0].copy()]
+    for ti in t[:-1]:
+        def f(y):
+            return space["ashc_abstract_rhs"](y, space["ashc_plan_controller"](ti, y))
+        k1 = f(z)
+        k2 = f(z + dt / 2 * k1)
+        k3 = f(z + dt / 2 * k2)
+        k4 = f(z + dt * k3)
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xi.append(z.copy())
+    width = float(np.ptp(xi_plan))
+    assert np.max(np.abs(np.array(xi).T - xi_plan)) <= 1e-9 * max(width, 1.0)
+    for at, want in (("t=170", space["ashc_plan_reference"](170.0)), ("t=170,xi=0.8", space["ashc_plan_controller"](170.0, [0.8]))):
+        shown = ashc("eval", str(out), "plan", "--spec", str(TASK_SPEC), "--at", at, "--json", check=True)
+        np.testing.assert_allclose(json.loads(shown.stdout)["value"], want, rtol=1e-12, atol=1e-15)
+
+
+@needs_cc
+def test_the_exported_c_plan_is_the_python_plan(synthesized, tmp_path):
+    import ctypes
+    import subprocess
+
+    out = synthesized[0]
+    ashc("export", str(TASK_SPEC), "--out", str(out), "--lang", "c", "--output", str(tmp_path / "task_design.c"), check=True)
+    ashc("export", str(TASK_SPEC), "--out", str(out), "--lang", "python", "--output", str(tmp_path / "task_design.py"), check=True)
+    lib = tmp_path / "task_design.so"
+    proc = subprocess.run([CC, *CFLAGS, "-Wextra", "-pedantic", "-shared", "-fPIC", "-o", str(lib), str(tmp_path / "task_design.c"), "-lm"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    so, space = ctypes.CDLL(str(lib)), {}
+    exec(compile((tmp_path / "task_design.py").read_text(), "task_design.py", "exec"), space)
+    P = ctypes.POINTER(ctypes.c_double)
+    so.ashc_plan_reference.argtypes = [ctypes.c_double, P]
+    so.ashc_plan_controller.argtypes = [ctypes.c_double, P, P]
+    rng = np.random.default_rng(2)
+    for t in (0.0, *np.asarray(read_artefact(out / "synthesize.h5").values["switch_times"]), *rng.uniform(0, 500, 20)):
+        ref, v = np.empty(1), np.empty(1)
+        xi = rng.uniform(0.0, 0.95, 1)
+        so.ashc_plan_reference(float(t), ref.ctypes.data_as(P))
+        so.ashc_plan_controller(float(t), xi.ctypes.data_as(P), v.ctypes.data_as(P))
+        np.testing.assert_array_equal(ref, space["ashc_plan_reference"](t))
+        np.testing.assert_allclose(v, space["ashc_plan_controller"](t, xi), rtol=1e-14, atol=1e-300)

@@ -13,8 +13,21 @@ from ashc_cli.errors import SpecError
 from ashc_cli.outputs.numbers import number_text, readable
 from ashc_cli.cli.common import (
     EVALUABLE_NAMES, ForceOpt, JsonOpt, OutOpt, Progress, SHORT_HELP, SpecArg, app, emit_json, engine, exclusive, frozen_opt, guard,
-    run_targets,
+    product_staleness, run_targets,
 )
+
+
+def _task_plan(spec_obj, folder, arts, progress=None):
+    """The spec's task plan for export and eval: synthesize.h5's when it belongs to this design, else planned again
+    (deterministic); None without a task."""
+    from ashc_cli.outputs.export import task_plan_export
+
+    if spec_obj.task is None:
+        return None
+    current = product_staleness(spec_obj, folder, "synthesize") is None
+    if not current and progress is not None:
+        progress.line("note: no current synthesize.h5: planning the task again (what `ashc synthesize` does)")
+    return task_plan_export(spec_obj, arts, folder.read("synthesize") if current else None)
 
 
 
@@ -59,28 +72,43 @@ def _short(value, limit: int = 400) -> str:
 @guard
 def eval_command(
     folder: Annotated[Path, typer.Argument(metavar="DIR", help="An artefact folder.", show_default=False)],
-    name: Annotated[str, typer.Argument(metavar="NAME", help=f"One of: {', '.join(EVALUABLE_NAMES)}, u_w (the interface law, needs --spec).", show_default=False)],
-    at: Annotated[str, typer.Option("--at", help="The point, in the spec's own names: --at xi=0.6156 or --at x1=1,x2=2,x3=3,x4=4 (theta takes both; u_w takes xi, x and v).", show_default=False)],
-    spec: Annotated[Path | None, typer.Option("--spec", help="The spec the folder was designed from; needed by u_w only (l(xi), U and the interface are in no artefact).", show_default=False)] = None,
+    name: Annotated[str, typer.Argument(metavar="NAME", help=f"One of: {', '.join(EVALUABLE_NAMES)}, u_w (the interface law), plan (the task's plan); "
+                                                         "u_w and plan need --spec.", show_default=False)],
+    at: Annotated[str, typer.Option("--at", help="The point, in the spec's own names: --at xi=0.6156 or --at x1=1,x2=2,x3=3,x4=4 (theta takes both; u_w takes xi, x "
+                                                 "and v; plan takes t, and xi for its v).", show_default=False)],
+    spec: Annotated[Path | None, typer.Option("--spec", help="The spec the folder was designed from; needed by u_w and plan only (l(xi), U, the interface "
+                                                             "and the task are in no artefact).", show_default=False)] = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Evaluate a stored function (p, kappa, m, delta, b, c, theta) or the interface law u_w at a point.
+    """Evaluate a stored function (p, kappa, m, delta, b, c, theta), the interface law u_w or the task's plan at a point.
 
     Prints `NAME(a=1, b=2) = [v1, v2, ...]` (a scalar is a one-element list). u_w is the input the interface
     applies, u = SAT(l(xi) + K (x - p(xi)) + q v), to check exported code (`ashc export`) against the tool.
+    plan replays the task's plan (`ashc synthesize`; synthesize.h5 when it is current, else planned again):
+    --at t=T gives its reference xi_ref(T), --at t=T,xi=X its abstract input v (ashc_plan_reference and
+    ashc_plan_controller of the export).
     """
     from ashc_cli.outputs.query import evaluate, parse_point
 
     load_all = engine().load_all
     point = parse_point(at)
-    if name == "u_w":
-        from ashc_cli.outputs.export import interface_value
+    if name in ("u_w", "plan"):
+        from ashc_cli.outputs.export import interface_value, plan_value
 
         if spec is None:
-            raise SpecError("--spec", "u_w needs the spec the folder was designed from (l(xi), U and the interface are stored in no artefact)", "--spec SPEC")
+            raise SpecError("--spec", f"{name} needs the spec the folder was designed from (l(xi), U, the interface and the task are stored in no artefact)",
+                            "--spec SPEC")
         from ashc_cli.problem.spec import load_spec
 
-        values = interface_value(load_spec(spec), load_all(folder), point)
+        spec_obj, arts = load_spec(spec), load_all(folder)
+        if name == "u_w":
+            values = interface_value(spec_obj, arts, point)
+        else:
+            from ashc_cli.outputs.export_design import require_current
+
+            require_current(spec_obj, arts)
+            what, values = plan_value(_task_plan(spec_obj, engine().Folder(folder), arts), spec_obj, arts, point)
+            name = f"plan {what}"
     else:
         values = evaluate(load_all(folder), name, point)
     if as_json:
@@ -102,7 +130,8 @@ def export_command(
     as_json: JsonOpt = False,
     frozen: frozen_opt("Recompute nothing: export the stored design; fail (exit 5, naming the stage) if a stage is stale.") = False,
 ) -> None:
-    """Write the design as code: ashc_p, ashc_kappa, ashc_m, ashc_interface and ashc_controller.
+    """Write the design as code: ashc_p, ashc_kappa, ashc_m, ashc_interface and ashc_controller (and, with a task,
+    its plan: ashc_plan_reference and ashc_plan_controller).
 
     The formulas are the stored ones (p, kappa, m, delta, dp/dxi delta) and the spec's (phi_bar, l, g), printed
     by sympy with common subexpressions eliminated; the parameters are named constants. ashc_m returns a
@@ -119,9 +148,10 @@ def export_command(
     with Progress() as progress:
         stages = engine().DESIGN
         spec_obj, folder, arts = run_targets(spec, out, stages, force, progress, frozen=stages if frozen else False)
+        plan = _task_plan(spec_obj, folder, arts, progress)
     if not given:   # beside the artefacts, not in whatever folder the command was run from
         _, output = check_target(lang, folder.path / f"{spec_obj.name}_design{output.suffix}")
-    paths = write_export(spec_obj, arts, lang, output)
+    paths = write_export(spec_obj, arts, lang, output, plan)
     if as_json:
         emit_json({"spec": spec_obj.name, "lang": lang, "files": [str(p) for p in paths]})
     else:

@@ -23,6 +23,10 @@
     :mod:`ashc_cli.outputs.translate` reads) with the spec's parameters.
 ``ashc_abstract_rhs(xi, v)``
     The abstract system's right-hand side phi_bar(xi) + delta(xi) v, to integrate xi on the controller.
+``ashc_plan_reference(t)``, ``ashc_plan_controller(t, xi)`` (with a task)
+    The task's plan (``ashc synthesize``; synthesize.h5 when it belongs to the design, else planned again): from
+    ``switches[k]`` on, the set-point law with the plan's gain and v_max aims at ``references[k]``.  Integrated with
+    ``ashc_abstract_rhs`` it replays the plan's xi; ``ashc eval DIR plan --at t=..[,xi=..]`` checks it.
 
 The formulas are printed by sympy (``C99CodePrinter`` for C, ``NumPyPrinter`` for Python) after common
 subexpressions are eliminated (``sympy.cse``, one pass per generated function); the spec's parameters stay
@@ -57,7 +61,7 @@ from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.model import build_model, lambdify
 from ashc_cli.problem.spec import Spec
 
-from ashc_cli.outputs.export_design import Design, gather, require_current
+from ashc_cli.outputs.export_design import Design, TaskPlanExport, gather, require_current
 from ashc_cli.outputs.printers import c_sources, python_source
 
 __all__ = ["LANGUAGES", "export_sources", "check_target", "write_export", "interface_value", "interface_point"]
@@ -110,7 +114,7 @@ def check_target(lang: str, output: str | Path) -> tuple[str, Path]:
     return lang, output
 
 
-def export_sources(spec: Spec, arts: Mapping[str, Artefact], lang: str, stem: str = "ashc_design") -> dict[str, str]:
+def export_sources(spec: Spec, arts: Mapping[str, Artefact], lang: str, stem: str = "ashc_design", plan: TaskPlanExport | None = None) -> dict[str, str]:
     """The source text(s) of a design in one language, by file name.
 
     Parameters
@@ -124,6 +128,8 @@ def export_sources(spec: Spec, arts: Mapping[str, Artefact], lang: str, stem: st
         ``c``: ``<stem>.c`` and ``<stem>.h``; ``python``: ``<stem>.py``.
     stem : str
         The file names' stem.
+    plan : TaskPlanExport, optional
+        The task's plan (:func:`task_plan_export`), printed with the design.
 
     Returns
     -------
@@ -138,7 +144,7 @@ def export_sources(spec: Spec, arts: Mapping[str, Artefact], lang: str, stem: st
         If an expression cannot be written in the language.
     """
     lang = _check_lang(lang)
-    design = gather(spec, arts)
+    design = gather(spec, arts, plan)
     controller = _registered(spec)
     if lang == "c":
         source, header = c_sources(design, f"{stem}.h", controller)
@@ -157,7 +163,7 @@ def _registered(spec: Spec) -> tuple | None:
     return c, np.asarray(c.prm(law), dtype=float)
 
 
-def write_export(spec: Spec, arts: Mapping[str, Artefact], lang: str, output: str | Path) -> list[Path]:
+def write_export(spec: Spec, arts: Mapping[str, Artefact], lang: str, output: str | Path, plan: TaskPlanExport | None = None) -> list[Path]:
     """Write the exported design: ``FILE.c`` and ``FILE.h`` beside it (C), or ``FILE.py`` (Python).
 
     Parameters
@@ -169,6 +175,8 @@ def write_export(spec: Spec, arts: Mapping[str, Artefact], lang: str, output: st
     lang : {"c", "python"}
     output : str or Path
         The file to write (its folder is created if needed).
+    plan : TaskPlanExport, optional
+        The task's plan, exported with the design.
 
     Returns
     -------
@@ -185,7 +193,7 @@ def write_export(spec: Spec, arts: Mapping[str, Artefact], lang: str, output: st
     """
     lang, output = check_target(lang, output)
     require_current(spec, arts)
-    texts = export_sources(spec, arts, lang, output.stem)
+    texts = export_sources(spec, arts, lang, output.stem, plan)
     output.parent.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, text in texts.items():
@@ -277,3 +285,89 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     if not np.all(np.isfinite(u)):
         raise DesignError("u_w", f"u_w is not real at {dict(point)}", "a point where l, p, g and dp/dxi delta are defined")
     return [float(value) + 0.0 for value in u]
+
+
+def task_plan_export(spec: Spec, arts: Mapping[str, Artefact], stored: Artefact | None = None) -> TaskPlanExport:
+    """The task's plan for the export and ``ashc eval DIR plan``: read from ``synthesize.h5`` when it is current
+    (``stored``), else planned again (deterministic: :func:`ashc_cli.design.task_plan.plan_task`, what synthesize and
+    simulate run).
+
+    Parameters
+    ----------
+    spec : Spec
+        A spec with a task.
+    arts : mapping of str to Artefact
+        The design's artefacts, made from ``spec``.
+    stored : Artefact, optional
+        The folder's synthesize artefact, if it belongs to this design.
+
+    Returns
+    -------
+    TaskPlanExport
+
+    Raises
+    ------
+    SpecError
+        If the spec has no task.
+    DesignError
+        If no tolerance EPS gives a plan (naming the part of the task).
+    """
+    if spec.task is None:
+        raise SpecError("task", "missing", "a task on the output (docs/spec-format.md, 'task') to export or evaluate its plan")
+    if stored is not None:
+        v = stored.values
+        switches = np.asarray(v["switch_times"], dtype=float).reshape(-1)
+        refs = np.asarray(v["references"], dtype=float).reshape(len(spec.abstract.states), -1).T     # stored (n_hat, reach sets)
+        return TaskPlanExport(switches, refs[:switches.size], float(v["gain"]), float(v["v_max"]), float(v["tolerance"]),
+                              np.asarray(v["xi0"], dtype=float).reshape(-1))
+    from ashc_cli.design import task_plan
+    from ashc_cli.design.pipeline import design_model
+
+    return TaskPlanExport.of(task_plan.plan_task(design_model(spec, arts), arts))
+
+
+def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str, float]) -> tuple[str, list[float]]:
+    """The plan at a point, with the tool's own numerics (``ashc eval DIR plan``): its reference xi_ref(t) at ``t``
+    alone; with the abstract state too, the abstract input v(t, xi) of its set-point law (the exported
+    ``ashc_plan_controller``).
+
+    Parameters
+    ----------
+    plan : TaskPlanExport
+    spec : Spec
+    arts : mapping of str to Artefact
+    point : mapping of str to float
+        ``t``, and optionally every abstract state by the spec's names.
+
+    Returns
+    -------
+    what : str
+        ``xi_ref`` or ``v``.
+    values : list of float
+
+    Raises
+    ------
+    SpecError
+        Without t, or with some abstract states but not all, or with another name.
+    """
+    names = list(spec.abstract.states)
+    extra = sorted(set(point) - {"t", *names})
+    if "t" not in point or extra or (set(names) & set(point) and not set(names) <= set(point)):
+        raise SpecError("--at", ", ".join(f"{k}={point[k]:g}" for k in point) or "nothing",
+                        f"t=T (the plan's reference), or t and every abstract state ({', '.join(names)}) for its v")
+    ref = plan.reference(point["t"])
+    if not set(names) <= set(point):
+        return "xi_ref", [float(r) for r in ref]
+    from ashc_cli.closedloop.laws import setpoint_law
+    from ashc_cli.closedloop.terms import DesignTerms
+    from ashc_cli.design.pipeline import design_model
+
+    xi = np.array([float(point[k]) for k in names])
+    at = DesignTerms(design_model(spec, arts), arts).at_xi(xi)
+    phi = np.ascontiguousarray(np.asarray(at[0], dtype=float).reshape(-1))
+    delta = np.ascontiguousarray(np.asarray(at[1], dtype=float).reshape(len(names), -1))
+    v = np.empty(delta.shape[1])
+    setpoint_law(float(point["t"]), np.ascontiguousarray(xi), np.ascontiguousarray(ref, dtype=float), phi, delta,
+                 np.array([plan.gain, plan.v_max]), v)
+    return "v", [float(x) for x in v]
+

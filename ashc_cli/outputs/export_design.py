@@ -30,6 +30,43 @@ STATUS = {0: "ok", 1: "outside the certified set (h(x) not in inverse.m_domain)"
 
 
 @dataclass(frozen=True)
+class TaskPlanExport:
+    """The task's plan as the exported code replays it (:mod:`ashc_cli.design.task_plan`): from ``switches[k]`` on,
+    the set-point law with ``gain`` and ``v_max`` aims at ``refs[k]``.
+
+    Attributes
+    ----------
+    switches : ndarray (K,)
+        When each segment starts (the first at 0).
+    refs : ndarray (K, n_hat)
+        The reference state of each segment (the reach sets' references the plan switched to, in order).
+    gain, v_max, eps : float
+        The set-point gain, the elementwise clip of v (the budget mode) and the tolerance EPS it guarantees.
+    xi0 : ndarray (n_hat,)
+        The plan's start.
+    """
+
+    switches: np.ndarray
+    refs: np.ndarray
+    gain: float
+    v_max: float
+    eps: float
+    xi0: np.ndarray
+
+    @staticmethod
+    def of(plan) -> TaskPlanExport:
+        """From a :class:`~ashc_cli.design.task_plan.TaskPlan`."""
+        switches = np.asarray(plan.switches, dtype=float).reshape(-1)
+        refs = np.stack([np.asarray(r, dtype=float).reshape(-1) for r in plan.refs])[:switches.size]   # the segments the plan ran
+        return TaskPlanExport(switches, refs, float(plan.gain), float(plan.v_max), float(plan.eps), np.asarray(plan.xi0, dtype=float).reshape(-1))
+
+    def reference(self, t: float) -> np.ndarray:
+        """The plan's reference at time t (the segment that started last; the first before 0)."""
+        k = int(np.searchsorted(self.switches, float(t), side="right")) - 1
+        return self.refs[max(k, 0)]
+
+
+@dataclass(frozen=True)
 class Design:
     """Everything the exported code needs, gathered from a spec and its design's artefacts.
 
@@ -62,6 +99,8 @@ class Design:
         The interface's saturation (``interface.saturate``).
     gain, v_max : float or None
         The set-point controller's, from ``simulate.tracking.abstract_controller`` (None: arguments).
+    plan : TaskPlanExport or None
+        The task's plan (``ashc synthesize``), when the spec has a task.
     """
 
     name: str
@@ -91,6 +130,7 @@ class Design:
     saturate: bool | str
     gain: float | None
     v_max: float | None
+    plan: TaskPlanExport | None = None
 
     @property
     def n(self) -> int:
@@ -142,7 +182,7 @@ def require_current(spec: Spec, arts: Mapping[str, Artefact]) -> None:
                                 "the folder designed from this spec (`ashc design SPEC --out DIR`)")
 
 
-def gather(spec: Spec, arts: Mapping[str, Artefact]) -> Design:
+def gather(spec: Spec, arts: Mapping[str, Artefact], plan: TaskPlanExport | None = None) -> Design:
     """The expressions and numbers of a design that the exported code is made of.
 
     Parameters
@@ -151,6 +191,8 @@ def gather(spec: Spec, arts: Mapping[str, Artefact]) -> Design:
         The design's spec (for phi_bar, l, g, U, the interface and the controller, which no artefact holds).
     arts : mapping of str to Artefact
         The artefacts of stages :data:`NEEDED`.
+    plan : TaskPlanExport, optional
+        The task's plan, exported with ``ashc_plan_reference`` and ``ashc_plan_controller``.
 
     Returns
     -------
@@ -181,7 +223,7 @@ def gather(spec: Spec, arts: Mapping[str, Artefact]) -> Design:
         U=np.asarray(model.U, dtype=float), V=np.asarray(V, dtype=float).reshape(model.n_hat, 2), m_domain=box, m_domain_set=set_name,
         K=K if np.any(K != 0) else None, L=np.asarray(arts["bound"].value("L"), dtype=float).reshape(model.n, model.n),
         q=spec.interface.q, saturate=spec.interface.saturate,
-        gain=None if ctl is None else float(ctl.gain), v_max=None if ctl is None else float(ctl.v_max),
+        gain=None if ctl is None else float(ctl.gain), v_max=None if ctl is None else float(ctl.v_max), plan=plan,
     )
     expected = {"phi_bar": (design.n_hat, 1), "l": (design.n_inputs, 1), "delta": (design.n_hat, design.m_hat),
                 "p": (design.n, 1), "kappa": (design.n_outputs, 1), "dp_delta": (design.n, design.m_hat),

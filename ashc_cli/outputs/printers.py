@@ -224,8 +224,64 @@ def c_sources(design: Design, header_name: str = "ashc_design.h", controller=Non
     d = design
     controller_args = "const double *xi, const double *xi_ref, double *v" if d.gain is not None or controller is not None else \
         "const double *xi, const double *xi_ref, double gain, double v_max, double *v"
-    source = _c_preamble(d, header_name, controller) + _c_terms(d) + _c_controller(d, controller_args, controller)
+    source = _c_preamble(d, header_name, controller) + _c_terms(d) + _c_controller(d, controller_args, controller) + _c_plan(d)
     return "\n".join(source), "\n".join(_c_header(d, controller_args, controller))
+
+
+def _plan_calls(d: Design) -> set[str]:
+    """The laws the task's plan calls (its set-point law), none without a plan."""
+    return {_name(setpoint_law)} if d.plan is not None else set()
+
+
+def _plan_says(d: Design) -> str:
+    return (f"The task's plan (ashc synthesize): from t = switches[k] on, the set-point law with gain {d.plan.gain:.6g} and "
+            f"v_max {d.plan.v_max:.6g} aims at references[k]; it keeps |psi - y| <= EPS = {d.plan.eps:.6g} (budget mode, eq. (38))")
+
+
+def _c_plan(d: Design) -> list[str]:
+    """ashc_plan_reference(t, xi_ref) and ashc_plan_controller(t, xi, v): the task's plan, none without one."""
+    if d.plan is None:
+        return []
+    K = len(d.plan.switches)
+    return [f"const double ashc_plan_switches[ASHC_PLAN_SEGMENTS] = {{{', '.join(_num(x) for x in d.plan.switches)}}};",
+            f"const double ashc_plan_references[ASHC_PLAN_SEGMENTS][{NAS}] = {_c_rows(d.plan.refs)};", "",
+            "void ashc_plan_reference(double t, double *xi_ref)", "{", "    int k = 0, i;",
+            f"    while (k + 1 < {K} && t >= ashc_plan_switches[k + 1]) k++;",
+            f"    for (i = 0; i < {NAS}; i++) xi_ref[i] = ashc_plan_references[k][i];", "}", "",
+            "void ashc_plan_controller(double t, const double *xi, double *v)", "{",
+            f"    double ref[{NAS}], phi[{NAS}], delta[{NAS} * {NAI}];", "    const double prm[2] = {ASHC_PLAN_GAIN, ASHC_PLAN_V_MAX};",
+            "    ashc_plan_reference(t, ref);", "    abstract_terms(xi, phi, delta);",
+            f"    {_name(setpoint_law)}(t, xi, {NAS}, ref, {NAS}, phi, {NAS}, delta, {NAS}, {NAI}, prm, 2, v, {NAI});", "}", ""]
+
+
+def _c_plan_header(d: Design) -> list[str]:
+    """The plan's constants and prototypes in the header, none without a plan."""
+    if d.plan is None:
+        return []
+    return [f"/* {_plan_says(d)}. */", f"#define ASHC_PLAN_SEGMENTS {len(d.plan.switches)}",
+            f"#define ASHC_PLAN_GAIN {_num(d.plan.gain)}", f"#define ASHC_PLAN_V_MAX {_num(d.plan.v_max)}",
+            f"#define ASHC_PLAN_EPS {_num(d.plan.eps)}",
+            "extern const double ashc_plan_switches[ASHC_PLAN_SEGMENTS];   /* s: when each segment starts */",
+            f"extern const double ashc_plan_references[ASHC_PLAN_SEGMENTS][{NAS}];   /* xi_ref of each segment */",
+            "/* xi_ref: the plan's reference at time t. */", "void ashc_plan_reference(double t, double *xi_ref);",
+            "/* v: the plan's abstract input at time t and abstract state xi. */",
+            "void ashc_plan_controller(double t, const double *xi, double *v);", ""]
+
+
+def _py_plan(d: Design) -> list[str]:
+    """ashc_plan_reference(t) and ashc_plan_controller(t, xi) in the Python export, none without a plan."""
+    if d.plan is None:
+        return []
+    return [f"#: {_plan_says(d)}.", f"PLAN_SWITCHES = numpy.array([{', '.join(repr(float(x)) for x in d.plan.switches)}])",
+            f"PLAN_REFERENCES = numpy.array({np.asarray(d.plan.refs, dtype=float).tolist()!r})",
+            f"PLAN_GAIN, PLAN_V_MAX, PLAN_EPS = {float(d.plan.gain)!r}, {float(d.plan.v_max)!r}, {float(d.plan.eps)!r}", "", "",
+            "def ashc_plan_reference(t):", '    """The plan\'s reference xi_ref at time t."""',
+            "    k = max(int(numpy.searchsorted(PLAN_SWITCHES, float(t), side='right')) - 1, 0)",
+            "    return PLAN_REFERENCES[k].copy()", "", "",
+            "def ashc_plan_controller(t, xi):", '    """The plan\'s abstract input v at time t and abstract state xi."""',
+            "    xi = numpy.ascontiguousarray(xi, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    v = numpy.empty(N_ABSTRACT_INPUTS)",
+            f"    {_name(setpoint_law)}(float(t), xi, ashc_plan_reference(t), phi, delta, numpy.array([PLAN_GAIN, PLAN_V_MAX]), v)",
+            "    return v", "", ""]
 
 
 def _law_of(d: Design, controller) -> tuple:
@@ -276,6 +332,7 @@ def _c_header(d: Design, controller_args: str, controller=None) -> list[str]:
           f"void ashc_controller({controller_args});",
           "/* dxi = phi_bar(xi) + delta(xi) v: the abstract system, to integrate xi. */",
           "void ashc_abstract_rhs(const double *xi, const double *v, double *dxi);", "",
+          *_c_plan_header(d),
           "#ifdef __cplusplus", "}", "#endif", "", f"#endif /* {_guard_name(d.name)} */", ""]
 
     return h
@@ -309,7 +366,7 @@ def _c_preamble(d: Design, header_name: str, controller=None) -> list[str]:
     if general:
         c += _c_pinv_small(max(r * k for r, k in general), max(min(r, k) for r, k in general))
     fn = _law_of(d, controller)[0]
-    called = {_name(fn), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    called = {_name(fn), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set()) | _plan_calls(d)
     c += ["/* The laws of the interface and of the abstract controller: the compiled closed loops' own functions",
           " * (ashc_cli/closedloop/interface.py, laws.py, controllers.py) printed by ashc_cli/outputs/translate.py; an",
           " * array A comes with its extents A_rows, A_cols (x_n for a vector), row-major. */", ""]
@@ -485,7 +542,7 @@ def _py_laws(d: Design, controller, interface_outputs) -> list[str]:
     terms = ", ".join(a for a, _ in interface_outputs)
     q_ls, sat = interface_codes(d.q, d.saturate)
     fn_law, prm, _, says = _law_of(d, controller)
-    called = {_name(fn_law), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set())
+    called = {_name(fn_law), "apply"} | ({"feedback_of"} if d.K is not None else set()) | ({"q_of", "times"} if ls else set()) | _plan_calls(d)
     lines += ["# The laws of the interface and of the abstract controller: the compiled closed loops' own functions",
               "# (closedloop/interface.py, laws.py, controllers.py of ashc), their source as it is.", "", ""]
     for fn in _needed(called, (fn_law,)):
@@ -582,7 +639,7 @@ def python_source(design: Design, controller=None) -> str:
               "    if not numpy.all((y >= M_DOMAIN[:, 0] - tol) & (y <= M_DOMAIN[:, 1] + tol)):",
               "        return OUTSIDE_CERTIFIED_SET, numpy.full(N_ABSTRACT_STATES, numpy.nan)", "    xi = _m_terms(x)",
               "    return (OK if numpy.all(numpy.isfinite(xi)) else NOT_REAL), xi", "", ""]
-    lines += _py_laws(d, controller, interface_outputs)
+    lines += _py_laws(d, controller, interface_outputs) + _py_plan(d)
     lines += ["def ashc_abstract_rhs(xi, v):", '    """dxi = phi_bar(xi) + delta(xi) v."""',
               "    v = numpy.asarray(v, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    return phi + delta @ v", ""]
     text = "\n".join(lines)
