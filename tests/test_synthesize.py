@@ -331,3 +331,35 @@ def test_the_exported_c_plan_is_the_python_plan(synthesized, tmp_path):
         so.ashc_plan_controller(float(t), xi.ctypes.data_as(P), v.ctypes.data_as(P))
         np.testing.assert_array_equal(ref, space["ashc_plan_reference"](t))
         np.testing.assert_allclose(v, space["ashc_plan_controller"](t, xi), rtol=1e-14, atol=1e-300)
+
+
+THIN_TASK_REACHES = ("    - {set: [[0.1, 0.5]], by: 25.0, hold: 2.0}\n"
+                     "    - {set: [[-0.5, -0.1]], by: 60.0, hold: 2.0}")
+
+
+def _thin_task_spec() -> str:
+    """Two reaches on the disturbed plant, w in [-0.06, 0.06]: the synthesised plan certifies a margin of 0.016."""
+    text = _task_spec(0.06, 0.1, 0.5).replace("horizon: 12.0", "horizon: 64.0")
+    return text.replace("    - {set: [[0.1, 0.5]], by: 8.0, hold: 2.0}", THIN_TASK_REACHES)
+
+
+@pytest.mark.slow
+def test_falsify_catches_the_plan_with_its_deflation_removed(tmp_path, monkeypatch):
+    # Issue 41's planted wrong controller: the same plan, its switches waiting only for the sets as stated (EPS = 0 in
+    # the plan, task_plan.plan_task(deflate=False)), on a task whose margin is thin: falsify's runs with w held at the
+    # vertices of its box give a negative robustness; the synthesised plan keeps it >= 0 on the same runs.
+    from ashc_cli.design import task_plan
+    from ashc_cli.problem.spec import parse_spec_text
+    from ashc_cli.products.campaign import run_falsify
+
+    spec = parse_spec_text(_thin_task_spec())
+    _, honest = run_falsify(spec, tmp_path, 4, 0, 2.0)
+    assert honest.values["task_disturbed/min_robustness"] >= 0 and honest.values["task/min_robustness"] >= 0
+    real = task_plan.plan_task
+
+    def undeflated(model, up, *, deflate=None, plant=None):
+        return real(model, up, deflate=False if deflate is None else deflate, plant=plant)
+
+    monkeypatch.setattr(task_plan, "plan_task", undeflated)
+    _, planted = run_falsify(spec, tmp_path, 4, 0, 2.0)
+    assert planted.values["task_disturbed/min_robustness"] < 0 and not planted.checks["task_met_with_disturbances"].passed

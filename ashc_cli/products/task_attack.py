@@ -108,7 +108,7 @@ def _chunk(spec_json: dict, folder: str, x0s: np.ndarray) -> np.ndarray:
 
 
 def attack_task(model, up: dict[str, Artefact], runs: int, seed: int = 0, scheduler: str | None = None, folder=None,
-                plan: task_plan.TaskPlan | None = None) -> dict:
+                plan: task_plan.TaskPlan | None = None, W0_max: float | None = None) -> dict:
     """Run the plan from ``runs`` starts across its certified start region; the minimum robustness.
 
     Parameters
@@ -122,6 +122,9 @@ def attack_task(model, up: dict[str, Artefact], runs: int, seed: int = 0, schedu
         The design's folder (with ``scheduler``).
     plan : TaskPlan, optional
         The plan to attack (default: the synthesised one; the tests hand it a planted wrong one).
+    W0_max : float, optional
+        The start region attacked (default: the plan's own, :func:`ashc_cli.design.task_plan.start_region`; the
+        tests attack a planted plan over the region the synthesised one certifies).
 
     Returns
     -------
@@ -133,7 +136,7 @@ def attack_task(model, up: dict[str, Artefact], runs: int, seed: int = 0, schedu
     if plan is None:
         plan = task_plan.plan_task(model, up, plant=plant)
         plan, _ = task_plan.on_the_plant(model, plant, plan, task_plan.task_run(model, plant, up, plan))
-    W0_max = task_plan.start_region(plan, up)
+    W0_max = task_plan.start_region(plan, up) if W0_max is None else float(W0_max)
     M = np.asarray(up["stabilise"].value("M"))
     p0 = plant.p_map(*plan.xi0)[:, 0]
     x0s = draw_starts(M, p0, W0_max, runs, seed)
