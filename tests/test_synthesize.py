@@ -363,3 +363,28 @@ def test_falsify_catches_the_plan_with_its_deflation_removed(tmp_path, monkeypat
     monkeypatch.setattr(task_plan, "plan_task", undeflated)
     _, planted = run_falsify(spec, tmp_path, 4, 0, 2.0)
     assert planted.values["task_disturbed/min_robustness"] < 0 and not planted.checks["task_met_with_disturbances"].passed
+
+
+@pytest.mark.slow
+def test_a_dask_campaign_of_the_task_attack_runs_the_same_runs(tmp_path):
+    # the same seed gives the same starts, the same search and so the same minimum with and without a cluster (a
+    # local one started here; its worker reads the stored design from the folder)
+    distributed = pytest.importorskip("distributed")
+    from ashc_cli.design.pipeline import DESIGN, design_model, run
+    from ashc_cli.problem.spec import parse_spec_text
+    from ashc_cli.products.task_attack import attack_task
+
+    spec = parse_spec_text(_task_spec(None, 0.5, 1.3))
+    arts = run(spec, tmp_path, DESIGN)
+    model = design_model(spec, arts)
+    here = attack_task(model, arts, 16, seed=3)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None) as cluster:
+        there = attack_task(model, arts, 16, seed=3, scheduler=cluster.scheduler_address, folder=tmp_path)
+    assert here["task_searched"] == there["task_searched"] == 4 and here["task_runs"] == 16
+    np.testing.assert_array_equal(here["task_starts"], there["task_starts"])
+    np.testing.assert_array_equal(here["task_robustness"], there["task_robustness"])
+    assert here["task_min_robustness"] == there["task_min_robustness"] >= 0
+    # the search's runs start inside the certified region, as the drawn ones
+    e = here["task_starts"] - here["task_starts"][0]
+    W0 = np.einsum("ri,ij,rj->r", e, np.asarray(arts["stabilise"].value("M")), e)
+    assert np.all(W0 <= here["task_start_region_W0"] * (1 + 1e-9))

@@ -40,7 +40,8 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
     from many starts, seeded by branch and bound), a second equilibrium of the frozen-input plant, and L_h; each
     counter-example is printed with its coordinates. With a task in the spec, the synthesised plan also runs on the
     plant from --runs starts across its certified start region (its boundary along M's eigen-directions, random
-    starts on and inside it) and the smallest robustness of the task is reported (task_min_robustness). Writes
+    starts on and inside it, then a search around the worst starts) and the smallest robustness of the task is
+    reported (task_min_robustness; the worst run is stored and drawn in plots/falsify_task.png by `ashc plot`). Writes
     falsify.h5 either way; exit 3 if a ratio exceeds 1 (a violation), a counter-example is found or a task run
     has negative robustness.
     """
@@ -74,7 +75,8 @@ def falsify(spec: SpecArg, out: OutOpt = None, runs: RunsOpt = 64, seed: SeedOpt
                    f"{(', ' + str(entry['disturbance_outside_box']) + ' started outside the state box') if entry['disturbance_outside_box'] else ''}")
     if "task_min_robustness" in entry and not as_json:
         typer.echo(f"task: smallest robustness {number_text(entry['task_min_robustness'], '.4g')} over {entry['task_runs']} plant runs of the "
-                   f"synthesised plan from starts with W0 <= {number_text(entry['task_start_region_W0'], '.4g')} (the certified start region)")
+                   f"synthesised plan from starts with W0 <= {number_text(entry['task_start_region_W0'], '.4g')} (the certified start region; "
+                   f"{entry.get('task_searched', 0)} of them searched around the worst; worst W0 {number_text(entry['task_worst_W0'], '.4g')})")
     for text in entry.get("counterexamples", []):
         typer.echo(f"counter-example to a sampled row: {text}")
     if entry.get("disturbance_max_ratio", 0.0) > 1.0:

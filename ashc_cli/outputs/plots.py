@@ -636,6 +636,28 @@ def task_figure(spec: Spec, arts: dict[str, Artefact]):
     return draw_task(spec.task, run, unit=spec.units.get("y1") or spec.units.get("y"))
 
 
+def falsify_task_figure(spec: Spec, arts: dict[str, Artefact]):
+    """The worst plant run of falsify's task attack (``task/worst/*``: the start of smallest robustness), drawn by
+    :func:`draw_task`.
+
+    Parameters
+    ----------
+    spec : Spec
+        The design's spec (``task``, ``units``).
+    arts : dict of str to Artefact
+        ``falsify`` is read (``task/worst/t``, ``/y``, ``/psi``, ``/xi``, ``/reach_times``, ``/best_hold_starts``,
+        ``task/switch_times``, ``task/tolerance``).
+
+    Returns
+    -------
+    matplotlib Figure
+    """
+    v = arts["falsify"].values
+    run = TaskRun(v["task/worst/t"], v["task/worst/y"], v["task/worst/t"], v["task/worst/psi"], v["task/worst/xi"], v["task/switch_times"],
+                  v["task/tolerance"], v["task/worst/reach_times"], v["task/worst/best_hold_starts"])
+    return draw_task(spec.task, run, unit=spec.units.get("y1") or spec.units.get("y"))
+
+
 FIGURES = {
     "kappa_xi.png": (kappa_figure, ("kappa",), None),
     "delta_compare.png": (delta_figure, ("bound",), None),
@@ -645,6 +667,7 @@ FIGURES = {
     "m_relation_outputs.png": (m_relation_outputs_figure, ("simulate",), "m_relation/t"),
     "falsify.png": (falsify_figure, ("falsify",), None),
     "task.png": (task_figure, ("simulate",), "task/xi"),
+    "falsify_task.png": (falsify_task_figure, ("falsify",), "task/worst/xi"),
 }
 
 #: Metadata that would change every run (creation date): left out, so the same design gives the same file.
@@ -719,7 +742,7 @@ def write_all(spec: Spec, arts: dict[str, Artefact], folder: str | Path, fmt: st
     written = []
     with plt.rc_context(STYLE):
         for name, (draw, needs, key) in FIGURES.items():
-            if not all(n in arts for n in needs) or (key is not None and key not in arts["simulate"].values):
+            if not all(n in arts for n in needs) or (key is not None and key not in arts[needs[0]].values):
                 continue
             written.append(save(draw(spec, arts), folder / f"{Path(name).stem}.{fmt}", fmt))
     return written

@@ -62,6 +62,8 @@ CAPTIONS = {
     "falsify.png": "Falsification: largest |ψ − y| / guaranteed bound of each run by search strategy, log scale; "
                    "runs started on the manifold (W0 = 0) filled, the worst of them starred; off it hollow (the W0 term is "
                    "tight at t = 0 by construction), the worst overall crossed. Every point must stay at or below 1.",
+    "falsify_task.png": "Falsification of the task: the plant run of smallest robustness (its start in the certified start "
+                        "region), drawn as the task figure.",
     "task.png": "The task: y of the plant and ψ under the synthesised plan; the always box, each reach set held from its reach "
                 "time (deflated by ε dashed, the deepest hold hatched), the deadlines, the avoid sets; below, ξ and the switches.",
 }

@@ -391,7 +391,8 @@ def summarise(art: Artefact) -> dict:
         out.update({"task_disturbed_min_robustness": float(v["task_disturbed/min_robustness"]), "task_disturbed_runs": int(v["task_disturbed/runs"])})
     if "task/min_robustness" in v:    # the task attack (products/task_attack.py)
         out.update({"task_min_robustness": float(v["task/min_robustness"]), "task_runs": int(v["task/runs"]),
-                    "task_start_region_W0": float(v["task/start_region_W0"]), "task_worst_W0": float(v["task/worst_W0"])})
+                    "task_start_region_W0": float(v["task/start_region_W0"]), "task_worst_W0": float(v["task/worst_W0"]),
+                    "task_searched": int(v.get("task/searched", 0))})
     out["counterexamples"] = [str(c) for c in np.atleast_1d(v.get("counterexamples", ["none"])) if str(c) != "none"]
     if "max_ratio_w0_zero" in v:
         out.update({
