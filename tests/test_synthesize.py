@@ -237,11 +237,25 @@ def simulated(synthesized):
     return out, read_artefact(out / "simulate.h5")
 
 
-def test_rtamt_on_simulates_stored_task_run_is_its_robustness(simulated):
+BOOST_TASK_SPEC = Path(__file__).resolve().parent / "specs" / "boost_task.yaml"
+
+
+@pytest.fixture(scope="module")
+def boost_simulated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("boost_task")
+    ashc("simulate", str(BOOST_TASK_SPEC), "--out", str(out), check=True)
+    return out, read_artefact(out / "simulate.h5")
+
+
+@pytest.mark.parametrize("which", ["cuk", "boost"])
+def test_rtamt_on_simulates_stored_task_run_is_its_robustness(which, request):
     # the task group of simulate.h5 (t, y, psi, xi, v) lets anyone monitor the run again: rtamt's discrete-time
-    # monitor over every stored sample (time in units of the sampling step) gives simulate.task.robustness
-    out, art = simulated
-    v, task = art.values, load_spec(TASK_SPEC).task
+    # monitor over every stored sample (time in units of the sampling step) gives simulate.task.robustness, on the
+    # Cuk task and on the boost converter's
+    spec_path = TASK_SPEC if which == "cuk" else BOOST_TASK_SPEC
+    out, art = request.getfixturevalue("simulated" if which == "cuk" else "boost_simulated")
+    assert bool(art.values["task/satisfied"]) and art.checks["task_met_on_the_plant"].passed
+    v, task = art.values, load_spec(spec_path).task
     t, y = np.asarray(v["task/t"]), np.atleast_2d(np.asarray(v["task/y"]))
     assert {"task/psi", "task/xi", "task/v"} <= set(v) and np.asarray(v["task/xi"]).shape[1] == t.size
     dt = float(t[-1] - t[0]) / (t.size - 1)          # a uniform grid (checked below)
@@ -252,7 +266,7 @@ def test_rtamt_on_simulates_stored_task_run_is_its_robustness(simulated):
     scaled = Task(horizon=task.horizon / dt, always=task.always,
                   reach=[{"set": r.set, "by": r.by / dt, "hold": r.hold / dt} for r in task.reach],
                   avoid=[{"set": a.set, "during": [a.during[0] / dt, a.during[1] / dt]} for a in task.avoid])
-    span = float(np.ptp(np.asarray(load_spec(TASK_SPEC).concrete.output_set, dtype=float), axis=1).max())      # the output range
+    span = float(np.ptp(np.asarray(load_spec(spec_path).concrete.output_set, dtype=float), axis=1).max())      # the output range
     assert _rtamt(scaled, np.round(steps), y) == pytest.approx(float(v["task/robustness"]), abs=1e-9 * span)
 
 
