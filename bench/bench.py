@@ -130,9 +130,33 @@ def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
         timed(f"ladder n = {4 * N} `design`", ASHC + ["design", str(path), "--out", str(tmp / f"big{N}")], "bound",
               "<= 30 s" if N == 64 else "<= 90 s, <= 2 GiB")
         out[-1]["stage"] = out[-1]["wall"]    # the whole design is the work here
+    task, tdir = "tests/specs/cuk_task.yaml", tmp / "cuk_task"
+    design = timed("Cuk task `design` (tests/specs/cuk_task.yaml)", ASHC + ["design", task, "--out", str(tdir)], "bound", "")
+    design["stage"] = design["wall"]
+    row = timed("Cuk task `synthesize` (design up to date)", ASHC + ["synthesize", task, "--out", str(tdir)], "synthesize",
+                "<= 3 x the design (issue 41)")
+    row["note"] = f"{row['wall'] / design['wall']:.1f} x the design's wall time; " + task_split(tdir, task, timeout, env)
     path = ladder_spec(tmp, 16, maximise=True)
     timed("`stabilise` with decay_rate: maximise, 64 states", ASHC + ["stabilise", str(path), "--out", str(tmp / "max16")], "stabilise", "<= 60 s")
     return out
+
+
+#: Where synthesize's time goes: the plan (the EPS search, one abstraction run per tolerance) and the plant's run.
+TASK_SPLIT = ("import sys, time; from ashc_cli.problem.spec import load_spec; from ashc_cli.design.pipeline import DESIGN, run, design_model; "
+              "from ashc_cli.design import task_plan; from ashc_cli.closedloop.terms import DesignTerms; "
+              "spec = load_spec(sys.argv[2]); arts = run(spec, sys.argv[1], DESIGN); model = design_model(spec, arts); "
+              "plant = DesignTerms(model, arts); t0 = time.perf_counter(); plan = task_plan.plan_task(model, arts, plant=plant); "
+              "t1 = time.perf_counter(); task_plan.task_run(model, plant, arts, plan); t2 = time.perf_counter(); "
+              "print(f'plan {t1 - t0:.1f} s ({len(plan.tried)} tolerances on the abstraction), plant run {t2 - t1:.1f} s')")
+
+
+def task_split(folder: Path, spec: str, timeout: float, env: dict) -> str:
+    """The plan's and the plant run's share of synthesize (:data:`TASK_SPLIT` in a fresh process)."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", TASK_SPLIT, str(folder), spec], capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=env)
+    except subprocess.TimeoutExpired:
+        return "split timed out"
+    return proc.stdout.strip().splitlines()[-1] if proc.returncode == 0 and proc.stdout.strip() else "split failed"
 
 
 def example_spec(folder: Path, kind: str, stages: int, edit=None) -> Path:
