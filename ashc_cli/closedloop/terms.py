@@ -84,6 +84,7 @@ class DesignTerms:
             # a plant written as f(x, u): f_bar is f(x, u), g = 0 and b is b(x, u) (at_x takes the input)
             "x": ([T[k] for k in ("f_bar", "g", "h", "b", "c", "m")], list(model.x) + list(model.u)),
             "h_m": ([T["h"], T["m"]], model.x),
+            "abstraction": ([T[k] for k in ("phi", "delta", "kappa")], model.xi),
         }
         self._values = model.values
         self._compiled = {}
@@ -102,6 +103,11 @@ class DesignTerms:
     def at_xi(self, xi: np.ndarray) -> list[np.ndarray]:
         """[phi_bar (n_hat,1), delta (n_hat,m_hat), l (m,1), dp/dxi delta (n,m_hat), kappa (p,1), p (n,1)] at xi."""
         return self._fused("xi")(xi)
+
+    def abstraction(self, xi: np.ndarray) -> list[np.ndarray]:
+        """[phi_bar (n_hat,1), delta (n_hat,m_hat), kappa (p,1)] at xi: the abstraction alone (a plan on it reads
+        nothing else; half the work of :meth:`at_xi` on the Cuk converter)."""
+        return self._fused("abstraction")(xi)
 
     def at_x(self, x: np.ndarray, u: np.ndarray | None = None) -> list[np.ndarray]:
         """[f_bar (n,1), g (n,m), h (p,1), b (m_hat,1), c (m_hat,m), m (n_hat,1)] at x (for a plant written as f(x, u):

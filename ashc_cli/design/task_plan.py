@@ -189,7 +189,7 @@ def _integrate(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.n
     k, entered = 0, None
 
     def field(z, ref, terms=None):
-        phi, delta, *_ = plant.at_xi(z) if terms is None else terms
+        phi, delta, _ = plant.abstraction(z) if terms is None else terms
         want = gain * (ref - z) - phi[:, 0]
         # delta has full column rank (the delta stage's check): least squares is its left inverse, as pinv, faster
         v = want / delta[0, 0] if delta.shape == (1, 1) else np.linalg.lstsq(delta, want, rcond=None)[0]
@@ -199,8 +199,8 @@ def _integrate(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.n
     z = xi0.copy()
     for i in range(t.size):
         xi[:, i] = z
-        here = plant.at_xi(z)            # phi_bar, delta and kappa at the sample, once
-        psi[:, i] = here[4][:, 0]
+        here = plant.abstraction(z)      # phi_bar, delta and kappa at the sample, once
+        psi[:, i] = here[2][:, 0]
         ref = refs[min(k, len(refs) - 1)]
         if k < len(refs) - 1:       # switch once the current set has been held (its deflated box)
             box = np.asarray(task.reach[k].set, dtype=float)
