@@ -58,9 +58,10 @@ class Grid:
         cells: the range is never too small)."""
         g0, eta = np.asarray(self.lo, dtype=float), self.eta
         top = np.asarray(self.cells) - 1
-        inside = np.all((lo >= g0) & (hi <= np.asarray(self.hi, dtype=float)), axis=-1)
-        ilo = np.clip(np.floor((lo - g0) / eta).astype(np.int64), 0, top)
-        ihi = np.clip(np.floor((hi - g0) / eta).astype(np.int64), 0, top)
+        inside = np.all((lo >= g0) & (hi <= np.asarray(self.hi, dtype=float)), axis=-1)       # False for NaN too
+        with np.errstate(invalid="ignore"):
+            ilo = np.floor(np.clip(np.nan_to_num((lo - g0) / eta, nan=0.0), 0, top)).astype(np.int64)
+            ihi = np.floor(np.clip(np.nan_to_num((hi - g0) / eta, nan=0.0), 0, top)).astype(np.int64)
         return ilo, ihi, inside
 
     def inner(self, lo, hi) -> np.ndarray:

@@ -34,17 +34,18 @@ FLOAT_PAD = 1e-12
 
 @dataclass(frozen=True)
 class GrowthBounds:
-    """Bounds of f over the states D and the inputs, per input of the grid or shared.
+    """Bounds of f over the states D and the inputs, per input of the grid or shared; shared by every box, or one
+    per box (a leading axis of N: local bounds, each on its own D).
 
     Attributes
     ----------
-    Mf : ndarray (d,)
+    Mf : ndarray (d,) or (N, d)
         sup |f_i|.
-    Jabs : ndarray (d, d)
+    Jabs : ndarray (d, d) or (N, d, d)
         sup |df_i / dx_j|.
-    L : ndarray (d, d)
+    L : ndarray (d, d) or (N, d, d)
         The growth matrix: sup df_i/dx_i on the diagonal, Jabs off it.
-    D_lo, D_hi : ndarray (d,)
+    D_lo, D_hi : ndarray (d,) or (N, d)
         The states the bounds hold on (the flow must stay there).
     """
 
@@ -76,17 +77,20 @@ def successor_boxes(f: Callable[[np.ndarray], np.ndarray], centre: np.ndarray, r
         Whether every substep's tube lies in D (else the bound does not hold: the input is not admissible).
     """
     h = tau / substeps
-    grow = sla.expm(bounds.L * h)
-    grow = np.maximum(grow, 0.0) * (1 + 1e-12) + 1e-300          # expm of a Metzler matrix is nonnegative; round up
-    second = bounds.Jabs @ bounds.Jabs @ bounds.Mf * h ** 3 / 6 + FLOAT_PAD * np.max(bounds.Mf) * h
     c = np.array(centre, dtype=float)
+    N, d = c.shape
+    Mf = np.broadcast_to(np.asarray(bounds.Mf, dtype=float), (N, d))
+    Jabs = np.broadcast_to(np.asarray(bounds.Jabs, dtype=float), (N, d, d))
+    grow = sla.expm(np.broadcast_to(np.asarray(bounds.L, dtype=float), (N, d, d)) * h)
+    grow = np.maximum(grow, 0.0) * (1 + 1e-12) + 1e-300          # expm of a Metzler matrix is nonnegative; round up
+    second = np.einsum("nij,njk,nk->ni", Jabs, Jabs, Mf) * h ** 3 / 6 + FLOAT_PAD * Mf.max(axis=1, keepdims=True) * h
     r = np.broadcast_to(np.asarray(radius, dtype=float), c.shape).copy()
-    stays = np.ones(c.shape[0], dtype=bool)
+    stays = np.ones(N, dtype=bool)
     for _ in range(substeps):
-        tube = r + h * bounds.Mf
+        tube = r + h * Mf
         stays &= np.all((c - tube >= bounds.D_lo) & (c + tube <= bounds.D_hi), axis=1)
         fc = f(c)
-        r = r @ grow.T + np.abs(fc) @ bounds.Jabs.T * (h * h / 2) + second
+        r = np.einsum("nij,nj->ni", grow, r) + np.einsum("nij,nj->ni", Jabs, np.abs(fc)) * (h * h / 2) + second
         c = c + h * fc
     return c, r, stays
 
@@ -101,7 +105,7 @@ def growth_transitions(grid: Grid, fields: list[Callable[[np.ndarray], np.ndarra
     fields : list of callable
         Per input, f(., u) on (N, d) states.
     bounds : list of GrowthBounds
-        Per input (or one shared, repeated).
+        Per input (or one shared, repeated); shared by every cell or one per cell (a leading axis of grid.size).
     tau : float
         The sampling period.
     substeps : int
@@ -118,6 +122,7 @@ def growth_transitions(grid: Grid, fields: list[Callable[[np.ndarray], np.ndarra
     inside = np.empty((N, U), dtype=bool)
     for u, (f, b) in enumerate(zip(fields, bounds)):
         c, r, stays = successor_boxes(f, centres, half, b, tau, substeps)
+        stays &= np.all(np.isfinite(c) & np.isfinite(r), axis=1)
         lo[:, u], hi[:, u], fits = grid.index_range(c - r, c + r)
         inside[:, u] = stays & fits
     return Transitions(lo, hi, inside)
