@@ -136,8 +136,38 @@ def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
     row = timed("Cuk task `synthesize` (design up to date)", ASHC + ["synthesize", task, "--out", str(tdir)], "synthesize",
                 "<= 3 x the design (issue 41)")
     row["note"] = f"{row['wall'] / design['wall']:.1f} x the design's wall time; " + task_split(tdir, task, timeout, env)
+    out += grid_games(timeout)
     path = ladder_spec(tmp, 16, maximise=True)
     timed("`stabilise` with decay_rate: maximise, 64 states", ASHC + ["stabilise", str(path), "--out", str(tmp / "max16")], "stabilise", "<= 60 s")
+    return out
+
+
+#: The planner's fixed points (issue 42) on grids of the sizes the issue names: transitions of a moving cell box
+#: (each successor 3 cells wide per axis), ``safety`` over the steps (2-D) or ``pre`` repeated (3-D).
+GRID_GAMES = ("import sys, time; import numpy as np; from ashc_cli.numerics.grid_games import Grid, Transitions, pre, safety; "
+              "cells = tuple(int(c) for c in sys.argv[1].split('x')); reach = int(sys.argv[2]); steps = int(sys.argv[3]); d = len(cells); "
+              "grid = Grid(np.zeros(d), np.ones(d), cells); moves = np.array(np.meshgrid(*[np.arange(-reach, reach + 1)] * d, indexing='ij')).reshape(d, -1).T; "
+              "t0 = time.perf_counter(); idx = np.stack(np.unravel_index(np.arange(grid.size), cells), axis=1).astype(np.int32); "
+              "to = idx[:, None, :] + moves[None].astype(np.int32); top = np.array(cells, dtype=np.int32) - 1; "
+              "inside = np.all((to >= 0) & (to <= top), axis=2); to = np.clip(to, 0, top).astype(np.int32); "
+              "tr = Transitions(np.maximum(to - 1, 0).astype(np.int32), np.minimum(to + 1, top).astype(np.int32), inside); del idx, to; "
+              "safe = np.random.default_rng(0).random(grid.size) >= 0.05; pre(grid, safe, tr); t1 = time.perf_counter(); "
+              "win = safety(grid, np.broadcast_to(safe, (steps + 1, grid.size)), tr, steps); t2 = time.perf_counter(); "
+              "print(f'__GRID__ {t1 - t0:.2f} {t2 - t1:.2f} {grid.size * len(moves)} {int(win[0].sum())}')")
+
+
+def grid_games(timeout: float) -> list[dict]:
+    """The rows of the planner's fixed points: build and fixed point times, peak memory (:data:`GRID_GAMES`)."""
+    out = []
+    for label, cells, reach, steps in (("2-D, 200 x 200 cells, 25 inputs, 500 steps", "200x200", 2, 500),
+                                        ("3-D, 10^6 cells, 27 inputs, 20 steps", "100x100x100", 1, 20)):
+        wall, mem, text, rc = run_child([sys.executable, "-c", GRID_GAMES, cells, str(reach), str(steps)], timeout)
+        line = [t for t in text.splitlines() if t.startswith("__GRID__")]
+        build, fixed, count, kept = (float(x) for x in line[-1].split()[1:]) if line else (float("nan"),) * 4
+        out.append({"work": f"grid games {label}", "stage": fixed, "wall": wall, "mem": mem, "rc": rc,
+                    "target": "Dionysos: 11.8 million transitions built in about 4 s (3-state vehicle)",
+                    "note": f"{count:.3g} transitions built in {build:.2f} s; safety kernel {kept:.0f} cells"})
+        print(f"  measured {out[-1]['work']}: {fixed:.2f} s ({wall:.1f} s wall)", file=sys.stderr, flush=True)
     return out
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from itertools import product
 
 import numpy as np
+from numba import njit
 
 __all__ = ["Grid", "Transitions", "contained", "pre", "safety", "Phase", "Winning", "chain"]
 
@@ -130,8 +131,38 @@ def contained(grid: Grid, mask: np.ndarray, trans: Transitions) -> np.ndarray:
     return trans.inside & (count == size)
 
 
+@njit(cache=True, nogil=True)
+def _pre_kernel(S, strides, lo, hi, inside, choice):
+    """choice[c] = the first input u whose box lo[c, u] .. hi[c, u] the summed-area table S (flat, strides per
+    padded axis) counts full, -1 if none: the 2^d corners of each box, the inputs of a cell tried until one fits."""
+    N, U, d = lo.shape
+    for c in range(N):
+        choice[c] = -1
+        for u in range(U):
+            if not inside[c, u]:
+                continue
+            count = 0
+            size = 1
+            for i in range(d):
+                size *= hi[c, u, i] - lo[c, u, i] + 1
+            for corner in range(1 << d):
+                idx = 0
+                ones = 0
+                for i in range(d):
+                    if (corner >> i) & 1:
+                        idx += (hi[c, u, i] + 1) * strides[i]
+                        ones += 1
+                    else:
+                        idx += lo[c, u, i] * strides[i]
+                count += S[idx] if (d - ones) % 2 == 0 else -S[idx]
+            if count == size:
+                choice[c] = u
+                break
+
+
 def pre(grid: Grid, mask: np.ndarray, trans: Transitions) -> tuple[np.ndarray, np.ndarray]:
-    """The controllable predecessor of a cell set: cells with an input whose successors all lie in it.
+    """The controllable predecessor of a cell set: cells with an input whose successors all lie in it (compiled:
+    each cell's inputs are tried in order until one fits).
 
     Parameters
     ----------
@@ -145,8 +176,11 @@ def pre(grid: Grid, mask: np.ndarray, trans: Transitions) -> tuple[np.ndarray, n
     choice : int ndarray (size,)
         The first such input of each cell (-1 where none).
     """
-    ok = contained(grid, mask, trans)
-    return ok.any(axis=1), np.where(ok.any(axis=1), np.argmax(ok, axis=1), -1)
+    S = _summed(grid, mask)
+    strides = np.array(S.strides, dtype=np.int64) // S.itemsize
+    choice = np.empty(grid.size, dtype=np.int64)
+    _pre_kernel(S.reshape(-1), strides, trans.lo, trans.hi, trans.inside, choice)
+    return choice >= 0, choice
 
 
 def safety(grid: Grid, safe: np.ndarray, trans: Transitions, steps: int) -> np.ndarray:

@@ -117,8 +117,8 @@ def growth_transitions(grid: Grid, fields: list[Callable[[np.ndarray], np.ndarra
     centres = grid.centres()
     half = grid.eta / 2
     N, U, d = grid.size, len(fields), len(grid.cells)
-    lo = np.empty((N, U, d), dtype=np.int64)
-    hi = np.empty((N, U, d), dtype=np.int64)
+    lo = np.empty((N, U, d), dtype=np.int32)          # int32: the transitions are the memory of the games
+    hi = np.empty((N, U, d), dtype=np.int32)
     inside = np.empty((N, U), dtype=bool)
     for u, (f, b) in enumerate(zip(fields, bounds)):
         c, r, stays = successor_boxes(f, centres, half, b, tau, substeps)
