@@ -630,10 +630,7 @@ def task_figure(spec: Spec, arts: dict[str, Artefact]):
     -------
     matplotlib Figure
     """
-    v = arts["simulate"].values
-    run = TaskRun(v["task/t"], v["task/y"], v["task/t"], v["task/psi"], v["task/xi"], v["task/switch_times"], v["task/tolerance"],
-                  v["task/reach_times"], v["task/best_hold_starts"])
-    return draw_task(spec.task, run, unit=spec.units.get("y1") or spec.units.get("y"))
+    return _stored_task_run(spec, arts["simulate"].values, "task/")
 
 
 def falsify_task_figure(spec: Spec, arts: dict[str, Artefact]):
@@ -652,10 +649,15 @@ def falsify_task_figure(spec: Spec, arts: dict[str, Artefact]):
     -------
     matplotlib Figure
     """
-    v = arts["falsify"].values
-    run = TaskRun(v["task/worst/t"], v["task/worst/y"], v["task/worst/t"], v["task/worst/psi"], v["task/worst/xi"], v["task/switch_times"],
-                  v["task/tolerance"], v["task/worst/reach_times"], v["task/worst/best_hold_starts"])
-    return draw_task(spec.task, run, unit=spec.units.get("y1") or spec.units.get("y"))
+    return _stored_task_run(spec, arts["falsify"].values, "task/worst/")
+
+
+def _stored_task_run(spec: Spec, v, run: str):
+    """:func:`draw_task` of a stored run (``<run>t``, ``y``, ``psi``, ``xi``, ``reach_times``, ``best_hold_starts``) with
+    the plan's ``task/switch_times`` and ``task/tolerance``."""
+    stored = TaskRun(v[f"{run}t"], v[f"{run}y"], v[f"{run}t"], v[f"{run}psi"], v[f"{run}xi"], v["task/switch_times"], v["task/tolerance"],
+                     v[f"{run}reach_times"], v[f"{run}best_hold_starts"])
+    return draw_task(spec.task, stored, unit=spec.units.get("y1") or spec.units.get("y"))
 
 
 FIGURES = {
