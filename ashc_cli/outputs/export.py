@@ -352,9 +352,12 @@ def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], p
     """
     names = list(spec.abstract.states)
     extra = sorted(set(point) - {"t", *names})
-    if "t" not in point or extra or (set(names) & set(point) and not set(names) <= set(point)):
-        raise SpecError("--at", ", ".join(f"{k}={point[k]:g}" for k in point) or "nothing",
-                        f"t=T (the plan's reference), or t and every abstract state ({', '.join(names)}) for its v")
+    given = ", ".join(f"{k}={point[k]:g}" for k in point) or "nothing"
+    want = f"t=T (the plan's reference), or t and every abstract state ({', '.join(names)}) for its v"
+    if "t" not in point:
+        raise SpecError("--at", f"no t given (got {given})", want)
+    if extra or (set(names) & set(point) and not set(names) <= set(point)):
+        raise SpecError("--at", f"{given}: " + (f"unknown {', '.join(extra)}" if extra else "some abstract states but not all"), want)
     ref = plan.reference(point["t"])
     if not set(names) <= set(point):
         return "xi_ref", [float(r) for r in ref]

@@ -557,10 +557,11 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
 TaskRun = namedtuple("TaskRun", "t y t_plan psi xi switches eps reach_times best_starts")
 
 
-def draw_task(task, run: TaskRun, unit: str | None = None):
+def draw_task(task, run: TaskRun, unit: str | None = None, note: str | None = None):
     """The task on the output: y of the plant's run and psi, the always box, each reach set over its hold from its
     reach time (the number ``simulate`` and ``synthesize`` print; the deepest hold, hatched, where it is met later or
-    never), the sets deflated by EPS (what psi was held to), each deadline, each avoid set over its window; below,
+    never), each set deflated by EPS (what psi was held to) over its deepest hold, each deadline, each avoid set over
+    its window; below,
     xi with the switching times.  One IEEE column wide.
 
     Parameters
@@ -570,6 +571,8 @@ def draw_task(task, run: TaskRun, unit: str | None = None):
     run : TaskRun
     unit : str, optional
         The output's unit, on the y axis.
+    note : str, optional
+        A line above the lower panel (which run this is).
 
     Returns
     -------
@@ -595,7 +598,7 @@ def draw_task(task, run: TaskRun, unit: str | None = None):
         if np.isfinite(met) and abs(best - met) > r.hold:
             ax.add_patch(Rectangle((best, lo), max(r.hold, width), hi - lo, fill=False, hatch="////", edgecolor="#2ca02c",
                                    linewidth=0, alpha=0.5, label="deepest hold" if k == 0 else None))
-        ax.add_patch(Rectangle((start, lo + eps), max(r.hold, width), hi - lo - 2 * eps, fill=False, edgecolor="#2ca02c",
+        ax.add_patch(Rectangle((best, lo + eps), max(r.hold, width), hi - lo - 2 * eps, fill=False, edgecolor="#2ca02c",
                                linestyle="--", linewidth=0.8, label=r"deflated by $\varepsilon$" if k == 0 else None))
         ax.plot([r.by, r.by], [lo, hi], color="#2ca02c", linewidth=1.2, label="deadline" if k == 0 else None)
     for k, a in enumerate(task.avoid):
@@ -611,6 +614,8 @@ def draw_task(task, run: TaskRun, unit: str | None = None):
         ax_xi.axvline(float(sw), color="0.5", linestyle=":", linewidth=0.8)
     ax_xi.set_ylabel(r"$\xi$")
     ax_xi.set_xlabel("$t$ (s)")
+    if note:
+        ax_xi.set_title(note, fontsize="small", loc="left", color="0.25")
     return fig
 
 
@@ -649,15 +654,17 @@ def falsify_task_figure(spec: Spec, arts: dict[str, Artefact]):
     -------
     matplotlib Figure
     """
-    return _stored_task_run(spec, arts["falsify"].values, "task/worst/")
+    v = arts["falsify"].values
+    return _stored_task_run(spec, v, "task/worst/", note=f"falsify's worst run: robustness {float(v['task/min_robustness']):.4g}, "
+                                                        f"W0 = {float(v['task/worst_W0']):.3g}")
 
 
-def _stored_task_run(spec: Spec, v, run: str):
+def _stored_task_run(spec: Spec, v, run: str, note: str | None = None):
     """:func:`draw_task` of a stored run (``<run>t``, ``y``, ``psi``, ``xi``, ``reach_times``, ``best_hold_starts``) with
     the plan's ``task/switch_times`` and ``task/tolerance``."""
     stored = TaskRun(v[f"{run}t"], v[f"{run}y"], v[f"{run}t"], v[f"{run}psi"], v[f"{run}xi"], v["task/switch_times"], v["task/tolerance"],
                      v[f"{run}reach_times"], v[f"{run}best_hold_starts"])
-    return draw_task(spec.task, stored, unit=spec.units.get("y1") or spec.units.get("y"))
+    return draw_task(spec.task, stored, unit=spec.units.get("y1") or spec.units.get("y"), note=note)
 
 
 FIGURES = {

@@ -65,7 +65,8 @@ CAPTIONS = {
     "falsify_task.png": "Falsification of the task: the plant run of smallest robustness (its start in the certified start "
                         "region), drawn as the task figure.",
     "task.png": "The task: y of the plant and ψ under the synthesised plan; the always box, each reach set held from its reach "
-                "time (deflated by ε dashed, the deepest hold hatched), the deadlines, the avoid sets; below, ξ and the switches.",
+                "time, its deepest hold hatched with the set deflated by ε (dashed) there, the deadlines, the avoid sets; below, ξ "
+                "and the switches.",
 }
 
 #: CSS pixels per PNG pixel of a figure: a one-column figure (3.5 in at 200 dpi) is shown 420 px wide.
