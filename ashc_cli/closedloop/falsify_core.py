@@ -424,6 +424,25 @@ def _stage(t, y, K, row, ctx):
     _derivative(t, y, K, row, T, D, W, law)
 
 
+@njit(inline="always", **OPTIONS)
+def _held_v(T, D, W, Z, S, r, k, active, last_switch, prev, v_plan):
+    """v_plan: the input run r holds over hold k (TABLE or GREEDY), the greedy adversary's choice and the guard
+    applied; returns the adversary's last switch (prev: its choice, kept for dwell holds after a switch)."""
+    v_limit, dt, lookahead = D.fprm[1], D.fprm[0], D.fprm[9]
+    greedy, guarded = S.mode[r] == GREEDY, S.guard[r] != 0
+    v_plan[:] = S.vtab[r, k]
+    if greedy and not (active and k - last_switch >= S.dwell[r]):
+        v_plan[:] = prev                          # the adversary keeps its choice for dwell holds after a switch
+    elif greedy:
+        last_switch = _greedy(T, D, W, Z, v_limit * S.amp[r], S.rho[r], guarded, k, last_switch, prev, v_plan)
+    if guarded and active:                        # out of V: the input reversed, else turned to V's centre
+        _guard(T, D, W, Z, lookahead * dt, v_limit * S.amp[r], v_plan)
+    _nan_to_num(v_plan)
+    if greedy:
+        prev[:] = v_plan
+    return last_switch
+
+
 @njit(**OPTIONS)
 def run_one(exi, ex, objective, kernel, r, D, S, O):
     """Run r, hold by hold, with its own step-size control: the error / bound ratio at each hold boundary, xi in V.
@@ -433,7 +452,7 @@ def run_one(exi, ex, objective, kernel, r, D, S, O):
     r : int, the run: its row of the per-run arrays and of the outputs; the other arguments as :func:`run_batch`."""
     dims, fprm = D.dims, D.fprm
     nh, n, m, mh, H, SEG, record, keep_v = dims[0], dims[1], dims[2], dims[3], dims[5], dims[6], dims[7], dims[8]
-    dt, v_limit, lam, eps, alpha_h, G, floor, diverge, lookahead = fprm[0], fprm[1], fprm[2], fprm[3], fprm[4], fprm[5], fprm[6], fprm[8], fprm[9]
+    dt, v_limit, lam, eps, alpha_h, G, floor, diverge = fprm[0], fprm[1], fprm[2], fprm[3], fprm[4], fprm[5], fprm[6], fprm[8]
     d = nh + n
     A, B, wk = np.empty(D.off[19]), np.empty(D.off[20]), np.empty(D.off[21])     # the kernels' buffers and the loop's work
     T = _views(D, A, B, wk, np.empty(m))
@@ -448,8 +467,6 @@ def run_one(exi, ex, objective, kernel, r, D, S, O):
         Z[nh + i] = S.x0[r, i]
     md = S.mode[r]
     held = md == TABLE or md == GREEDY
-    greedy = md == GREEDY
-    guarded = S.guard[r] != 0
     w0 = S.W0[r]
     gain = S.gains[r]
     active = True
@@ -484,16 +501,7 @@ def run_one(exi, ex, objective, kernel, r, D, S, O):
 
         v_now[:] = 0.0
         if k < H and held:
-            v_plan[:] = S.vtab[r, k]
-            if greedy and not (active and k - last_switch >= S.dwell[r]):
-                v_plan[:] = prev                          # the adversary keeps its choice for dwell holds after a switch
-            elif greedy:
-                last_switch = _greedy(T, D, W, Z, v_limit * S.amp[r], S.rho[r], guarded, k, last_switch, prev, v_plan)
-            if guarded and active:                        # out of V: the input reversed, else turned to V's centre
-                _guard(T, D, W, Z, lookahead * dt, v_limit * S.amp[r], v_plan)
-            _nan_to_num(v_plan)
-            if greedy:
-                prev[:] = v_plan
+            last_switch = _held_v(T, D, W, Z, S, r, k, active, last_switch, prev, v_plan)
             v_now[:] = v_plan
         elif md == SETPOINT:
             _setpoint_v(Zs, T, ref, gain, nz, v_limit, v_now)
