@@ -70,11 +70,6 @@ class Grid:
         c, half = self.centres(), self.eta / 2
         return np.all((c - half >= np.asarray(lo, dtype=float)) & (c + half <= np.asarray(hi, dtype=float)), axis=1)
 
-    def outer(self, lo, hi) -> np.ndarray:
-        """Cells meeting the closed box [lo, hi] (size,) bool: an outer approximation of a set to avoid."""
-        c, half = self.centres(), self.eta / 2
-        return np.all((c + half >= np.asarray(lo, dtype=float)) & (c - half <= np.asarray(hi, dtype=float)), axis=1)
-
 
 @dataclass(frozen=True)
 class Transitions:
