@@ -31,7 +31,8 @@ def _model(arts, by: float):
 @pytest.mark.parametrize("by, wins", [(8.0, True), (1.7, True), (1.1, False)])
 def test_the_deadline_is_won_when_the_abstractions_speed_allows(line, by, wins):
     model = _model(line, by)
-    grid, win = solve(model, line, GridProblem((300,), np.linspace(-0.5, 0.5, 5)[:, None], 0.1, 0.1))
+    game = solve(model, line, GridProblem((300,), np.linspace(-0.5, 0.5, 5)[:, None], 0.1, 0.1))
+    grid, win = game.grid, game.win
     c = grid.centres()[:, 0]
     assert win.start()[np.argmin(np.abs(c))] == wins
     # every winning cell is in the always set shrunk by EPS, and the deflated target's cells win

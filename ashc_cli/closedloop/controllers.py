@@ -27,7 +27,7 @@ import numpy as np
 import sympy as sp
 
 from ashc_cli.closedloop import compiled
-from ashc_cli.closedloop.laws import setpoint_law
+from ashc_cli.closedloop.laws import held_law, setpoint_law
 from ashc_cli.closedloop.plan import Law
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.expr import parse_expression
@@ -192,3 +192,5 @@ def _signal_law(model):
 register(Controller("setpoint", lambda model: setpoint_law, lambda law: np.array([law.gain, law.v_max], dtype=float),
                     "v = clip(delta^+ (gain (xi_ref - xi) - phi_bar(xi)), -v_max, v_max)", printed=setpoint_law))
 register(Controller("signal", _signal_law, lambda law: np.zeros(0), "v = v(t), the spec's abstract input (open loop)"))
+register(Controller("held", lambda model: held_law, lambda law: np.array([law.v_max], dtype=float),
+                    "v = the grid planner's input for the period, held (the segment's reference), |v_a| <= v_max", printed=held_law))

@@ -142,6 +142,31 @@ def setpoint_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
 
 
 @njit(LAW_SIGNATURE, **OPTIONS)
+def held_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
+    """The grid planner's table as the loop runs it (prm = [v_max]): v = the input the table chose at the period's
+    sample, held over the period, which the run carries as the segment's reference (its first m_hat entries), within
+    |v_a| <= v_max.
+
+    Parameters
+    ----------
+    t : float
+        Not read.
+    z : 1-D float array
+        Not read.
+    ref, phi : 1-D float arrays (n_hat,)
+        The held input (first m_hat entries) and phi_bar(xi) (not read).
+    delta : 2-D float array (n_hat, m_hat)
+        Not read.
+    prm : 1-D float array (1,)
+        v_max.
+    v : 1-D float array (m_hat,)
+        Filled.
+    """
+    for a in range(v.size):
+        v[a] = min(max(ref[a], -prm[0]), prm[0])
+
+
+@njit(LAW_SIGNATURE, **OPTIONS)
 def no_law(t: float, z: F1, ref: F1, phi: F1, delta: F2, prm: F1, v: F1):
     """The law of runs that close no loop with one (the m-relation's runs, falsify's batches without a registered
     controller): a law's arguments, never called there.

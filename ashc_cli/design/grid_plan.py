@@ -23,11 +23,12 @@ import sympy as sp
 from ashc_cli.closedloop.batch import BatchPlant
 from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.errors import DesignError
-from ashc_cli.numerics.grid_games import Grid, Phase, Winning, chain
+from ashc_cli.numerics.grid_games import Grid, Phase, Transitions, Winning, chain
 from ashc_cli.numerics.growth import GrowthBounds, growth_transitions
 from ashc_cli.numerics.interval import compile_interval, enclose
 
-__all__ = ["GridProblem", "abstraction_bounds", "kappa_boxes", "task_cells", "solve", "BLOCKS"]
+__all__ = ["GridProblem", "GridGame", "abstraction_bounds", "kappa_boxes", "task_cells", "safe_cells", "solve", "why_not",
+           "memory_bytes", "BLOCKS"]
 
 #: Pieces of V along each abstract state over which the bounds are enclosed (their hull is kept): an interval
 #: extension of a rational kappa or delta on the whole of V may hold a pole that no point of V has.
@@ -182,9 +183,9 @@ def kappa_boxes(model, arts: dict, grid: Grid, grow: np.ndarray) -> tuple[np.nda
     return np.where(bad, -np.inf, enc[:, :, 0]), np.where(bad, np.inf, enc[:, :, 1])
 
 
-def task_cells(model, arts: dict, grid: Grid, prob: GridProblem, bounds: GrowthBounds, steps: int) -> tuple[np.ndarray, list[Phase]]:
+def task_cells(model, arts: dict, grid: Grid, prob: GridProblem, bounds: GrowthBounds, steps: int) -> tuple[np.ndarray, list[Phase], tuple]:
     """The task on the cells: the safe cells at each step (always and avoid, over the tube of a period) and one
-    phase per reach (its cells at the samples).
+    phase per reach (its cells at the samples, and those whose tube over a period stays in it, for a hold).
 
     Parameters
     ----------
@@ -200,29 +201,99 @@ def task_cells(model, arts: dict, grid: Grid, prob: GridProblem, bounds: GrowthB
     -------
     safe : bool ndarray (steps + 1, size)
     phases : list of Phase
+    parts : (bool ndarray (size,), list of (bool ndarray (size,), int, int))
+        The always set's cells and, per avoid set, the cells whose tube may meet it with the steps its window covers
+        (:func:`safe_cells` composes them).
     """
     task, eps = model.spec.task, prob.eps
     at_lo, at_hi = kappa_boxes(model, arts, grid, np.zeros(len(grid.cells)))
     tube_lo, tube_hi = kappa_boxes(model, arts, grid, np.where(np.isfinite(bounds.Mf), prob.tau * bounds.Mf, 1e300))
-    safe = np.ones((steps + 1, grid.size), dtype=bool)
+    always = np.ones(grid.size, dtype=bool)
     if task.always is not None:
         box = np.asarray(task.always, dtype=float)
-        safe &= np.all((tube_lo >= box[:, 0] + eps) & (tube_hi <= box[:, 1] - eps), axis=1)[None, :]
+        always = np.all((tube_lo >= box[:, 0] + eps) & (tube_hi <= box[:, 1] - eps), axis=1)
+    avoids = []
     for avoid in task.avoid:
         box = np.asarray(avoid.set, dtype=float)
         meets = np.all((tube_hi >= box[:, 0] - eps) & (tube_lo <= box[:, 1] + eps), axis=1)
-        first, last = int(np.floor(avoid.during[0] / prob.tau)), int(np.ceil(avoid.during[1] / prob.tau))
-        safe[max(first - 1, 0):min(last, steps) + 1] &= ~meets[None, :]       # the periods that overlap the window
+        first, last = int(np.floor(avoid.during[0] / prob.tau)), int(np.ceil(avoid.during[1] / prob.tau * (1 - 1e-12)))
+        avoids.append((meets, max(first - 1, 0), min(last, steps)))       # the periods that overlap the window
     phases = []
     for r in task.reach:
         box = np.asarray(r.set, dtype=float)
         target = np.all((at_lo >= box[:, 0] + eps) & (at_hi <= box[:, 1] - eps), axis=1)
-        phases.append(Phase(target, int(np.floor(r.by / prob.tau)), int(np.ceil(r.hold / prob.tau))))
-    return safe, phases
+        tube = np.all((tube_lo >= box[:, 0] + eps) & (tube_hi <= box[:, 1] - eps), axis=1)
+        phases.append(Phase(target, int(np.floor(r.by / prob.tau * (1 + 1e-12))), int(np.ceil(r.hold / prob.tau * (1 - 1e-12))), tube))
+    return safe_cells(steps, always, avoids), phases, (always, avoids)
 
 
-def solve(model, arts: dict, prob: GridProblem) -> tuple[Grid, Winning]:
-    """The task's game on the abstraction's grid: the grid and its winning sets.
+def safe_cells(steps: int, always: np.ndarray, avoids: list) -> np.ndarray:
+    """The safe cells at each step: the always set's, less each avoid set's over the steps of its window.
+
+    Parameters
+    ----------
+    steps : int
+    always : bool ndarray (size,)
+    avoids : list of (bool ndarray (size,), int, int)
+        The cells that may meet the set, and the first and last step its window covers.
+
+    Returns
+    -------
+    bool ndarray (steps + 1, size)
+    """
+    safe = np.repeat(always[None, :], steps + 1, axis=0)
+    for meets, first, last in avoids:
+        safe[first:last + 1] &= ~meets[None, :]
+    return safe
+
+
+@dataclass(frozen=True)
+class GridGame:
+    """A task's game on the abstraction's grid, solved.
+
+    Attributes
+    ----------
+    grid : Grid
+    inputs : ndarray (U, m_hat)
+    trans : Transitions
+    safe : bool ndarray (steps + 1, size)
+    phases : list of Phase
+    win : Winning
+    steps : int
+    """
+
+    grid: Grid
+    inputs: np.ndarray
+    trans: Transitions
+    safe: np.ndarray
+    phases: list
+    win: Winning
+    steps: int
+    parts: tuple = ((), [])
+
+    def wins(self, xi: np.ndarray) -> bool:
+        """Whether the state xi's cell is winning from step 0."""
+        return bool(self.win.start()[self.grid.cell_of(xi)])
+
+
+def memory_bytes(cells: int, inputs: int, d: int, steps: int, phases: int) -> int:
+    """What a game holds at its peak: the transitions (two int32 index boxes and a flag per cell and input, and the
+    successor boxes' float work arrays of one input) and the winning sets (bool per cell and step: safe, done, and
+    two per phase).
+
+    Parameters
+    ----------
+    cells, inputs, d, steps, phases : int
+
+    Returns
+    -------
+    int
+    """
+    return cells * inputs * (8 * d + 1) + cells * 8 * d * 8 + (steps + 1) * cells * (2 + 2 * phases)
+
+
+def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf) -> GridGame:
+    """The task's game on the abstraction's grid.
 
     Parameters
     ----------
@@ -231,15 +302,28 @@ def solve(model, arts: dict, prob: GridProblem) -> tuple[Grid, Winning]:
     arts : dict of str to Artefact
         The design (stabilise .. bound).
     prob : GridProblem
+    memory_limit : float
+        Bytes: a game estimated (:func:`memory_bytes`) past it is refused before it is built.
 
     Returns
     -------
-    grid : Grid
-    winning : Winning
+    GridGame
+
+    Raises
+    ------
+    DesignError
+        Naming task.planner.cells when the game would not fit in ``memory_limit``.
     """
     V = np.asarray(model.V, dtype=float)
     grid = Grid(V[:, 0], V[:, 1], tuple(int(n) for n in prob.cells))
-    v_max = float(np.max(np.abs(prob.inputs))) if prob.inputs.size else 0.0
+    inputs = np.atleast_2d(np.asarray(prob.inputs, dtype=float))
+    steps = int(np.ceil(model.spec.task.horizon / prob.tau * (1 - 1e-12)))
+    need = memory_bytes(grid.size, len(inputs), len(grid.cells), steps, len(model.spec.task.reach))
+    if need > memory_limit:
+        raise DesignError("task.planner.cells", f"{list(grid.cells)} with {len(inputs)} inputs and {steps} periods needs about "
+                          f"{need / 2**30:.3g} GiB, past the {memory_limit / 2**30:.3g} GiB this machine has free",
+                          "fewer cells, fewer inputs or a longer task.planner.tau")
+    v_max = float(np.max(np.abs(inputs))) if inputs.size else 0.0
     bounds = abstraction_bounds(model, arts, grid, v_max, prob.tau)
     plant = BatchPlant(model, arts)
 
@@ -249,8 +333,41 @@ def solve(model, arts: dict, prob: GridProblem) -> tuple[Grid, Winning]:
             return a["phi"][:, :, 0] + a["delta"] @ v
         return f
 
-    inputs = np.atleast_2d(np.asarray(prob.inputs, dtype=float))
     trans = growth_transitions(grid, [field(v) for v in inputs], [bounds] * len(inputs), prob.tau, prob.substeps)
-    steps = int(np.ceil(model.spec.task.horizon / prob.tau))
-    safe, phases = task_cells(model, arts, grid, prob, bounds, steps)
-    return grid, chain(grid, safe, phases, trans, steps)
+    safe, phases, parts = task_cells(model, arts, grid, prob, bounds, steps)
+    return GridGame(grid, inputs, trans, safe, phases, chain(grid, safe, phases, trans, steps), steps, parts)
+
+
+def why_not(game: GridGame, xi0: np.ndarray, task) -> tuple[str, str]:
+    """(field, what) of a game the start does not win: the start's cell unsafe, a reach set with no cell, the avoid
+    set whose removal would let the start win, a deadline that only the horizon would meet, or the task as a whole.
+
+    Parameters
+    ----------
+    game : GridGame
+    xi0 : ndarray (n_hat,)
+    task : Task
+
+    Returns
+    -------
+    field, what : str
+    """
+    g = game.grid
+    c = g.cell_of(xi0)
+    if not game.safe[0, c]:
+        return "task", f"the start xi0 = {np.round(xi0, 6).tolist()} is already outside task.always or in an avoid set (deflated by EPS, over a period)"
+    for k, ph in enumerate(game.phases):
+        if not ph.target.any():
+            return f"task.reach[{k}].set", "has no cell of V whose psi lies in it deflated by EPS (psi = kappa(xi) bounded over each cell)"
+    steps, trans = game.steps, game.trans
+    always, avoids = game.parts
+    for j, _ in enumerate(task.avoid):
+        safe = safe_cells(steps, always, [a for i, a in enumerate(avoids) if i != j])
+        if chain(g, safe, game.phases, trans, steps).start()[c]:
+            return f"task.avoid[{j}]", "closes every route from the start: without it the start's cell wins"
+    for k in range(len(game.phases)):
+        late = [Phase(q.target, steps - q.hold if i >= k else q.by, q.hold, q.tube) for i, q in enumerate(game.phases)]
+        if chain(g, game.safe, late, trans, steps).start()[c]:
+            return f"task.reach[{k}].by", "is too early for the abstraction at this v_max: with every deadline from it on at the horizon the start wins"
+    won = int(game.win.start().sum())
+    return "task", f"the start's cell is not winning ({won} of {g.size} cells win)"

@@ -20,12 +20,16 @@ The certified start region: with v_max fixed, a start with W(xi0, x0) = W0' keep
 - G v_max - G_w ||w||_inf)^2, within the
 region where the bound is certified (``w0_max_certified``): :func:`start_region`.
 
-This is plan-and-verify on the abstraction, not the grid fixed point of reach-avoid games: it does not route psi
-around an avoid set (a plan that crosses one is refused, with the part named).
+The set-point plan is plan-and-verify on the abstraction: it does not route psi around an avoid set (a plan that
+crosses one is refused, with the part named).  The grid planner (``task.planner: {kind: grid}``, and ``auto`` when
+the set-point plan is refused for an avoid set, or the abstraction has more than one state) solves the task as a game on a grid of V
+(:mod:`ashc_cli.design.grid_plan`), proved: :func:`grid_plan_task`.
 """
 
 from __future__ import annotations
 
+import itertools
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -37,7 +41,9 @@ from ashc_cli.closedloop import runner
 from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
 from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.design import grid_plan
 from ashc_cli.design.artefacts import Artefact
+from ashc_cli.numerics.grid_games import route
 from ashc_cli.errors import DesignError, SpecError
 
 __all__ = ["TaskPlan", "plan_task", "start_region", "segments", "on_the_plant", "task_run", "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
@@ -51,6 +57,19 @@ DEFAULT_GAIN = 10.0
 #: The task's run on the plant is sampled every TASK_SAMPLE_DT, or every horizon / TASK_SAMPLES when that is longer.
 TASK_SAMPLE_DT = 10 * runner.SAMPLE_DT
 TASK_SAMPLES = 20_000
+#: Grid planner: cells per abstract state when ``task.planner.cells`` is not given (by n_hat).
+GRID_CELLS = {1: 400, 2: 80, 3: 24}
+#: Grid planner: when ``task.planner.tau`` is not given, the period in which |delta v| at v_max moves the abstraction
+#: GRID_MOVE cells (a successor box is re-gridded every period, costing up to a cell: the larger the move, the less of
+#: the abstraction's speed is lost), within horizon / GRID_PERIODS.
+GRID_MOVE = 6.0
+GRID_PERIODS = (20, 2000)
+#: Grid planner: tolerances tried, largest first (the first that wins is kept).
+GRID_EPS_CANDIDATES = 8
+#: Grid planner: the share of EPS its budget keeps for the start's distance from the manifold (the start region).
+GRID_START_SHARE = 0.1
+#: Grid planner: the share of the free memory a game may take.
+GRID_MEMORY_SHARE = 0.5
 
 
 @dataclass
@@ -102,9 +121,21 @@ class TaskPlan:
     in_V: bool
     deflated: bool = True
     tried: list = field(default_factory=list)
+    planner: str = "setpoint"
+    tau: float = 0.0
+    game: grid_plan.GridGame | None = None
+    route: object = None
+
+    @property
+    def proved(self) -> bool:
+        """Whether the margin is proved (the grid planner) rather than sampled in time (the set-point plan)."""
+        return self.planner == "grid"
 
     def law(self) -> guaranteed.Law:
-        """The set-point law the plan runs (budget mode: clipped at v_max)."""
+        """The law the plan runs: the set-point law (budget mode: clipped at v_max), or the grid table's input held
+        over each period (the segment's reference)."""
+        if self.planner == "grid":
+            return guaranteed.Law("held", 0.0, self.v_max)
         return guaranteed.Law("setpoint", self.gain, self.v_max)
 
 
@@ -264,24 +295,43 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
     task = model.spec.task
     if task is None:
         raise SpecError("task", "missing", "a task on the output (docs/spec-format.md, 'task') for `ashc synthesize`")
-    if not task.reach:
-        raise DesignError("task.reach", "empty: a plan aims at the reach sets", "at least one reach set")
     plant = DesignTerms(model, up) if plant is None else plant
     start = _start(model, plant, up)
-    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
     blocked = _blocking_avoid(model, plant, start[0], task)
-    if blocked is not None:
+    if blocked is not None:         # a fact of the curve psi = kappa(xi): no planner can help
         j, psi0 = blocked
         av = task.avoid[j]
         raise DesignError(f"task.avoid[{j}]", f"lies across every route of psi = kappa(xi) from the start (psi = {psi0:.4g}) to "
                           f"task.reach[0] and is forbidden during [{av.during[0]:g}, {av.during[1]:g}] s, all of [0, {task.reach[0].by:g}] s "
                           "in which reach[0] must be entered: no plan meets the task",
                           "an avoid window that leaves time to cross, an avoid set off the route, or a start on reach[0]'s side")
+    kind = task.planner.kind if task.planner is not None else "auto"
+    if kind == "grid" or (kind == "auto" and (model.n_hat > 1 or not task.reach)):
+        return grid_plan_task(model, plant, up, start)
+    if not task.reach:
+        raise DesignError("task.reach", "empty: a set-point plan aims at the reach sets", "at least one reach set, or task.planner: {kind: grid}")
+    if kind == "setpoint" or not deflate:
+        return _setpoint_plan(model, plant, up, start, deflate)
+    try:
+        return _setpoint_plan(model, plant, up, start, True)
+    except DesignError as exc:
+        if not exc.where.startswith("task.avoid"):       # a deadline or a set the grid cannot help with either
+            raise
+        try:
+            return grid_plan_task(model, plant, up, start)
+        except DesignError as grid_exc:
+            if grid_exc.where == "task":        # the grid names nothing: the set-point plan's part, with the grid's word
+                raise DesignError(exc.where, f"{exc.what} (and the grid planner: {grid_exc.what})", exc.expected) from grid_exc
+            raise DesignError(grid_exc.where, f"{grid_exc.what} (and the set-point plan: {exc.where}: {exc.what})", grid_exc.expected) from exc
+
+
+def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple, deflate: bool) -> TaskPlan:
+    """The set-point plan (the module's docstring): EPS searched, the largest certified margin kept."""
+    task = model.spec.task
+    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
     tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
     gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
-    half = min(float(np.min(np.diff(np.asarray(r.set, dtype=float), axis=1))) / 2 for r in task.reach)
-    if task.always is not None:
-        half = min(half, float(np.min(np.diff(np.asarray(task.always, dtype=float), axis=1))) / 2)
+    half = _half(task)
     tried = [_try(model, plant, up, start, refs, gain, e, deflate) for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES)]
     tried = [r for r in tried if r is not None]
     if not tried:
@@ -298,10 +348,142 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
                           f"{best.eps:.4g} (v_max = {best.v_max:.4g}), {where}", hint)
     if not deflate:
         # the planted controller keeps the synthesised one's tolerance and v_max: only its switches differ
-        kept = plan_task(model, up, deflate=True, plant=plant)
+        kept = _setpoint_plan(model, plant, up, start, True)
         best = _try(model, plant, up, start, refs, gain, kept.eps, deflate=False)
     best.tried = [(r.eps, r.certified) for r in tried]
     return best
+
+
+def _half(task) -> float:
+    """Half the narrowest set of the task (reach and always; the avoid sets when there are neither): no EPS as large
+    deflates them all non-empty."""
+    boxes = [r.set for r in task.reach] + ([task.always] if task.always is not None else []) or [a.set for a in task.avoid]
+    return min(float(np.min(np.diff(np.asarray(b, dtype=float), axis=1))) / 2 for b in boxes)
+
+
+def _free_memory() -> float:
+    """Bytes of memory free on this machine (inf where the system does not say)."""
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return float("inf")
+
+
+def grid_plan_task(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple) -> TaskPlan:
+    """The task solved as a game on a grid of V (:func:`ashc_cli.design.grid_plan.solve`), run from the start as a
+    feedback law (:func:`ashc_cli.numerics.grid_games.route`): the grid planner of ``ashc synthesize``.
+
+    EPS is tried from the largest (just under half the narrowest set) down, GRID_EPS_CANDIDATES of them; the first
+    whose game the start's cell wins is kept.  Each EPS's budget keeps GRID_START_SHARE of it for the start's distance
+    from the manifold (W0 <= alpha_h (share EPS)^2, the start region), the rest for v_max (eq. (38)).
+
+    Parameters
+    ----------
+    model : Model
+    plant : DesignTerms
+    up : dict of str to Artefact
+        The design (stabilise .. bound).
+    start : tuple
+        (xi0, x0, W0) of :func:`_start`.
+
+    Returns
+    -------
+    TaskPlan
+        ``planner`` "grid", the game and the route; ``certified`` 0 (proved: psi's tube over every period lies in
+        the sets deflated by EPS); ``rob`` and ``margin`` of the route's psi, sampled (a cross-check).
+
+    Raises
+    ------
+    DesignError
+        More than 3 abstract states; a game past the free memory; no EPS whose game the start wins (naming the
+        part of the task that fails at the smallest EPS: :func:`ashc_cli.design.grid_plan.why_not`).
+    """
+    task, nh, mh = model.spec.task, model.n_hat, model.m_hat
+    if nh > 3:
+        raise DesignError("task.planner", f"a grid of {nh} abstract states", "an abstraction with 1 to 3 states for the grid planner")
+    pl = task.planner
+    cells = tuple(pl.cells) if pl is not None and pl.cells is not None else (GRID_CELLS[nh],) * nh
+    given_tau = float(pl.tau) if pl is not None and pl.tau is not None else None
+    per_axis = pl.inputs if pl is not None else 5
+    xi0, _, W0 = start
+    alpha_h = float(up["bound"].values["alpha_h"])
+    half, limit, tried, games = _half(task), GRID_MEMORY_SHARE * _free_memory(), [], []
+    for e in np.geomspace(half * 0.9, half * 0.02, GRID_EPS_CANDIDATES):
+        try:
+            budget = guaranteed.guaranteed_plan(float(e), "budget", max(W0, alpha_h * (GRID_START_SHARE * e) ** 2), up)
+        except DesignError:
+            continue
+        v_max = budget.budget_v_max / np.sqrt(mh)
+        axis = np.linspace(-v_max, v_max, per_axis)
+        inputs = np.array(list(itertools.product(axis, repeat=mh)))
+        eps = float(budget.budget_tolerance)
+        tau = given_tau if given_tau is not None else _default_tau(model, plant, cells, float(v_max))
+        game = grid_plan.solve(model, up, grid_plan.GridProblem(cells, inputs, tau, eps), limit)
+        tried.append((eps, 0.0 if game.wins(xi0) else -np.inf))
+        if game.wins(xi0):
+            return _grid_route(model, plant, start, game, tau, eps, float(v_max), tried)
+        games.append((game, eps, v_max, tau))
+    if not games:
+        raise DesignError("task", f"no tolerance below {half:.4g} (half the narrowest set) is certified from this start (W0 = {W0:.4g})",
+                          "wider sets or a start nearer the manifold")
+    for found in games:     # the largest EPS whose failure has a name, else the smallest EPS's
+        where, what = grid_plan.why_not(found[0], xi0, task)
+        if where != "task":
+            break
+    game, eps, v_max, tau = found
+    raise DesignError(where, f"{what}; the grid planner found no controller at any of {len(tried)} tolerances; at EPS = {eps:.4g} "
+                      f"(v_max = {v_max:.4g}) on {' x '.join(map(str, cells))} cells of V (spacing {', '.join(f'{h:.3g}' for h in game.grid.eta)}), "
+                      f"tau = {tau:.4g} s", "a finer grid (task.planner.cells), another task.planner.tau, or a task the abstraction can meet")
+
+
+def _default_tau(model, plant: DesignTerms, cells: tuple, v_max: float) -> float:
+    """The period in which the abstraction moves GRID_MOVE cells at v_max along its slowest axis (|delta v| sampled
+    on 9 points per abstract state: a choice of the grid, not part of the proof), within the task's GRID_PERIODS."""
+    V, H = np.asarray(model.V, dtype=float), model.spec.task.horizon
+    eta = (V[:, 1] - V[:, 0]) / np.asarray(cells, dtype=float)
+    axes = [np.linspace(lo, hi, 9) for lo, hi in V]
+    speed = np.zeros(model.n_hat)
+    for z in itertools.product(*axes):
+        speed = np.maximum(speed, np.abs(plant.abstraction(np.array(z))[1]).sum(axis=1) * v_max)
+    tau = GRID_MOVE * float(np.min(eta / np.maximum(speed, 1e-300)))
+    return float(np.clip(tau, H / GRID_PERIODS[1], H / GRID_PERIODS[0]))
+
+
+def _grid_route(model, plant: DesignTerms, start: tuple, game, tau: float, eps: float, v_max: float, tried: list) -> TaskPlan:
+    """The winning game's table run from the start on the abstraction (RK4, PLAN_STEPS over the horizon), as a
+    TaskPlan whose segments are the periods and whose references are the held inputs."""
+    task, nh, mh = model.spec.task, model.n_hat, model.m_hat
+    xi0, x0, W0 = start
+    sub = max(1, int(np.ceil(PLAN_STEPS / game.steps)))
+    h = tau / sub
+    ts, xs, psis, vs = [], [], [], []
+
+    def advance(z, u):
+        v = game.inputs[u]
+        field = lambda y: (lambda a: a[0][:, 0] + a[1] @ v)(plant.abstraction(y))     # noqa: E731
+        for _ in range(sub):
+            ts.append(len(ts) * h)
+            xs.append(z)
+            psis.append(plant.abstraction(z)[2][:, 0])
+            vs.append(v)
+            z = rk.fixed_step(field, z, h, field(z))
+        return z
+
+    r = route(game.grid, game.safe, game.phases, game.trans, game.win, xi0, advance, np.abs(game.inputs).sum(axis=1))
+    ts.append(len(ts) * h)
+    xs.append(r.states[-1])
+    psis.append(plant.abstraction(r.states[-1])[2][:, 0])
+    vs.append(vs[-1])
+    t, xi, psi, v = np.array(ts), np.array(xs).T, np.array(psis).T, np.array(vs).T
+    keep = t <= task.horizon * (1 + 1e-12)
+    t, xi, psi, v = t[keep], xi[:, keep], psi[:, keep], v[:, keep]
+    refs = [np.r_[game.inputs[u], np.zeros(nh - mh)] for u in r.choice]
+    switches = [k * tau for k in range(len(r.choice)) if k * tau < task.horizon]
+    rob = robustness(task, t, psi)
+    margin = float(np.abs(np.diff(psi, axis=1)).max()) if t.size > 1 else 0.0
+    in_V = bool(np.all((xi >= model.V[:, :1] - 1e-12) & (xi <= model.V[:, 1:] + 1e-12)))
+    return TaskPlan(xi0, x0, W0, refs[:len(switches)], 0.0, eps, v_max, t, xi, psi, v, switches, rob, margin, 0.0, in_V,
+                    tried=tried, planner="grid", tau=tau, game=game, route=r)
 
 
 def segments(plan: TaskPlan, horizon: float, dt: float, sample_times: Callable) -> list[tuple[float, float, np.ndarray, int]]:
@@ -353,6 +535,13 @@ def on_the_plant(model, plant: DesignTerms, plan: TaskPlan, res: dict) -> tuple[
               "robustness": on_y.robustness, "satisfied": on_y.satisfied, "reach_times": np.array(on_y.reach_times, dtype=float),
               "best_hold_starts": np.array(on_y.best_times, dtype=float)}
     values.update({f"parts/{part}": value for part, value in on_y.parts.items()})
+    if plan.proved:
+        # the proof is the table's: the held inputs are its law on the run's own xi when the run's xi at each period's
+        # start is within ROUTE_SLACK of a cell of the route's state (each input was admissible from every such cell)
+        r, eta = plan.route, plan.game.grid.eta
+        at = np.array([[np.interp(k * plan.tau, t, row) for row in res["xi"]] for k in range(len(plan.switches))])
+        values["table_offset"] = float(np.max(np.abs(at - r.states[:len(at)]) / eta)) if len(at) else 0.0
+        return plan, values
     return replace(plan, certified=plan.certified - deviation), values
 
 

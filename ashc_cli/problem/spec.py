@@ -350,6 +350,23 @@ class TaskAvoid(_Strict):
     during: Bounds
 
 
+class TaskPlanner(_Strict):
+    """Which planner ``ashc synthesize`` runs on the abstraction (docs/guide.md, "The planner on the abstraction").
+
+    ``setpoint`` aims the set-point law at each reach set in turn (one abstract state); ``grid`` solves the task as a
+    game on a uniform grid of V with the input held over ``tau`` (proved); ``auto`` (the default) runs the set-point
+    plan with one abstract state, the grid when that plan is refused for an avoid set (the grid can wait or go
+    around) or there are more abstract states."""
+
+    kind: Literal["auto", "setpoint", "grid"] = "auto"
+    #: Cells of V per abstract state [default: 400, 80 x 80 or 24 x 24 x 24].
+    cells: list[Annotated[int, Field(ge=2, le=2000)]] | None = None
+    #: The sampling period (s) the table's input is held over [default: horizon / 100].
+    tau: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    #: Abstract inputs per abstract input axis, spread over [-v_max, v_max] [default: 5].
+    inputs: Annotated[int, Field(ge=2, le=41)] = 5
+
+
 class Task(_Strict):
     """A task on the output over a finite horizon, a bounded-time fragment of signal temporal logic
     (``docs/spec-format.md``, "task"): ``always`` a box, each ``reach`` by its deadline and held, each ``avoid``
@@ -362,6 +379,8 @@ class Task(_Strict):
     x0: Literal["on_manifold"] | list[FiniteFloat] = "on_manifold"
     #: The abstract start [default: simulate.tracking.xi0].
     xi0: list[FiniteFloat] | None = None
+    #: The planner on the abstraction [default: auto].
+    planner: TaskPlanner | None = None
 
 
 class Spec(_Strict):
@@ -413,6 +432,8 @@ def canonical(spec: Spec) -> dict:
             data["concrete"].pop(key, None)
     if data.get("task") is None:          # added later: a spec without a task hashes as before
         data.pop("task", None)
+    elif data["task"].get("planner") is None:
+        data["task"].pop("planner", None)
     if data.get("proofs") == Proofs().model_dump(mode="json"):     # added later: the default budgets hash as before
         data.pop("proofs", None)
     tracking = (data.get("simulate") or {}).get("tracking") or {}

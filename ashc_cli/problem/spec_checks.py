@@ -126,6 +126,8 @@ def _check_task(spec: Spec, n: int, p: int, nh: int) -> None:
     if xi0 is None:
         raise SpecError("task.xi0", "missing (and no simulate.tracking.xi0 to take)", "the abstract start, one number per abstract state")
     _check_len("task.xi0", xi0, nh, "one per abstract state")
+    if task.planner is not None and task.planner.cells is not None:
+        _check_len("task.planner.cells", task.planner.cells, nh, "one cell count per abstract state")
 
 
 def _check_dynamics(c: Concrete, n: int, m: int) -> None:

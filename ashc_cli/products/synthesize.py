@@ -18,7 +18,8 @@ from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design import task_plan
 from ashc_cli.design.artefacts import Artefact, Check, write_artefact
 from ashc_cli.errors import SpecError
-from ashc_cli.numerics.proofs import SAMPLED, SIMULATED
+from ashc_cli.numerics.grid_games import ROUTE_SLACK
+from ashc_cli.numerics.proofs import PROVED, SAMPLED, SIMULATED
 from ashc_cli.problem.spec import Spec
 
 __all__ = ["NAME", "UPSTREAM", "synthesize", "run_synthesize", "plot", "summarise", "headline", "store"]
@@ -91,14 +92,51 @@ def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artef
     for key, value in run.items():
         if key.startswith("parts/"):
             art.values[f"task/{key}"] = value
-    art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
-                                         f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38)), "
-                                         f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction "
-                                         f"{run['deviation']:.2g} (>= 0: every plant run meets the task; sampled in time)", SAMPLED)
+    art.meta["planner"] = plan.planner
+    if plan.proved:
+        _store_grid(art, plan, run)
+    else:
+        art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
+                                             f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38)), "
+                                             f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction "
+                                             f"{run['deviation']:.2g} (>= 0: every plant run meets the task; sampled in time)", SAMPLED)
     art.checks["task_met_on_the_plant"] = Check(run["robustness"], bool(run["satisfied"]),
                                                 f"the task's robustness on the plant's run of the plan (>= 0), max |psi - y| = "
                                                 f"{run['max_abs_error']:.3g} <= EPS = {plan.eps:.4g}", SIMULATED)
     return art
+
+
+def _store_grid(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> None:
+    """The grid planner's game and route in ``art`` (``grid/...``) and its proved check: the start's cell wins the
+    game (every transition over-approximated by a proved growth bound, every set deflated by EPS through proved
+    enclosures of kappa over each cell and period), and the plant run's xi kept within ROUTE_SLACK of a cell of the
+    route (so that the held inputs are the table's law on the run's own xi)."""
+    game, r = plan.game, plan.route
+    g = game.grid
+    art.meta.update(grid_cells=list(g.cells), grid_steps=game.steps, grid_widened=int(r.widened))
+    art.values.update({
+        "grid/lo": np.asarray(g.lo, dtype=float), "grid/hi": np.asarray(g.hi, dtype=float), "grid/tau": plan.tau,
+        "grid/inputs": game.inputs, "grid/winning_start": game.win.start().reshape(g.cells).astype(np.uint8),
+        "grid/route_cells": r.cells, "grid/route_choice": r.choice, "grid/route_states": r.states,
+        "grid/route_phase": r.phase, "grid/hold_steps": np.array(r.holds, dtype=np.int64),
+        "table_offset": run["table_offset"],
+    })
+    for k, ph in enumerate(game.phases):
+        art.values[f"grid/target/{k}"] = ph.target.reshape(g.cells).astype(np.uint8)
+    always, avoids = game.parts
+    for j, (meets, _, _) in enumerate(avoids):
+        art.values[f"grid/avoid/{j}"] = meets.reshape(g.cells).astype(np.uint8)
+    wins = game.wins(plan.xi0)
+    ok = wins and run["table_offset"] <= ROUTE_SLACK
+    art.checks["task_certified"] = Check(
+        0.0 if ok else -np.inf, ok,
+        f"the start's cell wins the task's game on {' x '.join(map(str, g.cells))} cells of V with the input held over tau = {plan.tau:.4g} s "
+        f"({len(game.inputs)} inputs, |v_a| <= {plan.v_max:.4g}): psi's tube over every period lies in the sets deflated by EPS = {plan.eps:.4g} "
+        f"(transitions by a proved growth bound, kappa enclosed per cell); the run's xi within {run['table_offset']:.2g} cells of the route's "
+        f"(<= {ROUTE_SLACK:g}: the held inputs are the table's law on it); every plant run from the start region meets the task (margin >= 0, proved). "
+        f"psi's sampled robustness on the route {plan.rob.robustness:.4g} >= EPS is the cross-check", PROVED)
+    art.checks["grid_route_cross_check"] = Check(plan.rob.robustness - plan.eps, plan.rob.robustness - plan.eps >= -1e-9,
+                                                 "psi's robustness on the route less EPS (>= 0 when the game's proof holds; sampled)", SAMPLED)
 
 
 def run_synthesize(spec: Spec, out, *, on_stage: Callable | None = None, on_start: Callable | None = None,
@@ -209,5 +247,9 @@ def headline(art: Artefact) -> str:
     """
     v = art.values
     met = "met" if bool(v["task/satisfied"]) else "NOT met"
+    if art.meta.get("planner") == "grid":
+        proved = "proved" if art.checks["task_certified"].passed else "NOT proved"
+        return (f"EPS = {float(v['tolerance']):.4g} (v_max = {float(v['v_max']):.4g}): the grid planner's table ({' x '.join(map(str, art.meta['grid_cells']))} "
+                f"cells, tau = {float(v['grid/tau']):.4g} s) wins from the start, margin >= 0 {proved}; on the plant {met}, robustness {float(v['task/robustness']):.4g}")
     return (f"EPS = {float(v['tolerance']):.4g} (v_max = {float(v['v_max']):.4g}): task certified with margin "
             f"{float(v['certified_margin']):.4g}; on the plant {met}, robustness {float(v['task/robustness']):.4g}")
