@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ashc_cli.design.grid_plan import GridProblem, abstraction_bounds, kappa_boxes, solve
+from ashc_cli.design.grid_plan import GridProblem, abstraction_bounds, enclose_cells, kappa_boxes, solve
 from ashc_cli.design.pipeline import DESIGN, design_model, run
 from ashc_cli.numerics.grid_games import Grid
 from ashc_cli.problem.spec import parse_spec_text
@@ -44,11 +44,12 @@ def test_the_bounds_hold_the_abstraction_and_kappa(line):
     model = _model(line, 8.0)
     V = np.asarray(model.V, dtype=float)
     grid = Grid(V[:, 0], V[:, 1], (30,))
-    b = abstraction_bounds(model, line, grid, 0.5, 0.1)
+    enc = enclose_cells(model, line, grid)
+    b = abstraction_bounds(enc, 0.5, 0.1)
     # xi' = v: |f| <= 0.5 and a zero Jacobian on every cell's region
     assert np.all(b.Mf <= 0.5 + 1e-12) and np.all(b.Mf >= 0.5 - 1e-12) and np.all(b.Jabs == 0.0)
     assert np.all(b.D_lo[:, 0] <= grid.centres()[:, 0] - grid.eta[0] / 2 - 0.05 + 1e-12)    # the region holds a period's motion
-    lo, hi = kappa_boxes(model, line, grid, np.zeros(1))
+    lo, hi = kappa_boxes(enc, np.zeros(1, dtype=int))
     c = grid.centres()[:, 0]
     np.testing.assert_allclose(lo[:, 0], c - grid.eta[0] / 2, atol=1e-12)              # psi = xi over each cell
     np.testing.assert_allclose(hi[:, 0], c + grid.eta[0] / 2, atol=1e-12)

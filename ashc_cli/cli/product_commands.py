@@ -230,7 +230,8 @@ def synthesize(spec: SpecArg, out: OutOpt = None, as_json: JsonOpt = False,
     task = entry["task"]
     times = ", ".join("-" if not np.isfinite(x) else f"{x:.4g}" for x in task["reach_times"])
     typer.echo(f"synthesize '{spec_obj.name}': EPS = {number_text(entry['tolerance'], '.4g')} (v_max = {number_text(entry['v_max'], '.4g')}), "
-               f"task certified with margin {number_text(entry['certified_margin'], '.4g')} (sampled in time); on the plant "
+               f"task certified with margin {number_text(entry['certified_margin'], '.4g')} "
+               f"({'proved by the grid planner' if entry['margin_evidence'] == 'proved' else 'sampled in time'}); on the plant "
                f"{'met' if task['satisfied'] else 'NOT met'}, robustness {number_text(task['robustness'], '.4g')}, reach times [{times}] s")
 
 

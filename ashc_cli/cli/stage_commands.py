@@ -173,7 +173,8 @@ def _task_line(spec, sim, path: Path) -> str | None:
     v = sim.values
     met = "met" if bool(v["task/satisfied"]) else "NOT met"
     return (head + f"{met} on the plant, robustness {number_text(float(v['task/robustness']), '.4g')} under the synthesised plan "
-            f"(EPS = {number_text(float(v['task/tolerance']), '.4g')}, certified margin {number_text(float(v['task/certified_margin']), '.4g')}; "
+            f"(EPS = {number_text(float(v['task/tolerance']), '.4g')}, certified margin {number_text(float(v['task/certified_margin']), '.4g')}, "
+            f"{'proved on the grid' if float(v.get('task/proved', 0.0)) else 'sampled in time'}; "
             "`ashc falsify` attacks it)")
 
 

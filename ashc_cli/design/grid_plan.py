@@ -3,10 +3,12 @@ design on a uniform grid of V, with v held over each sampling period tau; its tr
 (:mod:`ashc_cli.numerics.growth`); the task's output sets mapped to cells through kappa; and the game
 (:mod:`ashc_cli.numerics.grid_games`).
 
-Soundness.  The bounds of f = phi_bar + delta v and of its Jacobian over V x [-v_max, v_max]^m_hat are proved
-(interval arithmetic, :func:`ashc_cli.numerics.interval.enclose`), one set per cell over the states it can reach
-within a period; kappa over a cell, and over the tube the state can sweep within a period (the cell grown by tau sup
-|f| there), is enclosed per cell too.  The values of f at the centres the growth bound moves are double-precision
+Soundness.  phi_bar, delta, their Jacobians and kappa are enclosed over every cell of the grid padded by
+:data:`PAD` cells (interval arithmetic, :func:`ashc_cli.numerics.interval.enclose`, once per grid:
+:func:`enclose_cells`).  The bounds of f = phi_bar + delta v and of its Jacobian over |v_a| <= v_max follow by
+interval sums; a period's flow from a cell stays within ``r`` cells of it (r = ceil(tau sup |f| / eta), sup over the
+padded grid), so the hull of the enclosures over that window bounds f and its Jacobian over every state the cell's
+flow visits (the growth bound's region), and the hull of kappa's bounds psi between samples.  The values of f at the centres the growth bound moves are double-precision
 evaluations (padded: :data:`ashc_cli.numerics.growth.FLOAT_PAD`).  A reach set becomes the
 cells whose every output lies in the set shrunk by ``eps`` (what |psi - y| may be, eq. (38)); an avoid set the cells
 whose tube's outputs may meet the set grown by ``eps``; the always set the cells whose tube's outputs lie in it
@@ -20,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from scipy import ndimage
+
 from ashc_cli.closedloop.batch import BatchPlant
 from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.errors import DesignError
@@ -27,43 +31,8 @@ from ashc_cli.numerics.grid_games import Grid, Phase, Transitions, Winning, chai
 from ashc_cli.numerics.growth import GrowthBounds, growth_transitions
 from ashc_cli.numerics.interval import compile_interval, enclose
 
-__all__ = ["GridProblem", "GridGame", "abstraction_bounds", "kappa_boxes", "task_cells", "safe_cells", "solve", "why_not",
-           "memory_bytes", "BLOCKS"]
-
-#: Pieces of V along each abstract state over which the bounds are enclosed (their hull is kept): an interval
-#: extension of a rational kappa or delta on the whole of V may hold a pole that no point of V has.
-BLOCKS = {1: 64, 2: 16, 3: 6}
-MAX_HALVINGS = 12
-
-
-def _enclose_blocks(exprs: list, args: list, values: dict, box: np.ndarray, split: int) -> np.ndarray:
-    """(lo, hi) per expression over ``box`` (rows per argument), as the hull of the enclosures over the pieces of
-    the first ``split`` rows cut in :data:`BLOCKS` each; a piece without a finite enclosure is halved (along its
-    widest split row, at most :data:`MAX_HALVINGS` times) before the hull is given up as nan."""
-    fun = compile_interval(exprs, args, values)
-    pieces = BLOCKS.get(split, 4)
-    edges = [np.linspace(box[i, 0], box[i, 1], pieces + 1) for i in range(split)]
-    lo = np.full(len(exprs), np.inf)
-    hi = np.full(len(exprs), -np.inf)
-    todo = []
-    for idx in np.ndindex(*([pieces] * split)):
-        sub = box.copy()
-        for i, k in enumerate(idx):
-            sub[i] = edges[i][k], edges[i][k + 1]
-        todo.append((sub, 0))
-    while todo:
-        sub, depth = todo.pop()
-        enc = np.array(enclose(fun, sub), dtype=float)
-        if not np.all(np.isfinite(enc)) and depth < MAX_HALVINGS:
-            i = int(np.argmax(sub[:split, 1] - sub[:split, 0]))
-            mid = 0.5 * (sub[i, 0] + sub[i, 1])
-            for a, b in ((sub[i, 0], mid), (mid, sub[i, 1])):
-                half = sub.copy()
-                half[i] = a, b
-                todo.append((half, depth + 1))
-            continue
-        lo, hi = np.minimum(lo, enc[:, 0]), np.maximum(hi, enc[:, 1])       # a nan piece makes the hull nan
-    return np.stack([lo, hi], axis=1)
+__all__ = ["Grid", "GridProblem", "GridGame", "CellEnclosures", "enclose_cells", "motion_cells", "abstraction_bounds", "kappa_boxes",
+           "task_cells", "safe_cells", "solve", "why_not", "memory_bytes", "PAD"]
 
 
 @dataclass(frozen=True)
@@ -91,109 +60,178 @@ class GridProblem:
     substeps: int = 4
 
 
-def abstraction_bounds(model, arts: dict, grid: Grid, v_max: float, tau: float) -> GrowthBounds:
-    """Proved bounds of f = phi_bar + delta v and of df/dxi, one set per cell, each over the states the cell can
-    reach within a period (the cell grown by tau sup_V |f|, itself proved over V) and |v_a| <= v_max.
+#: Cells around the grid whose enclosures are kept too (the states a period's flow from an edge cell may reach).
+PAD = 8
+
+
+@dataclass(frozen=True)
+class CellEnclosures:
+    """Proved enclosures of the abstraction's terms over each cell of a grid padded by ``pad`` cells per side
+    (interval arithmetic once per cell; every EPS, v_max and tau of a search reuses them).
+
+    Attributes
+    ----------
+    grid : Grid
+        The task's grid (unpadded).
+    pad : int
+    fields : ndarray (padded..., k, 2)
+        phi_bar (n_hat), delta (n_hat m_hat, row-major), d phi_bar / d xi (n_hat^2) and d delta / d xi
+        (n_hat m_hat n_hat), as (lo, hi); nan where not finite.
+    kappa : ndarray (padded..., p, 2)
+    """
+
+    grid: Grid
+    pad: int
+    fields: np.ndarray
+    kappa: np.ndarray
+
+
+def enclose_cells(model, arts: dict, grid: Grid, pad: int = PAD) -> CellEnclosures:
+    """:class:`CellEnclosures` of a design's abstraction on ``grid``.
 
     Parameters
     ----------
     model : Model
     arts : dict of str to Artefact
-        The design (its delta).
+        The design (its kappa and delta).
     grid : Grid
+    pad : int
+
+    Returns
+    -------
+    CellEnclosures
+
+    Raises
+    ------
+    DesignError
+        If no cell of V has finite enclosures (naming abstract.domain).
+    """
+    T = design_matrices(model, arts, ("phi", "delta", "kappa"))
+    xi = list(model.xi)
+    phi, delta = T["phi"], T["delta"]
+    exprs = list(phi) + list(delta) + list(phi.jacobian(xi)) + [sp.diff(e, z) for e in delta for z in xi]
+    shape = tuple(n + 2 * pad for n in grid.cells)
+    big = Grid(np.asarray(grid.lo, dtype=float) - pad * grid.eta, np.asarray(grid.hi, dtype=float) + pad * grid.eta, shape)
+    c, half = big.centres(), big.eta / 2
+    out = []
+    for exprs_ in (exprs, list(T["kappa"])):
+        fun = compile_interval(exprs_, xi, model.values)
+        out.append(np.array([enclose(fun, np.stack([x - half, x + half], axis=1)) for x in c], dtype=float).reshape(shape + (len(exprs_), 2)))
+    fields, kappa = out
+    inner = fields[tuple(slice(pad, pad + n) for n in grid.cells)]
+    if not np.isfinite(inner).all(axis=(-2, -1)).any():
+        raise DesignError("abstract.domain", "phi_bar + delta v has no finite bound on any cell of V", "a V where the abstraction is bounded")
+    return CellEnclosures(grid, pad, fields, kappa)
+
+
+def _mag(enc: np.ndarray) -> np.ndarray:
+    """sup |.| of (lo, hi) pairs (inf where not finite)."""
+    return np.where(np.isfinite(enc).all(axis=-1), np.max(np.abs(enc), axis=-1), np.inf)
+
+
+def _window(values: np.ndarray, r: np.ndarray, pad: int, cells: tuple, upper: bool) -> np.ndarray:
+    """The max (``upper``) or min over the cells within r[i] cells along each axis, of the grid's cells (cropped
+    from the padded array; a window leaving the padded grid takes inf / -inf)."""
+    size = tuple(2 * int(k) + 1 for k in r) + (1,) * (values.ndim - len(r))
+    fill = np.inf if upper else -np.inf
+    vals = np.nan_to_num(values, nan=fill)
+    res = (ndimage.maximum_filter if upper else ndimage.minimum_filter)(vals, size=size, mode="constant", cval=fill)
+    return res[tuple(slice(pad, pad + n) for n in cells)].reshape((int(np.prod(cells)),) + values.shape[len(r):])
+
+
+def motion_cells(enc: CellEnclosures, v_max: float, tau: float) -> np.ndarray:
+    """Cells per axis within which a period's flow from any cell stays: ceil(tau sup |f_i| / eta_i), sup over the
+    padded grid's finite cells and |v_a| <= v_max.
+
+    Parameters
+    ----------
+    enc : CellEnclosures
+    v_max : float
+    tau : float
+
+    Returns
+    -------
+    int ndarray (n_hat,)
+    """
+    f_mag = _field_parts(enc, v_max)[0]
+    finite = np.where(np.isfinite(f_mag), f_mag, 0.0).reshape(-1, f_mag.shape[-1]).max(axis=0)
+    return np.ceil(tau * finite / enc.grid.eta * (1 + 1e-12)).astype(np.int64)
+
+
+def _field_parts(enc: CellEnclosures, v_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per padded cell: sup |f_i|, sup |df_i/dxi_j| and the upper bound of df_i/dxi_i, f = phi_bar + delta v over
+    |v_a| <= v_max (the terms' enclosures combined: sup |phi_i| + sum_a sup |delta_ia| v_max, and alike)."""
+    nh = enc.grid.eta.size
+    F = enc.fields
+    mh = (F.shape[-2] - nh - nh * nh) // (nh + nh * nh)
+    k = np.cumsum([0, nh, nh * mh, nh * nh, nh * mh * nh])
+    phi, delta, dphi, ddelta = (F[..., k[i]:k[i + 1], :] for i in range(4))
+    lead = F.shape[:-2]
+    f_mag = _mag(phi) + _mag(delta).reshape(lead + (nh, mh)).sum(axis=-1) * v_max
+    dd = _mag(ddelta).reshape(lead + (nh, mh, nh)).sum(axis=-2) * v_max            # (.., nh, nh): sum_a sup |d delta_ia / dxi_j|
+    j_mag = _mag(dphi).reshape(lead + (nh, nh)) + dd
+    top = np.where(np.isfinite(dphi[..., 1]), dphi[..., 1], np.inf).reshape(lead + (nh, nh)) + dd
+    return f_mag, j_mag, top
+
+
+def abstraction_bounds(enc: CellEnclosures, v_max: float, tau: float) -> GrowthBounds:
+    """Proved bounds of f = phi_bar + delta v and of df/dxi, one set per cell, each over the states the cell's flow
+    can reach within a period (the cell grown by :func:`motion_cells` plus one cell per side) and |v_a| <= v_max:
+    the hull of the cells' enclosures over that window.
+
+    Parameters
+    ----------
+    enc : CellEnclosures
     v_max : float
     tau : float
 
     Returns
     -------
     GrowthBounds
-        With a leading axis of grid.size; a cell whose region has no finite enclosure (a pole of the abstraction
-        just outside V) gets infinite bounds: no input is admissible there.
-
-    Raises
-    ------
-    DesignError
-        If f has no finite bound on V (naming abstract.domain).
+        With a leading axis of grid.size; a cell whose window meets a cell without finite enclosures (a pole of the
+        abstraction just outside V, or the padded grid's edge) gets infinite bounds: no input is admissible there.
     """
-    T = design_matrices(model, arts, ("phi", "delta"))
-    v = sp.symbols(f"_v0:{model.m_hat}")
-    f = T["phi"] + T["delta"] * sp.Matrix(v)
-    xi, nh = list(model.xi), model.n_hat
-    J = f.jacobian(xi)
-    vbox = np.tile([-v_max, v_max], (model.m_hat, 1))
-    V = np.asarray(model.V, dtype=float)
-    glob = _enclose_blocks(list(f), xi + list(v), model.values, np.vstack([V, vbox]), nh)
-    if not np.all(np.isfinite(glob)):
-        raise DesignError("abstract.domain", "phi_bar + delta v has no finite bound on V", "a V where the abstraction is bounded")
-    fun = compile_interval(list(f) + list(J), xi + list(v), model.values)
+    grid, pad = enc.grid, enc.pad
+    nh = grid.eta.size
+    r = motion_cells(enc, v_max, tau) + 1
+    f_mag, j_mag, top = _field_parts(enc, v_max)
+    Mf = _window(f_mag, r, pad, grid.cells, True)
+    Jabs = _window(j_mag, r, pad, grid.cells, True)
+    L = np.where(np.eye(nh, dtype=bool)[None], _window(top, r, pad, grid.cells, True), Jabs)
     c = grid.centres()
-    half = grid.eta / 2
-    reach = np.empty_like(c)
-    enc = np.empty((grid.size, nh + nh * nh, 2))
-    for n, x in enumerate(c):
-        reach[n], enc[n] = _a_priori(fun, x, half, vbox, tau, nh)
-    mag = np.where(np.isfinite(enc).all(axis=2), np.max(np.abs(enc), axis=2), np.inf)        # (size, nh + nh^2)
-    Mf, Jabs = mag[:, :nh], mag[:, nh:].reshape(-1, nh, nh)
-    top = np.where(np.isfinite(enc[:, nh:, 1]), enc[:, nh:, 1], np.inf).reshape(-1, nh, nh)
-    L = np.where(np.eye(nh, dtype=bool)[None], top, Jabs)
+    reach = grid.eta / 2 + r * grid.eta
     return GrowthBounds(Mf, Jabs, L, c - reach, c + reach)
 
 
-#: Tries of the a priori enclosure of a cell's flow over a period (each widens the region by half again).
-A_PRIORI_TRIES = 8
-
-
-def _a_priori(fun, x: np.ndarray, half: np.ndarray, vbox: np.ndarray, tau: float, nh: int) -> tuple[np.ndarray, np.ndarray]:
-    """A region D = x +- reach that the flow from the cell x +- half cannot leave within tau, and the enclosures of
-    f and its Jacobian over it: D is accepted when half + tau sup_D |f| fits in reach (then |x(t) - x0| <= t sup_D |f|
-    holds up to tau); (inf, nan) when no try fits."""
-    reach = 2.0 * half
-    for _ in range(A_PRIORI_TRIES):
-        enc = np.array(enclose(fun, np.vstack([np.stack([x - reach, x + reach], axis=1), vbox])), dtype=float)
-        if not np.all(np.isfinite(enc)):
-            break
-        need = half + tau * np.max(np.abs(enc[:nh]), axis=1)
-        if np.all(need <= reach):
-            return reach, enc
-        reach = 1.5 * np.maximum(need, reach)
-    return np.full_like(x, np.inf), np.full((nh + nh * nh, 2), np.nan)
-
-
-def kappa_boxes(model, arts: dict, grid: Grid, grow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Proved bounds of psi = kappa(xi) over each cell grown by ``grow`` per side (interval arithmetic per cell).
+def kappa_boxes(enc: CellEnclosures, grow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Proved bounds of psi = kappa(xi) over each cell grown by ``grow`` cells per axis: the hull of the cells'
+    enclosures over the window.
 
     Parameters
     ----------
-    model : Model
-    arts : dict of str to Artefact
-    grid : Grid
-    grow : ndarray (d,) or (size, d)
+    enc : CellEnclosures
+    grow : int ndarray (n_hat,)
 
     Returns
     -------
     lo, hi : ndarray (size, p)
-        NaN-free: a cell without a finite enclosure gets (-inf, inf).
+        (-inf, inf) where the window meets a cell without a finite enclosure.
     """
-    K = design_matrices(model, arts, ("kappa",))["kappa"]
-    fun = compile_interval(list(K), list(model.xi), model.values)
-    c = grid.centres()
-    half = np.broadcast_to(grid.eta / 2 + np.asarray(grow, dtype=float), c.shape)
-    enc = np.array([enclose(fun, np.stack([x - h, x + h], axis=1)) for x, h in zip(c, half)], dtype=float)     # (size, p, 2)
-    bad = ~np.isfinite(enc).all(axis=2)
-    return np.where(bad, -np.inf, enc[:, :, 0]), np.where(bad, np.inf, enc[:, :, 1])
+    grow = np.asarray(grow, dtype=np.int64)
+    lo = _window(enc.kappa[..., 0], grow, enc.pad, enc.grid.cells, False)
+    hi = _window(enc.kappa[..., 1], grow, enc.pad, enc.grid.cells, True)
+    return lo, hi
 
 
-def task_cells(model, arts: dict, grid: Grid, prob: GridProblem, bounds: GrowthBounds, steps: int) -> tuple[np.ndarray, list[Phase], tuple]:
+def task_cells(model, enc: CellEnclosures, prob: GridProblem, steps: int) -> tuple[np.ndarray, list[Phase], tuple]:
     """The task on the cells: the safe cells at each step (always and avoid, over the tube of a period) and one
     phase per reach (its cells at the samples, and those whose tube over a period stays in it, for a hold).
 
     Parameters
     ----------
     model : Model
-    arts : dict of str to Artefact
-    grid : Grid
+    enc : CellEnclosures
     prob : GridProblem
-    bounds : GrowthBounds
     steps : int
         The horizon in periods.
 
@@ -205,9 +243,10 @@ def task_cells(model, arts: dict, grid: Grid, prob: GridProblem, bounds: GrowthB
         The always set's cells and, per avoid set, the cells whose tube may meet it with the steps its window covers
         (:func:`safe_cells` composes them).
     """
-    task, eps = model.spec.task, prob.eps
-    at_lo, at_hi = kappa_boxes(model, arts, grid, np.zeros(len(grid.cells)))
-    tube_lo, tube_hi = kappa_boxes(model, arts, grid, np.where(np.isfinite(bounds.Mf), prob.tau * bounds.Mf, 1e300))
+    task, eps, grid = model.spec.task, prob.eps, enc.grid
+    v_max = float(np.max(np.abs(prob.inputs))) if np.size(prob.inputs) else 0.0
+    at_lo, at_hi = kappa_boxes(enc, np.zeros(len(grid.cells), dtype=np.int64))
+    tube_lo, tube_hi = kappa_boxes(enc, motion_cells(enc, v_max, prob.tau))       # psi between samples
     always = np.ones(grid.size, dtype=bool)
     if task.always is not None:
         box = np.asarray(task.always, dtype=float)
@@ -255,7 +294,8 @@ class GridGame:
     ----------
     grid : Grid
     inputs : ndarray (U, m_hat)
-    trans : Transitions
+    trans : Transitions or None
+        None when the game was lost before it was built (:func:`solve`'s xi0).
     safe : bool ndarray (steps + 1, size)
     phases : list of Phase
     win : Winning
@@ -264,7 +304,7 @@ class GridGame:
 
     grid: Grid
     inputs: np.ndarray
-    trans: Transitions
+    trans: Transitions | None
     safe: np.ndarray
     phases: list
     win: Winning
@@ -292,7 +332,8 @@ def memory_bytes(cells: int, inputs: int, d: int, steps: int, phases: int) -> in
     return cells * inputs * (8 * d + 1) + cells * 8 * d * 8 + (steps + 1) * cells * (2 + 2 * phases)
 
 
-def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf) -> GridGame:
+def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf, enc: CellEnclosures | None = None,
+          xi0: np.ndarray | None = None) -> GridGame:
     """The task's game on the abstraction's grid.
 
     Parameters
@@ -304,6 +345,11 @@ def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf) ->
     prob : GridProblem
     memory_limit : float
         Bytes: a game estimated (:func:`memory_bytes`) past it is refused before it is built.
+    enc : CellEnclosures, optional
+        Of this grid (:func:`enclose_cells`; computed if not given).
+    xi0 : ndarray (n_hat,), optional
+        The start: when its cell is not safe at step 0 or a reach set has no cell, the game is lost before any
+        transition is built (the transitions are then None and no cell wins).
 
     Returns
     -------
@@ -324,7 +370,12 @@ def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf) ->
                           f"{need / 2**30:.3g} GiB, past the {memory_limit / 2**30:.3g} GiB this machine has free",
                           "fewer cells, fewer inputs or a longer task.planner.tau")
     v_max = float(np.max(np.abs(inputs))) if inputs.size else 0.0
-    bounds = abstraction_bounds(model, arts, grid, v_max, prob.tau)
+    enc = enclose_cells(model, arts, grid) if enc is None else enc
+    safe, phases, parts = task_cells(model, enc, prob, steps)
+    if xi0 is not None and (not safe[0, grid.cell_of(xi0)] or not all(ph.target.any() for ph in phases)):
+        lost = np.zeros((steps + 1, grid.size), dtype=bool)
+        return GridGame(grid, inputs, None, safe, phases, Winning([lost] * len(phases), lost, [lost] * len(phases)), steps, parts)
+    bounds = abstraction_bounds(enc, v_max, prob.tau)
     plant = BatchPlant(model, arts)
 
     def field(v):
@@ -334,7 +385,6 @@ def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf) ->
         return f
 
     trans = growth_transitions(grid, [field(v) for v in inputs], [bounds] * len(inputs), prob.tau, prob.substeps)
-    safe, phases, parts = task_cells(model, arts, grid, prob, bounds, steps)
     return GridGame(grid, inputs, trans, safe, phases, chain(grid, safe, phases, trans, steps), steps, parts)
 
 

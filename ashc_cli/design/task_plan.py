@@ -62,7 +62,7 @@ GRID_CELLS = {1: 400, 2: 80, 3: 24}
 #: Grid planner: when ``task.planner.tau`` is not given, the period in which |delta v| at v_max moves the abstraction
 #: GRID_MOVE cells (a successor box is re-gridded every period, costing up to a cell: the larger the move, the less of
 #: the abstraction's speed is lost), within horizon / GRID_PERIODS.
-GRID_MOVE = 6.0
+GRID_MOVE = 3.0
 GRID_PERIODS = (20, 2000)
 #: Grid planner: tolerances tried, largest first (the first that wins is kept).
 GRID_EPS_CANDIDATES = 8
@@ -408,6 +408,8 @@ def grid_plan_task(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
     xi0, _, W0 = start
     alpha_h = float(up["bound"].values["alpha_h"])
     half, limit, tried, games = _half(task), GRID_MEMORY_SHARE * _free_memory(), [], []
+    V = np.asarray(model.V, dtype=float)
+    enc = grid_plan.enclose_cells(model, up, grid_plan.Grid(V[:, 0], V[:, 1], cells))      # once: every EPS reuses them
     for e in np.geomspace(half * 0.9, half * 0.02, GRID_EPS_CANDIDATES):
         try:
             budget = guaranteed.guaranteed_plan(float(e), "budget", max(W0, alpha_h * (GRID_START_SHARE * e) ** 2), up)
@@ -418,7 +420,7 @@ def grid_plan_task(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
         inputs = np.array(list(itertools.product(axis, repeat=mh)))
         eps = float(budget.budget_tolerance)
         tau = given_tau if given_tau is not None else _default_tau(model, plant, cells, float(v_max))
-        game = grid_plan.solve(model, up, grid_plan.GridProblem(cells, inputs, tau, eps), limit)
+        game = grid_plan.solve(model, up, grid_plan.GridProblem(cells, inputs, tau, eps), limit, enc, xi0)
         tried.append((eps, 0.0 if game.wins(xi0) else -np.inf))
         if game.wins(xi0):
             return _grid_route(model, plant, start, game, tau, eps, float(v_max), tried)

@@ -184,6 +184,17 @@ def _task_rows(task, eps: float) -> list[str]:
     return [f"<tr><th>{name}</th><td>{html.escape(stated)}</td><td>{html.escape(deflated)}</td></tr>" for name, stated, deflated in rows]
 
 
+def _margin_row(v: dict) -> str:
+    """The report's row on the plan's certified margin: proved on the grid, or sampled in time (the set-point plan)."""
+    margin = float(v["task/certified_margin"])
+    if float(v.get("task/proved", 0.0)):
+        how = ("the grid planner: the start's cell wins the task's game on a grid of V with every transition over-approximated "
+               "and every set deflated by EPS over each period; proved")
+    else:
+        how = "psi's robustness less EPS, the sampling margin and the plan's deviation; sampled in time"
+    return f"<tr><th>certified margin of the plan</th><td>{readable(margin, 5)} ({how}) {_status(margin >= 0)}</td></tr>"
+
+
 def _task_section(task, arts: dict[str, Artefact]) -> str:
     """The task (``spec.task``): as stated and as deflated by EPS, EPS and the certified margin of the plan, the plant's
     robustness and reach times (simulate's task scenario), falsify's smallest robustness; not part of Problem 1."""
@@ -196,13 +207,12 @@ def _task_section(task, arts: dict[str, Artefact]) -> str:
     reach = ", ".join(f"reach[{k}] {'never' if not np.isfinite(x) else readable(float(x), 5) + ' s'}"
                       for k, x in enumerate(np.atleast_1d(v["task/reach_times"])))
     out = ["<p>Not part of Problem 1's verdict: the task is solved on the abstraction by the synthesised plan (the set-point "
-           "law in the budget mode of the guaranteed controller, eq. (38)), which keeps |psi - y| &lt;= EPS, so a psi that meets "
+           "law or the grid planner's table, in the budget mode of the guaranteed controller, eq. (38)), which keeps |psi - y| &lt;= EPS, so a psi that meets "
            "the task deflated by EPS is a plant that meets it as stated.</p>",
            "<table class='wide'><tr><th>part</th><th>as stated</th><th>as deflated by EPS (psi's task)</th></tr>",
            *_task_rows(task, eps), "</table><table class='wide'>",
            f"<tr><th>EPS (tolerance), v_max</th><td>{readable(eps, 5)}, {readable(float(v['task/v_max']), 5)}</td></tr>",
-           f"<tr><th>certified margin of the plan</th><td>{readable(float(v['task/certified_margin']), 5)} (psi's robustness less EPS, "
-           f"the sampling margin and the plan's deviation; sampled in time) {_status(float(v['task/certified_margin']) >= 0)}</td></tr>",
+           _margin_row(v),
            f"<tr><th>plant run: robustness</th><td>{readable(float(v['task/robustness']), 5)} {_status(bool(v['task/satisfied']))} "
            f"(max |psi - y| = {readable(float(v['task/max_abs_error']), 4)}; per part: "
            f"{html.escape(', '.join(f'{k} {readable(x, 5)}' for k, x in parts.items()))})</td></tr>",

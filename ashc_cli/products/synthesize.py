@@ -174,7 +174,7 @@ def run_synthesize(spec: Spec, out, *, on_stage: Callable | None = None, on_star
     write_artefact(artefact_path(folder.path, NAME), art, spec_sha256=spec.sha256, spec_name=spec.name,
                    parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in UPSTREAM},
                    names=declared_names(spec))
-    if spec.concrete.h and len(spec.concrete.h) == 1:
+    if spec.concrete.h and len(spec.concrete.h) <= 2:
         plot(art, spec.task, folder.path / "plots" / f"{NAME}.png", unit=spec.units.get("y1") or spec.units.get("y"))
     if on_stage is not None:
         on_stage(StageReport(NAME, "ran", time.perf_counter() - start, headline(art)))
@@ -182,14 +182,15 @@ def run_synthesize(spec: Spec, out, *, on_stage: Callable | None = None, on_star
 
 
 def plot(art: Artefact, task, path, unit: str | None = None):
-    """The task figure of the synthesised plan (:func:`ashc_cli.outputs.plots.draw_task`): y of the plant's run, psi
-    and xi of the plan.
+    """The task figure of the synthesised plan: over time for one output (:func:`ashc_cli.outputs.plots.draw_task`: y
+    of the plant's run, psi and xi of the plan), in the output plane for two (:func:`ashc_cli.outputs.plots.draw_plane`);
+    with a grid plan on two abstract states, V's winning cells and the route too.
 
     Parameters
     ----------
     art : Artefact
         The synthesize artefact (``run/t``, ``run/y``, ``plan/t``, ``plan/psi``, ``plan/xi``, ``switch_times``,
-        ``tolerance``, ``task/reach_times``, ``task/best_hold_starts``).
+        ``tolerance``, ``task/reach_times``, ``task/best_hold_starts``; a grid plan's ``grid/...``).
     task : Task
         ``spec.task``.
     path : str or Path
@@ -204,12 +205,26 @@ def plot(art: Artefact, task, path, unit: str | None = None):
     from pathlib import Path
 
     from ashc_cli.outputs.plots import STYLE, TaskRun, draw_task, plt, save
+    from ashc_cli.outputs.task_plots import GridView, draw_plane
 
     v = art.values
-    run = TaskRun(v["run/t"], v["run/y"], v["plan/t"], v["plan/psi"], v["plan/xi"], v["switch_times"], v["tolerance"],
-                  v["task/reach_times"], v["task/best_hold_starts"])
+    grid = art.meta.get("planner") == "grid"
+    view = None
+    if grid and len(art.meta["grid_cells"]) == 2:
+        view = GridView(v["grid/lo"], v["grid/hi"], v["grid/winning_start"],
+                        [v[k] for k in sorted(v) if k.startswith("grid/target/")], [v[k] for k in sorted(v) if k.startswith("grid/avoid/")],
+                        v["grid/route_states"])
     with plt.rc_context(STYLE):
-        return save(draw_task(task, run, unit), Path(path))
+        if np.atleast_2d(v["run/y"]).shape[0] == 2:
+            return save(draw_plane(task, v["run/y"], v["plan/psi"], float(v["tolerance"]), view), Path(path))
+        # a grid plan switches every period: mark where its holds begin instead
+        switches = np.r_[0.0, np.asarray(v["grid/hold_steps"], dtype=float) * float(v["grid/tau"])] if grid else v["switch_times"]
+        run = TaskRun(v["run/t"], v["run/y"], v["plan/t"], v["plan/psi"], v["plan/xi"], switches, v["tolerance"],
+                      v["task/reach_times"], v["task/best_hold_starts"])
+        path = save(draw_task(task, run, unit), Path(path))
+        if view is not None:
+            save(draw_plane(None, None, None, float(v["tolerance"]), view), Path(path).with_name(f"{NAME}_grid{Path(path).suffix}"))
+        return path
 
 
 def summarise(art: Artefact) -> dict:
@@ -223,12 +238,14 @@ def summarise(art: Artefact) -> dict:
     Returns
     -------
     dict
-        ``tolerance`` (EPS), ``v_max``, ``certified_margin``, ``switch_times`` and ``task`` (robustness, satisfied,
+        ``tolerance`` (EPS), ``v_max``, ``certified_margin``, ``planner``, ``margin_evidence`` (proved or sampled),
+        ``switch_times`` and ``task`` (robustness, satisfied,
         reach_times and each part's robustness on the plant's run).
     """
     v = art.values
     parts = {k.split("/", 2)[2]: float(val) for k, val in v.items() if k.startswith("task/parts/")}
     return {"tolerance": float(v["tolerance"]), "v_max": float(v["v_max"]), "certified_margin": float(v["certified_margin"]),
+            "planner": art.meta.get("planner", "setpoint"), "margin_evidence": art.checks["task_certified"].evidence,
             "plan_robustness": float(v["plan_robustness"]), "switch_times": np.asarray(v["switch_times"]).tolist(),
             "task": {"robustness": float(v["task/robustness"]), "satisfied": bool(v["task/satisfied"]),
                      "reach_times": np.asarray(v["task/reach_times"]).tolist(), "parts": parts}}

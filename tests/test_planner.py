@@ -1,0 +1,104 @@
+"""Tests of the grid planner on the abstraction (issue 42) through the tool: specs/two_output_detour.yaml (two outputs,
+two abstract states, an avoid box across the straight route) is synthesised, proved and met on the plant around
+the box; rtamt agrees with the stored run; falsify's task attack finds no run that breaks it; a box that closes the
+corridor is refused naming it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ashc_cli.closedloop.task_monitor import robustness
+from ashc_cli.design.artefacts import read_artefact
+from ashc_cli.numerics.grid_games import ROUTE_SLACK
+from ashc_cli.problem.spec import Task, load_spec
+
+from .conftest import SPECS, ashc
+from .test_task_monitor import _rtamt
+
+DETOUR = SPECS / "two_output_detour.yaml"
+
+
+@pytest.fixture(scope="module")
+def detour(tmp_path_factory):
+    out = tmp_path_factory.mktemp("detour")
+    proc = ashc("synthesize", str(DETOUR), "--out", str(out), "--json", check=True)
+    ashc("simulate", str(DETOUR), "--out", str(out), check=True)
+    return out, json.loads(proc.stdout), read_artefact(out / "synthesize.h5"), read_artefact(out / "simulate.h5")
+
+
+def _outside(y: np.ndarray, box) -> np.ndarray:
+    """Per sample, how far y is outside the box (the largest face distance; > 0: outside)."""
+    b = np.asarray(box, dtype=float)
+    return np.max(np.maximum(b[:, :1] - y, y - b[:, 1:]), axis=0)
+
+
+def test_the_detour_is_proved_and_met_on_the_plant_around_the_box(detour):
+    out, entry, art, sim = detour
+    v, task = art.values, load_spec(DETOUR).task
+    assert entry["planner"] == "grid" and entry["margin_evidence"] == "proved"
+    check = art.checks["task_certified"]
+    assert check.passed and check.evidence == "proved" and "wins the task's game" in check.description
+    assert 0 <= float(v["table_offset"]) <= ROUTE_SLACK
+    assert entry["task"]["satisfied"] and entry["task"]["robustness"] >= 0
+    # the plant's output never enters the avoid box, nor leaves the always box; |psi - y| <= EPS (Theorem 2)
+    for y in (np.asarray(v["run/y"]), np.asarray(sim.values["task/y"])):
+        assert _outside(y, task.avoid[0].set).min() > 0
+        assert -_outside(y, task.always).max() >= 0
+    assert float(v["run/max_abs_error"]) <= float(v["tolerance"])
+    # the straight line from the start to the reach set crosses the box: the route is a detour, not luck
+    y0, goal = np.asarray(v["run/y"])[:, 0], np.mean(np.asarray(task.reach[0].set, dtype=float), axis=1)
+    line = y0[:, None] + np.linspace(0, 1, 200)[None, :] * (goal - y0)[:, None]
+    assert _outside(line, task.avoid[0].set).min() < 0
+    # the route holds one input per period from the stored table's inputs, within v_max
+    inputs, choice = np.asarray(v["grid/inputs"]), np.asarray(v["grid/route_choice"])
+    assert np.abs(inputs).max() <= float(v["v_max"]) * (1 + 1e-12)
+    assert bool(np.asarray(v["grid/winning_start"]).reshape(-1)[int(v["grid/route_cells"][0])])
+    assert choice.size == int(art.meta["grid_steps"])
+    # simulate's task scenario runs the same table: the same robustness, proved too
+    assert float(sim.values["task/proved"]) == 1.0
+    assert float(sim.values["task/robustness"]) == pytest.approx(entry["task"]["robustness"], abs=1e-9)
+    assert (out / "plots" / "synthesize.png").stat().st_size > 10_000
+
+
+def test_rtamt_agrees_with_the_stored_detour_run(detour):
+    # rtamt's discrete-time monitor on the stored run, read on a uniform 0.05 s grid (its unit steps; the run's own
+    # samples restart at every period of the table), equals ashc's monitor there, and both are the stored
+    # robustness to within what y moves between the grids' samples
+    _, _, _, sim = detour
+    task = load_spec(DETOUR).task
+    t, y = np.asarray(sim.values["task/t"]), np.asarray(sim.values["task/y"])
+    steps = np.arange(0, round(task.horizon / 0.05) + 1, dtype=float)
+    ys = np.stack([np.interp(steps * 0.05, t, row) for row in y])
+    scaled = Task(horizon=task.horizon / 0.05, always=task.always,
+                  reach=[{"set": r.set, "by": r.by / 0.05, "hold": r.hold / 0.05} for r in task.reach],
+                  avoid=[{"set": a.set, "during": [a.during[0] / 0.05, a.during[1] / 0.05]} for a in task.avoid])
+    assert _rtamt(scaled, steps, ys) == pytest.approx(robustness(task, steps * 0.05, ys).robustness, abs=1e-12)
+    moved = float(np.abs(np.diff(y, axis=1)).max()) * 0.05 / float(np.diff(t).min())
+    assert _rtamt(scaled, steps, ys) == pytest.approx(float(sim.values["task/robustness"]), abs=max(moved, 1e-9))
+
+
+def test_a_box_that_closes_the_corridor_is_refused_naming_it(tmp_path):
+    # a wall across the whole of Y between the start and the reach set: no route exists, and the refusal names the
+    # avoid set (the game wins without it), not the deadline or the task as a whole
+    text = DETOUR.read_text().replace("{set: [[0.35, 0.65], [0.3, 0.6]], during: [0.0, 150.0]}",
+                                      "{set: [[0.35, 0.65], [-0.5, 1.5]], during: [0.0, 150.0]}")
+    spec = tmp_path / "wall.yaml"
+    spec.write_text(text)
+    proc = ashc("synthesize", str(spec), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 3
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: task.avoid[0]: closes every route from the start"), line
+    assert "task.planner.cells" in line and not (tmp_path / "out" / "synthesize.h5").exists()
+
+
+@pytest.mark.slow
+def test_falsify_2000_runs_find_no_run_that_breaks_the_detour(detour):
+    out = detour[0]
+    proc = ashc("falsify", str(DETOUR), "--out", str(out), "--runs", "2000", "--json", check=True, timeout=900)
+    data = json.loads(proc.stdout)
+    assert data["task_min_robustness"] >= 0 and data["task_runs"] == 2000, data
+    f = read_artefact(out / "falsify.h5").values
+    assert _outside(np.asarray(f["task/worst/y"]), load_spec(DETOUR).task.avoid[0].set).min() > 0
