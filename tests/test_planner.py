@@ -102,3 +102,24 @@ def test_falsify_2000_runs_find_no_run_that_breaks_the_detour(detour):
     assert data["task_min_robustness"] >= 0 and data["task_runs"] == 2000, data
     f = read_artefact(out / "falsify.h5").values
     assert _outside(np.asarray(f["task/worst/y"]), load_spec(DETOUR).task.avoid[0].set).min() > 0
+
+
+def test_the_exported_plan_holds_the_tables_inputs(detour, tmp_path):
+    # `ashc export --lang python` prints the grid plan as the held inputs of the table's route, and `ashc eval DIR plan`
+    # gives the same v: mid-period, each period's input is the stored route's choice
+    import importlib.util
+
+    out, _, art, _ = detour
+    target = tmp_path / "detour_export.py"
+    ashc("export", str(DETOUR), "--out", str(out), "--lang", "python", "--output", str(target), check=True)
+    mod_spec = importlib.util.spec_from_file_location("detour_export", target)
+    mod = importlib.util.module_from_spec(mod_spec)
+    mod_spec.loader.exec_module(mod)
+    v = art.values
+    tau, inputs, choice = float(v["grid/tau"]), np.asarray(v["grid/inputs"]), np.asarray(v["grid/route_choice"])
+    xi = np.asarray(v["grid/route_states"])
+    for k in (0, 1, len(mod.PLAN_SWITCHES) // 2, len(mod.PLAN_SWITCHES) - 1):
+        got = mod.ashc_plan_controller((k + 0.5) * tau, xi[k])
+        np.testing.assert_allclose(got, inputs[choice[k]], rtol=0, atol=0)
+    proc = ashc("eval", str(out), "plan", "--spec", str(DETOUR), "--at", f"t={1.5 * tau!r},xi1={float(xi[1, 0])!r},xi2={float(xi[1, 1])!r}", check=True)
+    assert proc.stdout.strip().endswith(f"[{inputs[choice[1], 0]:.10g}, {inputs[choice[1], 1]:.10g}]"), proc.stdout

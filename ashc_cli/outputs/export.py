@@ -317,9 +317,9 @@ def task_plan_export(spec: Spec, arts: Mapping[str, Artefact], stored: Artefact 
     if stored is not None:
         v = stored.values
         switches = np.asarray(v["switch_times"], dtype=float).reshape(-1)
-        refs = np.asarray(v["references"], dtype=float).reshape(len(spec.abstract.states), -1).T     # stored (n_hat, reach sets)
+        refs = np.asarray(v["references"], dtype=float).reshape(len(spec.abstract.states), -1).T     # stored (n_hat, segments)
         return TaskPlanExport(switches, refs[:switches.size], float(v["gain"]), float(v["v_max"]), float(v["tolerance"]),
-                              np.asarray(v["xi0"], dtype=float).reshape(-1))
+                              np.asarray(v["xi0"], dtype=float).reshape(-1), "held" if stored.meta.get("planner") == "grid" else "setpoint")
     from ashc_cli.design import task_plan
     from ashc_cli.design.pipeline import design_model
 
@@ -361,7 +361,7 @@ def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], p
     ref = plan.reference(point["t"])
     if not set(names) <= set(point):
         return "xi_ref", [float(r) for r in ref]
-    from ashc_cli.closedloop.laws import setpoint_law
+    from ashc_cli.closedloop.laws import held_law, setpoint_law
     from ashc_cli.closedloop.terms import DesignTerms
     from ashc_cli.design.pipeline import design_model
 
@@ -370,7 +370,7 @@ def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], p
     phi = np.ascontiguousarray(np.asarray(at[0], dtype=float).reshape(-1))
     delta = np.ascontiguousarray(np.asarray(at[1], dtype=float).reshape(len(names), -1))
     v = np.empty(delta.shape[1])
-    setpoint_law(float(point["t"]), np.ascontiguousarray(xi), np.ascontiguousarray(ref, dtype=float), phi, delta,
-                 np.array([plan.gain, plan.v_max]), v)
+    (held_law if plan.law == "held" else setpoint_law)(float(point["t"]), np.ascontiguousarray(xi), np.ascontiguousarray(ref, dtype=float),
+                                                      phi, delta, plan.prm, v)
     return "v", [float(x) for x in v]
 

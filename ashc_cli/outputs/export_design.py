@@ -32,7 +32,9 @@ STATUS = {0: "ok", 1: "outside the certified set (h(x) not in inverse.m_domain)"
 @dataclass(frozen=True)
 class TaskPlanExport:
     """The task's plan as the exported code replays it (:mod:`ashc_cli.design.task_plan`): from ``switches[k]`` on,
-    the set-point law with ``gain`` and ``v_max`` aims at ``refs[k]``.
+    the set-point law with ``gain`` and ``v_max`` aims at ``refs[k]``; or, for the grid planner (``law`` "held"), the
+    table's input for the period starting at ``switches[k]`` is held (its first m_hat entries of ``refs[k]``): the
+    inputs the table chooses along its route from ``xi0``, which is the abstraction's own run whatever the plant does.
 
     Attributes
     ----------
@@ -44,6 +46,8 @@ class TaskPlanExport:
         The set-point gain, the elementwise clip of v (the budget mode) and the tolerance EPS it guarantees.
     xi0 : ndarray (n_hat,)
         The plan's start.
+    law : str
+        ``setpoint`` or ``held`` (the grid planner's table).
     """
 
     switches: np.ndarray
@@ -52,13 +56,20 @@ class TaskPlanExport:
     v_max: float
     eps: float
     xi0: np.ndarray
+    law: str = "setpoint"
+
+    @property
+    def prm(self) -> np.ndarray:
+        """The law's parameters: [gain, v_max] for the set-point law, [v_max] for the held input."""
+        return np.array([self.v_max] if self.law == "held" else [self.gain, self.v_max], dtype=float)
 
     @staticmethod
     def of(plan) -> TaskPlanExport:
         """From a :class:`~ashc_cli.design.task_plan.TaskPlan`."""
         switches = np.asarray(plan.switches, dtype=float).reshape(-1)
         refs = np.stack([np.asarray(r, dtype=float).reshape(-1) for r in plan.refs])[:switches.size]   # the segments the plan ran
-        return TaskPlanExport(switches, refs, float(plan.gain), float(plan.v_max), float(plan.eps), np.asarray(plan.xi0, dtype=float).reshape(-1))
+        return TaskPlanExport(switches, refs, float(plan.gain), float(plan.v_max), float(plan.eps), np.asarray(plan.xi0, dtype=float).reshape(-1),
+                              plan.law().kind)
 
     def reference(self, t: float) -> np.ndarray:
         """The plan's reference at time t (the segment that started last; the first before 0)."""

@@ -21,7 +21,7 @@ from ashc_cli.design.upstream import DOMAIN_RTOL
 
 from ashc_cli.closedloop import interface as law
 from ashc_cli.closedloop.compiled import interface_codes
-from ashc_cli.closedloop.laws import pinv_into, setpoint, setpoint_direction, setpoint_law
+from ashc_cli.closedloop.laws import held_law, pinv_into, setpoint, setpoint_direction, setpoint_law
 from ashc_cli.outputs import translate
 from ashc_cli.outputs.export_design import NEEDED, Design
 
@@ -33,7 +33,8 @@ PINV_RCOND = 1e-15
 JACOBI_SWEEPS = 60
 #: The laws the exported interface and controller run: the compiled loops' own functions, printed (callees first).
 #: pinv_into is numpy's pinv in Python and the Jacobi SVD below in C.
-LAWS = (pinv_into, law.saturate, law.feedback_of, law.lt_times, law.q_of, law.times, law.apply, setpoint_direction, setpoint, setpoint_law)
+LAWS = (pinv_into, law.saturate, law.feedback_of, law.lt_times, law.q_of, law.times, law.apply, setpoint_direction, setpoint, setpoint_law,
+        held_law)
 
 
 def _name(fn) -> str:
@@ -228,12 +229,21 @@ def c_sources(design: Design, header_name: str = "ashc_design.h", controller=Non
     return "\n".join(source), "\n".join(_c_header(d, controller_args, controller))
 
 
+def _plan_law(d: Design):
+    """The law the task's plan runs: the set-point law, or the grid planner's held input."""
+    return held_law if d.plan.law == "held" else setpoint_law
+
+
 def _plan_calls(d: Design) -> set[str]:
-    """The laws the task's plan calls (its set-point law), none without a plan."""
-    return {_name(setpoint_law)} if d.plan is not None else set()
+    """The laws the task's plan calls, none without a plan."""
+    return {_name(_plan_law(d))} if d.plan is not None else set()
 
 
 def _plan_says(d: Design) -> str:
+    if d.plan.law == "held":
+        return (f"The task's plan (ashc synthesize, the grid planner): from t = switches[k] on, v = references[k] (its first abstract "
+                f"inputs), held, |v_a| <= v_max {d.plan.v_max:.6g}: the proved table's inputs along its route from xi0; it keeps "
+                f"|psi - y| <= EPS = {d.plan.eps:.6g} (budget mode, eq. (38))")
     return (f"The task's plan (ashc synthesize): from t = switches[k] on, the set-point law with gain {d.plan.gain:.6g} and "
             f"v_max {d.plan.v_max:.6g} aims at references[k]; it keeps |psi - y| <= EPS = {d.plan.eps:.6g} (budget mode, eq. (38))")
 
@@ -243,15 +253,16 @@ def _c_plan(d: Design) -> list[str]:
     if d.plan is None:
         return []
     K = len(d.plan.switches)
+    P, prm = (1, "ASHC_PLAN_V_MAX") if d.plan.law == "held" else (2, "ASHC_PLAN_GAIN, ASHC_PLAN_V_MAX")
     return [f"const double ashc_plan_switches[ASHC_PLAN_SEGMENTS] = {{{', '.join(_num(x) for x in d.plan.switches)}}};",
             f"const double ashc_plan_references[ASHC_PLAN_SEGMENTS][{NAS}] = {_c_rows(d.plan.refs)};", "",
             "void ashc_plan_reference(double t, double *xi_ref)", "{", "    int k = 0, i;",
             f"    while (k + 1 < {K} && t >= ashc_plan_switches[k + 1]) k++;",
             f"    for (i = 0; i < {NAS}; i++) xi_ref[i] = ashc_plan_references[k][i];", "}", "",
             "void ashc_plan_controller(double t, const double *xi, double *v)", "{",
-            f"    double ref[{NAS}], phi[{NAS}], delta[{NAS} * {NAI}];", "    const double prm[2] = {ASHC_PLAN_GAIN, ASHC_PLAN_V_MAX};",
+            f"    double ref[{NAS}], phi[{NAS}], delta[{NAS} * {NAI}];", f"    const double prm[{P}] = {{{prm}}};",
             "    ashc_plan_reference(t, ref);", "    abstract_terms(xi, phi, delta);",
-            f"    {_name(setpoint_law)}(t, xi, {NAS}, ref, {NAS}, phi, {NAS}, delta, {NAS}, {NAI}, prm, 2, v, {NAI});", "}", ""]
+            f"    {_name(_plan_law(d))}(t, xi, {NAS}, ref, {NAS}, phi, {NAS}, delta, {NAS}, {NAI}, prm, {P}, v, {NAI});", "}", ""]
 
 
 def _c_plan_header(d: Design) -> list[str]:
@@ -280,7 +291,8 @@ def _py_plan(d: Design) -> list[str]:
             "    return PLAN_REFERENCES[k].copy()", "", "",
             "def ashc_plan_controller(t, xi):", '    """The plan\'s abstract input v at time t and abstract state xi."""',
             "    xi = numpy.ascontiguousarray(xi, dtype=float)", "    phi, delta = _abstract_terms(xi)", "    v = numpy.empty(N_ABSTRACT_INPUTS)",
-            f"    {_name(setpoint_law)}(float(t), xi, ashc_plan_reference(t), phi, delta, numpy.array([PLAN_GAIN, PLAN_V_MAX]), v)",
+            f"    {_name(_plan_law(d))}(float(t), xi, ashc_plan_reference(t), phi, delta, numpy.array("
+            f"{'[PLAN_V_MAX]' if d.plan.law == 'held' else '[PLAN_GAIN, PLAN_V_MAX]'}), v)",
             "    return v", "", ""]
 
 
