@@ -19,14 +19,24 @@ from .conftest import SPECS, ashc
 from .test_task_monitor import _rtamt
 
 DETOUR = SPECS / "two_output_detour.yaml"
+OSCILLATOR = SPECS / "rotor_cart_oscillator.yaml"
+
+
+def _synthesized(spec, out):
+    """`ashc synthesize` then `ashc simulate` on a spec: (folder, synthesize's JSON, synthesize.h5, simulate.h5)."""
+    proc = ashc("synthesize", str(spec), "--out", str(out), "--json", check=True)
+    ashc("simulate", str(spec), "--out", str(out), check=True)
+    return out, json.loads(proc.stdout), read_artefact(out / "synthesize.h5"), read_artefact(out / "simulate.h5")
 
 
 @pytest.fixture(scope="module")
 def detour(tmp_path_factory):
-    out = tmp_path_factory.mktemp("detour")
-    proc = ashc("synthesize", str(DETOUR), "--out", str(out), "--json", check=True)
-    ashc("simulate", str(DETOUR), "--out", str(out), check=True)
-    return out, json.loads(proc.stdout), read_artefact(out / "synthesize.h5"), read_artefact(out / "simulate.h5")
+    return _synthesized(DETOUR, tmp_path_factory.mktemp("detour"))
+
+
+@pytest.fixture(scope="module")
+def oscillator(tmp_path_factory):
+    return _synthesized(OSCILLATOR, tmp_path_factory.mktemp("oscillator"))
 
 
 def _outside(y: np.ndarray, box) -> np.ndarray:
@@ -63,12 +73,13 @@ def test_the_detour_is_proved_and_met_on_the_plant_around_the_box(detour):
     assert (out / "plots" / "synthesize.png").stat().st_size > 10_000
 
 
-def test_rtamt_agrees_with_the_stored_detour_run(detour):
-    # rtamt's discrete-time monitor on the stored run, read on a uniform 0.05 s grid (its unit steps; the run's own
-    # samples restart at every period of the table), equals ashc's monitor there, and both are the stored
+@pytest.mark.parametrize("which, spec", [("detour", DETOUR), ("oscillator", OSCILLATOR)])
+def test_rtamt_agrees_with_the_stored_run(which, spec, request):
+    # rtamt's discrete-time monitor on simulate's stored task run, read on a uniform 0.05 s grid (its unit steps; the
+    # run's own samples restart at every period of the table), equals ashc's monitor there, and both are the stored
     # robustness to within what y moves between the grids' samples
-    _, _, _, sim = detour
-    task = load_spec(DETOUR).task
+    _, _, _, sim = request.getfixturevalue(which)
+    task = load_spec(spec).task
     t, y = np.asarray(sim.values["task/t"]), np.asarray(sim.values["task/y"])
     steps = np.arange(0, round(task.horizon / 0.05) + 1, dtype=float)
     ys = np.stack([np.interp(steps * 0.05, t, row) for row in y])
@@ -95,13 +106,32 @@ def test_a_box_that_closes_the_corridor_is_refused_naming_it(tmp_path):
 
 
 @pytest.mark.slow
-def test_falsify_2000_runs_find_no_run_that_breaks_the_detour(detour):
-    out = detour[0]
-    proc = ashc("falsify", str(DETOUR), "--out", str(out), "--runs", "2000", "--json", check=True, timeout=900)
+@pytest.mark.parametrize("which, spec", [("detour", DETOUR), ("oscillator", OSCILLATOR)])
+def test_falsify_2000_runs_find_no_run_that_breaks_the_plan(which, spec, request):
+    out = request.getfixturevalue(which)[0]
+    proc = ashc("falsify", str(spec), "--out", str(out), "--runs", "2000", "--json", check=True, timeout=900)
     data = json.loads(proc.stdout)
     assert data["task_min_robustness"] >= 0 and data["task_runs"] == 2000, data
     f = read_artefact(out / "falsify.h5").values
-    assert _outside(np.asarray(f["task/worst/y"]), load_spec(DETOUR).task.avoid[0].set).min() > 0
+    for avoid in load_spec(spec).task.avoid:
+        assert _outside(np.atleast_2d(np.asarray(f["task/worst/y"])), avoid.set).min() > 0
+
+
+def test_the_oscillator_is_damped_into_the_set_by_a_proved_table(oscillator):
+    # two abstract states, one output: the set-point plan cannot plan it; the grid's table does, proved, and the plant
+    # (whose cart the input does not drive) meets the task
+    out, entry, art, sim = oscillator
+    assert entry["planner"] == "grid" and art.checks["task_certified"].passed and art.checks["task_certified"].evidence == "proved"
+    assert entry["task"]["satisfied"] and float(sim.values["task/robustness"]) >= 0 and float(sim.values["task/proved"]) == 1.0
+    assert float(art.values["run/max_abs_error"]) <= float(art.values["tolerance"])
+    # the table's hold begins within the deadline, and psi is in the deflated set at that sample
+    task, tau = load_spec(OSCILLATOR).task, float(art.values["grid/tau"])
+    begin = int(np.asarray(art.values["grid/hold_steps"])[0])
+    assert begin * tau <= task.reach[0].by
+    (lo, hi), eps = task.reach[0].set[0], float(art.values["tolerance"])
+    xi = np.asarray(art.values["grid/route_states"])[begin]
+    assert lo + eps <= xi[0] <= hi - eps          # psi = xi1
+    assert (out / "plots" / "synthesize_grid.png").stat().st_size > 10_000
 
 
 def test_the_exported_plan_holds_the_tables_inputs(detour, tmp_path):

@@ -23,7 +23,7 @@ from numba import njit
 from scipy import ndimage
 
 __all__ = ["Grid", "Transitions", "contained", "admissible", "pre", "safety", "Phase", "Winning", "chain", "hold_sets",
-           "geodesic", "Route", "route", "ROUTE_SLACK"]
+           "geodesic", "layers", "Route", "route", "ROUTE_SLACK"]
 
 
 @dataclass(frozen=True)
@@ -384,6 +384,33 @@ def geodesic(grid: Grid, target: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     return dist.reshape(-1)
 
 
+def layers(grid: Grid, target: np.ndarray, allowed: np.ndarray, trans: Transitions, most: int) -> np.ndarray:
+    """How many periods each cell needs, at the fewest, to be driven into ``target`` through ``allowed`` cells (the
+    attractor's layers of a time-invariant reach game: layer j is pre of layer j - 1 within ``allowed``), inf where
+    ``most`` layers do not reach it.
+
+    Parameters
+    ----------
+    grid : Grid
+    target, allowed : bool ndarray (size,)
+    trans : Transitions
+    most : int
+
+    Returns
+    -------
+    float ndarray (size,)
+    """
+    reached = np.asarray(target, dtype=bool).copy()
+    depth = np.where(reached, 0.0, np.inf)
+    for j in range(1, most + 1):
+        grown = reached | (allowed & pre(grid, reached, trans)[0])
+        if np.array_equal(grown, reached):
+            break
+        depth[grown & ~reached] = j
+        reached = grown
+    return depth
+
+
 #: The route's state is taken as possibly in any cell within this share of a cell of it: the input it holds must be
 #: admissible from each (the state is integrated, not exact, and may sit on a face).
 ROUTE_SLACK = 1e-6
@@ -438,8 +465,9 @@ def route(grid: Grid, safe: np.ndarray, phases: list[Phase], trans: Transitions,
           advance, effort: np.ndarray) -> Route:
     """Run the table of :func:`chain` from the state x0: at each sample, the inputs whose successors from the state's
     cell (and the cells within :data:`ROUTE_SLACK` of it) all lie in the next winning set; of those, the one whose
-    successor box's centre is fewest steps from the phase's target around the cells that never win
-    (:func:`geodesic`), deepest in the target during a hold, and then the least ``effort``.
+    successor box's centre needs the fewest periods to where the phase's hold can begin (:func:`layers`, through the
+    cells safe at some step), then the fewest cells around the cells that never win (:func:`geodesic`); the one
+    deepest in the target during a hold; and then the least ``effort``.
 
     Parameters
     ----------
@@ -464,6 +492,7 @@ def route(grid: Grid, safe: np.ndarray, phases: list[Phase], trans: Transitions,
     centre = np.ravel_multi_index(tuple(((trans.lo + trans.hi) // 2).transpose(2, 0, 1)), grid.cells)       # (size, inputs)
     anywhere = np.ones(grid.size, dtype=bool)
     to_go = [geodesic(grid, ph.target, win.reach[p].any(axis=0) | ph.target) for p, ph in enumerate(phases)]
+    near = [layers(grid, win.starts[p].any(axis=0), safe.any(axis=0), trans, steps) for p in range(len(phases))]
     depth = [geodesic(grid, ~ph.target, anywhere) for ph in phases]
     choice, cells, phase, states, holds = [], [], [], [np.asarray(x0, dtype=float)], []
     state, widened = [0, None, -1], 0
@@ -483,9 +512,10 @@ def route(grid: Grid, safe: np.ndarray, phases: list[Phase], trans: Transitions,
             widened += 1
         if not ok.any():
             raise ValueError(f"no admissible input at step {k} from cell {c}: the start was not winning")
-        score = (np.zeros(trans.inputs) if p >= len(phases) else
-                 -depth[p][centre[c]] if held is not None else to_go[p][centre[c]])
-        order = np.lexsort((np.arange(trans.inputs), effort, np.where(ok, score, np.inf), ~ok))
+        zero = np.zeros(trans.inputs)
+        first, second = ((zero, zero) if p >= len(phases) else (-depth[p][centre[c]], zero) if held is not None else
+                         (near[p][centre[c]], to_go[p][centre[c]]))
+        order = np.lexsort((np.arange(trans.inputs), effort, second, first, ~ok))
         u = int(order[0])
         choice.append(u)
         x = np.asarray(advance(x, u), dtype=float)
