@@ -8,7 +8,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from ashc_cli.numerics.grid_games import Grid, Phase, Transitions, chain, contained, pre, safety
+from ashc_cli.numerics.grid_games import Grid, Phase, Transitions, admissible, chain, contained, hold_sets, pre, route, safety
 
 
 @pytest.mark.parametrize("cells", [(13,), (7, 9), (4, 5, 6)])
@@ -108,3 +108,31 @@ def test_two_phases_in_order_with_an_avoid_window():
 
     assert met(open_, 119) and not met(open_, 118)      # 65 steps there, 3 held, 51 back
     assert met(safe, 126) and not met(safe, 125)        # 49 entered at step 96 at the earliest, 30 more to cell 19
+
+
+def test_the_route_is_the_tables_law_and_goes_around_the_wall_in_the_fewest_moves():
+    # exact moves on a 20 x 20 grid with a wall that leaves a gap: the table's route from (2, 2) holds the target from
+    # the fewest moves a breadth-first search needs (the layers aim at where the hold can begin), every input it
+    # holds is admissible towards the next winning set, it never enters the wall, and the hold is kept
+    grid = Grid(np.zeros(2), np.full(2, 20.0), (20, 20))
+    moves = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
+    trans = _shift(grid, moves)
+    free = np.ones((20, 20), dtype=bool)
+    free[10, :17] = False
+    target = np.zeros((20, 20), dtype=bool)
+    target[17:19, 2:4] = True
+    steps, hold = 80, 3
+    safe = np.repeat(free.reshape(1, -1), steps + 1, axis=0)
+    need = _bfs(free, (2, 2), target)
+    phases = [Phase(target.reshape(-1), need + 5, hold)]
+    win = chain(grid, safe, phases, trans, steps)
+    centre = grid.centres()
+    start = centre[np.ravel_multi_index((2, 2), grid.cells)]
+    r = route(grid, safe, phases, trans, win, start, lambda x, u: x + moves[u] * grid.eta, np.abs(moves).sum(axis=1).astype(float))
+    assert r.holds == [need] and r.widened == 0
+    assert not np.any(~free.reshape(-1)[r.cells])
+    assert np.all(target.reshape(-1)[r.cells[need:need + hold + 1]])
+    held = hold_sets(grid, phases[0], safe, win.after(0), trans, need)
+    for k, (c, u) in enumerate(zip(r.cells[:-1], r.choice)):
+        mask = held[k + 1 - need] if need <= k < need + hold else (win.reach[0][k + 1] if k < need else win.done[k + 1])
+        assert admissible(grid, mask, trans, np.array([c]))[u], k
