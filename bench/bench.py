@@ -137,6 +137,10 @@ def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
                 "<= 3 x the design (issue 41)")
     row["note"] = f"{row['wall'] / design['wall']:.1f} x the design's wall time; " + task_split(tdir, task, timeout, env)
     out += grid_games(timeout)
+    detour, ddir = "specs/two_output_detour.yaml", tmp / "detour"
+    subprocess.run(ASHC + ["design", detour, "--out", str(ddir)], check=True, capture_output=True, cwd=ROOT, env=env)
+    timed("detour `synthesize` (specs/two_output_detour.yaml): grid planner, 80 x 80 cells", ASHC + ["synthesize", detour, "--out", str(ddir)],
+          "synthesize", "issue 42", "2 abstract states, 2 outputs, an avoid box to go around; proved")
     path = ladder_spec(tmp, 16, maximise=True)
     timed("`stabilise` with decay_rate: maximise, 64 states", ASHC + ["stabilise", str(path), "--out", str(tmp / "max16")], "stabilise", "<= 60 s")
     return out

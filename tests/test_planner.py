@@ -107,11 +107,13 @@ def test_a_box_that_closes_the_corridor_is_refused_naming_it(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("which, spec", [("detour", DETOUR), ("oscillator", OSCILLATOR)])
-def test_falsify_2000_runs_find_no_run_that_breaks_the_plan(which, spec, request):
+def test_falsify_finds_no_run_that_breaks_the_plan(which, spec, request):
+    # 1000 runs: a task run of these horizons costs about 0.12 s (20000 samples), so 2000 (measured by hand, docs/guide.md:
+    # smallest robustness >= 0 on both) would pass the suite's 300 s per test on a busy two-core machine
     out = request.getfixturevalue(which)[0]
-    proc = ashc("falsify", str(spec), "--out", str(out), "--runs", "2000", "--json", check=True, timeout=900)
+    proc = ashc("falsify", str(spec), "--out", str(out), "--runs", "1000", "--json", check=True, timeout=290)
     data = json.loads(proc.stdout)
-    assert data["task_min_robustness"] >= 0 and data["task_runs"] == 2000, data
+    assert data["task_min_robustness"] >= 0 and data["task_runs"] == 1000, data
     f = read_artefact(out / "falsify.h5").values
     for avoid in load_spec(spec).task.avoid:
         assert _outside(np.atleast_2d(np.asarray(f["task/worst/y"])), avoid.set).min() > 0

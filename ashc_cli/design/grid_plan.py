@@ -60,8 +60,9 @@ class GridProblem:
     substeps: int = 4
 
 
-#: Cells around the grid whose enclosures are kept too (the states a period's flow from an edge cell may reach).
-PAD = 8
+#: Cells around the grid whose enclosures are kept too (the states a period's flow from an edge cell may reach), by
+#: the number of abstract states (fewer in 3-D, where the padding is most of the cells: 24^3 padded by 8 is 4.7 x).
+PAD = {1: 8, 2: 8, 3: 4}
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ class CellEnclosures:
     kappa: np.ndarray
 
 
-def enclose_cells(model, arts: dict, grid: Grid, pad: int = PAD) -> CellEnclosures:
+def enclose_cells(model, arts: dict, grid: Grid, pad: int | None = None) -> CellEnclosures:
     """:class:`CellEnclosures` of a design's abstraction on ``grid``.
 
     Parameters
@@ -95,7 +96,8 @@ def enclose_cells(model, arts: dict, grid: Grid, pad: int = PAD) -> CellEnclosur
     arts : dict of str to Artefact
         The design (its kappa and delta).
     grid : Grid
-    pad : int
+    pad : int, optional
+        Cells of padding per side [default: :data:`PAD` of the grid's dimension].
 
     Returns
     -------
@@ -106,6 +108,7 @@ def enclose_cells(model, arts: dict, grid: Grid, pad: int = PAD) -> CellEnclosur
     DesignError
         If no cell of V has finite enclosures (naming abstract.domain).
     """
+    pad = PAD[len(grid.cells)] if pad is None else int(pad)
     T = design_matrices(model, arts, ("phi", "delta", "kappa"))
     xi = list(model.xi)
     phi, delta = T["phi"], T["delta"]

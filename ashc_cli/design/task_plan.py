@@ -447,7 +447,8 @@ def _default_tau(model, plant: DesignTerms, cells: tuple, v_max: float) -> float
     speed = np.zeros(model.n_hat)
     for z in itertools.product(*axes):
         speed = np.maximum(speed, np.abs(plant.abstraction(np.array(z))[1]).sum(axis=1) * v_max)
-    tau = GRID_MOVE * float(np.min(eta / np.maximum(speed, 1e-300)))
+    # just under GRID_MOVE cells: at exactly GRID_MOVE the outward-rounded motion bound would take a cell more
+    tau = GRID_MOVE * (1 - 1e-6) * float(np.min(eta / np.maximum(speed, 1e-300)))
     return float(np.clip(tau, H / GRID_PERIODS[1], H / GRID_PERIODS[0]))
 
 
