@@ -27,7 +27,7 @@ def _model(arts, by: float):
 
 
 # from xi = 0 the deflated set [0.6, 1.2] is 1.2 s away at v_max = 0.5: nothing earlier can win; the grid (cells of
-# 0.01, tau = 0.1, closed cells: a successor box on a cell boundary holds both cells) wins from 1.6 s on (measured)
+# 0.01, tau = 0.1, closed cells: a successor box on a cell boundary holds both cells) wins from 1.7 s on (measured)
 @pytest.mark.parametrize("by, wins", [(8.0, True), (1.7, True), (1.1, False)])
 def test_the_deadline_is_won_when_the_abstractions_speed_allows(line, by, wins):
     model = _model(line, by)
@@ -53,3 +53,22 @@ def test_the_bounds_hold_the_abstraction_and_kappa(line):
     c = grid.centres()[:, 0]
     np.testing.assert_allclose(lo[:, 0], c - grid.eta[0] / 2, atol=1e-12)              # psi = xi over each cell
     np.testing.assert_allclose(hi[:, 0], c + grid.eta[0] / 2, atol=1e-12)
+
+
+def test_a_deadline_too_early_is_named_with_the_earliest_that_wins(line):
+    # by = 1.1 s loses (the test above); the refusal names task.reach[0].by and the earliest deadline the grid wins
+    # with, which must itself win, be no earlier than the answer known by hand (1.2 s) nor later than the 1.7 s the
+    # test above wins with, and the period before it must lose
+    import re
+
+    from ashc_cli.design.grid_plan import why_not
+
+    model = _model(line, 1.1)
+    prob = GridProblem((300,), np.linspace(-0.5, 0.5, 5)[:, None], 0.1, 0.1)
+    game = solve(model, line, prob)
+    where, what = why_not(game, np.zeros(1), model.spec.task)
+    assert where == "task.reach[0].by", what
+    earliest = float(re.search(r"by = ([0-9.]+) s", what).group(1))
+    assert 1.2 <= earliest <= 1.7 + 1e-9
+    assert solve(_model(line, earliest), line, prob).wins(np.zeros(1))
+    assert not solve(_model(line, round(earliest - 0.1, 6)), line, prob).wins(np.zeros(1))

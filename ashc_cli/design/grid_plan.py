@@ -303,6 +303,10 @@ class GridGame:
     phases : list of Phase
     win : Winning
     steps : int
+    parts : tuple
+        The always set's cells and each avoid set's (:func:`task_cells`).
+    tau : float
+        The period (s).
     """
 
     grid: Grid
@@ -313,6 +317,7 @@ class GridGame:
     win: Winning
     steps: int
     parts: tuple = ((), [])
+    tau: float = 0.0
 
     def wins(self, xi: np.ndarray) -> bool:
         """Whether the state xi's cell is winning from step 0."""
@@ -377,7 +382,7 @@ def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf, en
     safe, phases, parts = task_cells(model, enc, prob, steps)
     if xi0 is not None and (not safe[0, grid.cell_of(xi0)] or not all(ph.target.any() for ph in phases)):
         lost = np.zeros((steps + 1, grid.size), dtype=bool)
-        return GridGame(grid, inputs, None, safe, phases, Winning([lost] * len(phases), lost, [lost] * len(phases)), steps, parts)
+        return GridGame(grid, inputs, None, safe, phases, Winning([lost] * len(phases), lost, [lost] * len(phases)), steps, parts, prob.tau)
     bounds = abstraction_bounds(enc, v_max, prob.tau)
     plant = BatchPlant(model, arts)
 
@@ -388,7 +393,7 @@ def solve(model, arts: dict, prob: GridProblem, memory_limit: float = np.inf, en
         return f
 
     trans = growth_transitions(grid, [field(v) for v in inputs], [bounds] * len(inputs), prob.tau, prob.substeps)
-    return GridGame(grid, inputs, trans, safe, phases, chain(grid, safe, phases, trans, steps), steps, parts)
+    return GridGame(grid, inputs, trans, safe, phases, chain(grid, safe, phases, trans, steps), steps, parts, prob.tau)
 
 
 def why_not(game: GridGame, xi0: np.ndarray, task) -> tuple[str, str]:
@@ -419,8 +424,17 @@ def why_not(game: GridGame, xi0: np.ndarray, task) -> tuple[str, str]:
         if chain(g, safe, game.phases, trans, steps).start()[c]:
             return f"task.avoid[{j}]", "closes every route from the start: without it the start's cell wins"
     for k in range(len(game.phases)):
-        late = [Phase(q.target, steps - q.hold if i >= k else q.by, q.hold, q.tube) for i, q in enumerate(game.phases)]
-        if chain(g, game.safe, late, trans, steps).start()[c]:
-            return f"task.reach[{k}].by", "is too early for the abstraction at this v_max: with every deadline from it on at the horizon the start wins"
+        def wins(by: int, k=k) -> bool:
+            late = [Phase(q.target, by if i == k else steps - q.hold if i > k else q.by, q.hold, q.tube) for i, q in enumerate(game.phases)]
+            return bool(chain(g, game.safe, late, trans, steps).start()[c])
+
+        lo, hi = game.phases[k].by, steps - game.phases[k].hold
+        if hi > lo and wins(hi):
+            while hi - lo > 1:          # the earliest deadline (in periods) that wins, by bisection
+                mid = (lo + hi) // 2
+                lo, hi = (lo, mid) if wins(mid) else (mid, hi)
+            late = f"{hi * game.tau:.4g} s" if game.tau > 0 else f"period {hi}"
+            return f"task.reach[{k}].by", (f"{task.reach[k].by:g} s is too early for the abstraction at this v_max: the start wins with "
+                                           f"by = {late} (the later deadlines at the horizon)")
     won = int(game.win.start().sum())
     return "task", f"the start's cell is not winning ({won} of {g.size} cells win)"
