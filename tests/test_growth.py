@@ -69,3 +69,22 @@ def test_transitions_of_a_grid_hold_the_cells_the_flow_reaches():
             x0 = grid.centres()[k] + rng.uniform(-0.5, 0.5, (20, 2)) * grid.eta
             idx = np.floor((_flow(x0, u, 0.1) - grid.lo) / grid.eta).astype(int)
             assert np.all((idx >= trans.lo[k, j]) & (idx <= trans.hi[k, j]))
+
+
+def test_an_admissible_input_keeps_the_flow_in_the_grid_within_the_period():
+    # a rotation xi' = (-xi2, xi1) on V = [-1, 1]^2 with bounds valid on a larger region: a cell at V's edge whose
+    # flow leaves V within the period and comes back by its end was admissible when only the period's end was
+    # checked (a review found xi1 = 1.0003 from cell (79, 39) at tau = 0.145); now every admissible cell's exact
+    # flow, from its corners at 60 times in the period, stays in V
+    grid = Grid(np.array([-1.0, -1.0]), np.array([1.0, 1.0]), (80, 80))
+    J = np.array([[0.0, 1.0], [1.0, 0.0]])
+    bounds = GrowthBounds(np.array([2.0, 2.0]), J, J, np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
+    tau = 0.145
+    trans = growth_transitions(grid, [lambda x: np.stack([-x[:, 1], x[:, 0]], axis=1)], [bounds], tau, 8)
+    ok = np.flatnonzero(trans.inside[:, 0])
+    assert 0 < ok.size < grid.size
+    c, half = grid.centres()[ok], grid.eta / 2
+    corners = np.concatenate([c + np.array(s) * half for s in ((-1, -1), (-1, 1), (1, -1), (1, 1))])
+    for t in np.linspace(0.0, tau, 60):
+        R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+        assert np.abs(corners @ R.T).max() <= 1.0 + 1e-12, t

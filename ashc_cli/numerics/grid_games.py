@@ -446,15 +446,16 @@ class Route:
 
 
 def _next_phase(grid: Grid, phases: list[Phase], safe: np.ndarray, trans: Transitions, win: Winning, state: list, k: int,
-                c: int) -> int:
-    """Begin and end holds at step k in cell c: ``state`` = [phase, its hold sets or None, the hold's first step],
-    updated in place; returns how many holds began."""
+                c: np.ndarray) -> int:
+    """Begin and end holds at step k with the state in one of the cells ``c``: ``state`` = [phase, its hold sets or
+    None, the hold's first step], updated in place (a hold begins only when every one of the cells may begin it);
+    returns how many holds began."""
     begun = 0
     while True:
         p, held, s = state
         if held is not None and k == s + phases[p].hold:
             state[:] = [p + 1, None, -1]
-        elif held is None and p < len(phases) and k <= phases[p].by and win.starts[p][k][c]:
+        elif held is None and p < len(phases) and k <= phases[p].by and bool(np.all(win.starts[p][k][c])):
             state[:] = [p, hold_sets(grid, phases[p], safe, win.after(p), trans, k), k]
             begun += 1
         else:
@@ -499,14 +500,15 @@ def route(grid: Grid, safe: np.ndarray, phases: list[Phase], trans: Transitions,
     x = states[0]
     for k in range(steps + 1):
         c = grid.cell_of(x)
-        holds += [k] * _next_phase(grid, phases, safe, trans, win, state, k, c)
+        around = grid.cells_met(x - slack, x + slack)
+        holds += [k] * _next_phase(grid, phases, safe, trans, win, state, k, around)
         cells.append(c)
         phase.append(state[0])
         if k == steps:
             break
         p, held, s = state
         mask = held[k + 1 - s] if held is not None else (win.reach[p][k + 1] if p < len(phases) else win.done[k + 1])
-        ok = admissible(grid, mask, trans, grid.cells_met(x - slack, x + slack))
+        ok = admissible(grid, mask, trans, around)
         if not ok.any():
             ok = admissible(grid, mask, trans, np.array([c]))
             widened += 1

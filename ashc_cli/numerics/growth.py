@@ -90,8 +90,11 @@ def successor_boxes(f: Callable[[np.ndarray], np.ndarray], centre: np.ndarray, r
         tube = r + h * Mf
         stays &= np.all((c - tube >= bounds.D_lo) & (c + tube <= bounds.D_hi), axis=1)
         fc = f(c)
-        r = np.einsum("nij,nj->ni", grow, r) + np.einsum("nij,nj->ni", Jabs, np.abs(fc)) * (h * h / 2) + second
-        c = c + h * fc
+        step = h * fc
+        # the rounding of c + h f(c) (a few units in the last place of the larger of the two), beyond FLOAT_PAD's
+        rounding = 4 * np.spacing(np.abs(c) + np.abs(step))
+        r = np.einsum("nij,nj->ni", grow, r) + np.einsum("nij,nj->ni", Jabs, np.abs(fc)) * (h * h / 2) + second + rounding
+        c = c + step
     return c, r, stays
 
 
@@ -113,6 +116,8 @@ def growth_transitions(grid: Grid, fields: list[Callable[[np.ndarray], np.ndarra
     Returns
     -------
     Transitions
+        An input is admissible from a cell only when every substep's tube lies in the grid (the abstraction's
+        guarantee, Theorem 2, needs xi in V at every time) and in the bounds' region.
     """
     centres = grid.centres()
     half = grid.eta / 2
@@ -120,8 +125,11 @@ def growth_transitions(grid: Grid, fields: list[Callable[[np.ndarray], np.ndarra
     lo = np.empty((N, U, d), dtype=np.int32)          # int32: the transitions are the memory of the games
     hi = np.empty((N, U, d), dtype=np.int32)
     inside = np.empty((N, U), dtype=bool)
+    lo_v, hi_v = np.asarray(grid.lo, dtype=float), np.asarray(grid.hi, dtype=float)
     for u, (f, b) in enumerate(zip(fields, bounds)):
-        c, r, stays = successor_boxes(f, centres, half, b, tau, substeps)
+        # the flow must stay in the grid (V) within the period too, not only at its end: the bounds' region is cut to it
+        inner = GrowthBounds(b.Mf, b.Jabs, b.L, np.maximum(b.D_lo, lo_v), np.minimum(b.D_hi, hi_v))
+        c, r, stays = successor_boxes(f, centres, half, inner, tau, substeps)
         stays &= np.all(np.isfinite(c) & np.isfinite(r), axis=1)
         lo[:, u], hi[:, u], fits = grid.index_range(c - r, c + r)
         inside[:, u] = stays & fits

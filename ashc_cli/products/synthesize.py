@@ -127,13 +127,16 @@ def _store_grid(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> None:
     for j, (meets, _, _) in enumerate(avoids):
         art.values[f"grid/avoid/{j}"] = meets.reshape(g.cells).astype(np.uint8)
     wins = game.wins(plan.xi0)
-    ok = wins and run["table_offset"] <= ROUTE_SLACK
+    # the held inputs are the table's law on the loop's xi when that xi stays within ROUTE_SLACK of a cell of the
+    # route's and every input was chosen admissible from all the cells that near (none from its own cell alone)
+    ok = wins and run["table_offset"] <= ROUTE_SLACK and r.widened == 0
     art.checks["task_certified"] = Check(
         0.0 if ok else -np.inf, ok,
         f"the start's cell wins the task's game on {' x '.join(map(str, g.cells))} cells of V with the input held over tau = {plan.tau:.4g} s "
         f"({len(game.inputs)} inputs, |v_a| <= {plan.v_max:.4g}): psi's tube over every period lies in the sets deflated by EPS = {plan.eps:.4g} "
-        f"(transitions by a proved growth bound, kappa enclosed per cell); the run's xi within {run['table_offset']:.2g} cells of the route's "
-        f"(<= {ROUTE_SLACK:g}: the held inputs are the table's law on it); every plant run from the start region meets the task (margin >= 0, proved). "
+        f"(transitions by a proved growth bound, xi in V within each period, kappa enclosed per cell); the loop's integrated xi within "
+        f"{run['table_offset']:.2g} cells of the route's (<= {ROUTE_SLACK:g}) and {r.widened} inputs chosen from one cell only (0): the held "
+        f"inputs are the table's law on it; every plant run from the start region meets the task (margin >= 0, proved). "
         f"psi's sampled robustness on the route {plan.rob.robustness:.4g} >= EPS is the cross-check", PROVED)
     art.checks["grid_route_cross_check"] = Check(plan.rob.robustness - plan.eps, plan.rob.robustness - plan.eps >= -1e-9,
                                                  "psi's robustness on the route less EPS (>= 0 when the game's proof holds; sampled)", SAMPLED)
