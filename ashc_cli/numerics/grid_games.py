@@ -434,7 +434,8 @@ class Route:
     holds : list of int
         The step each phase's hold began at.
     widened : int
-        Samples at which no input was admissible from every cell near the state, and the state's own cell decided.
+        Samples after the first at which no input was admissible from every cell near the state, and the state's own
+        cell decided (at the first the state is xi0 exactly, which lies in each closed cell it touches).
     """
 
     choice: np.ndarray
@@ -511,7 +512,7 @@ def route(grid: Grid, safe: np.ndarray, phases: list[Phase], trans: Transitions,
         ok = admissible(grid, mask, trans, around)
         if not ok.any():
             ok = admissible(grid, mask, trans, np.array([c]))
-            widened += 1
+            widened += k > 0        # at the start the state is xi0 itself, in each closed cell it touches
         if not ok.any():
             raise ValueError(f"no admissible input at step {k} from cell {c}: the start was not winning")
         zero = np.zeros(trans.inputs)
