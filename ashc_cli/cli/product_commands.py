@@ -215,7 +215,11 @@ def synthesize(spec: SpecArg, out: OutOpt = None, as_json: JsonOpt = False,
     then runs on the plant and the task's robustness of that run is reported (the signed distance, in output
     units, to violating the task). Writes <out>/synthesize.h5 and prints EPS, the certified margin and the
     plant run's robustness. Exit 3 when no EPS works, naming the part of the task that fails and by how much.
-    A plan that would have to go around an avoid set is refused (plan and verify, not a grid game).
+    With two or three abstract states, or when the set-point plan is refused for an avoid set, the task is
+    solved as a game on a grid of V instead (`task.planner`: the grid planner; every transition over-approximated,
+    every set deflated by EPS over each sampling period: the margin is proved), and its table is run as the
+    abstract controller, its input held over each period. Figures: <out>/plots/synthesize.png (and
+    synthesize_grid.png: V's winning cells and the route, two abstract states).
     """
     from ashc_cli.outputs.query import summary
     from ashc_cli.products.synthesize import NAME, run_synthesize
