@@ -156,9 +156,13 @@ def motion_cells(enc: CellEnclosures, v_max: float, tau: float) -> np.ndarray:
     -------
     int ndarray (n_hat,)
     """
-    f_mag = _field_parts(enc, v_max)[0]
+    return _motion(_field_parts(enc, v_max)[0], enc.grid.eta, tau)
+
+
+def _motion(f_mag: np.ndarray, eta: np.ndarray, tau: float) -> np.ndarray:
+    """:func:`motion_cells` from the padded cells' sup |f_i| (``f_mag``, as :func:`_field_parts` gives it)."""
     finite = np.where(np.isfinite(f_mag), f_mag, 0.0).reshape(-1, f_mag.shape[-1]).max(axis=0)
-    return np.ceil(tau * finite / enc.grid.eta * (1 + 1e-12)).astype(np.int64)
+    return np.ceil(tau * finite / eta * (1 + 1e-12)).astype(np.int64)
 
 
 def _field_parts(enc: CellEnclosures, v_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -196,8 +200,8 @@ def abstraction_bounds(enc: CellEnclosures, v_max: float, tau: float) -> GrowthB
     """
     grid, pad = enc.grid, enc.pad
     nh = grid.eta.size
-    r = motion_cells(enc, v_max, tau) + 1
     f_mag, j_mag, top = _field_parts(enc, v_max)
+    r = _motion(f_mag, grid.eta, tau) + 1
     Mf = _window(f_mag, r, pad, grid.cells, True)
     Jabs = _window(j_mag, r, pad, grid.cells, True)
     L = np.where(np.eye(nh, dtype=bool)[None], _window(top, r, pad, grid.cells, True), Jabs)

@@ -421,8 +421,9 @@ def grid_plan_task(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
         eps = float(budget.budget_tolerance)
         tau = given_tau if given_tau is not None else _default_tau(model, plant, cells, float(v_max))
         game = grid_plan.solve(model, up, grid_plan.GridProblem(cells, inputs, tau, eps), limit, enc, xi0)
-        tried.append((eps, 0.0 if game.wins(xi0) else -np.inf))
-        if game.wins(xi0):
+        wins = game.wins(xi0)
+        tried.append((eps, 0.0 if wins else -np.inf))
+        if wins:
             return _grid_route(model, plant, start, game, tau, eps, float(v_max), tried)
         games.append((game, eps, v_max, tau))
     if not games:
@@ -465,11 +466,12 @@ def _grid_route(model, plant: DesignTerms, start: tuple, game, tau: float, eps: 
         v = game.inputs[u]
         field = lambda y: (lambda a: a[0][:, 0] + a[1] @ v)(plant.abstraction(y))     # noqa: E731
         for _ in range(sub):
+            phi, delta, kappa = plant.abstraction(z)        # once per sample: psi there and the step's first stage
             ts.append(len(ts) * h)
             xs.append(z)
-            psis.append(plant.abstraction(z)[2][:, 0])
+            psis.append(kappa[:, 0])
             vs.append(v)
-            z = rk.fixed_step(field, z, h, field(z))
+            z = rk.fixed_step(field, z, h, phi[:, 0] + delta @ v)
         return z
 
     r = route(game.grid, game.safe, game.phases, game.trans, game.win, xi0, advance, np.abs(game.inputs).sum(axis=1))
