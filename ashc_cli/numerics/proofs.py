@@ -24,7 +24,7 @@ from flint import arb
 
 from ashc_cli.numerics import boxsearch, interval
 from ashc_cli.numerics._infsup import ball_of, fdn, fup
-from ashc_cli.problem.model import SIMPLIFY_MAX_OPS, Model
+from ashc_cli.problem.model import SIMPLIFY_MAX_OPS, Model, is_sparse, nonzero_entries
 
 __all__ = ["PROVED", "SAMPLED", "SIMULATED", "symbolic_zero", "affine_in", "BoxFunction", "compile_claims", "sup_on_box",
            "inf_on_box", "range_on_box", "norm_expr", "ball", "ball_box", "upper", "lower", "psd_lower_bound_balls",
@@ -91,7 +91,7 @@ def affine_in(exprs: sp.MatrixBase, symbols: Sequence[sp.Symbol]) -> bool:
     bool
     """
     syms = set(symbols)
-    for e in exprs:
+    for e in (nonzero_entries(exprs).values() if is_sparse(exprs) else exprs):
         for s in symbols:
             if s in e.free_symbols and sp.diff(e, s).free_symbols & syms:
                 return False

@@ -31,6 +31,7 @@ from flint import arb
 
 from ashc_cli.numerics import proofs
 from ashc_cli.problem.model import Model
+from ashc_cli.design.contraction.proof import sym_diagonal_product
 from ashc_cli.design.contraction.terms import MAX_VERTEX_TERMS, Polytope, Terms
 
 __all__ = ["Network", "dissipative_storage", "network_polytope", "largest_rate", "prove"]
@@ -228,7 +229,7 @@ def prove(model: Model, terms: Terms, net: Network, lam: float) -> tuple[float, 
     # slack from the dissipative terms: (hi_k - lo_k) max(0, lambda_max(M A_k + A_k^T M))
     slack = arb(0)
     for k in net.dissipative:
-        T = _sym_MA(d, coef[k + 1])
+        T = sym_diagonal_product(d, coef[k + 1])
         top = _gershgorin_upper(T)
         width = arb(float(terms.ranges[k, 1])) - arb(float(terms.ranges[k, 0]))
         slack += width * arb(max(0.0, top))
@@ -239,7 +240,7 @@ def prove(model: Model, terms: Terms, net: Network, lam: float) -> tuple[float, 
             _add(A, coef[k + 1], arb(float(terms.ranges[k, 0])))
         for t, k in zip(corner, net.others):
             _add(A, coef[k + 1], arb(float(t)))
-        S = _sym_MA(d, A)
+        S = sym_diagonal_product(d, A)
         for i in range(n):
             S[(i, i)] = S.get((i, i), arb(0)) + arb(lam) * d[i]
         # lambda_max(S) <= -tau where tau is a proved lower bound of lambda_min(-S)
@@ -264,15 +265,6 @@ def _ball_dict(model: Model, coefficients: dict) -> dict:
 def _add(A: dict, B: dict, t: arb) -> None:
     for key, v in B.items():
         A[key] = A.get(key, arb(0)) + t * v
-
-
-def _sym_MA(d: list, A: dict) -> dict:
-    """M A + A^T M for M = diag(d), as {(i, j): arb}."""
-    S: dict = {}
-    for (i, j), v in A.items():
-        S[(i, j)] = S.get((i, j), arb(0)) + d[i] * v
-        S[(j, i)] = S.get((j, i), arb(0)) + d[i] * v
-    return S
 
 
 def _gershgorin_upper(S: dict) -> float:

@@ -16,7 +16,7 @@ import sympy as sp
 from ashc_cli.numerics import proofs
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.grids import domain_grid, maximise_on_box
-from ashc_cli.problem.model import Model, sparse_jacobian
+from ashc_cli.problem.model import Model, nonzero_entries, sparse_jacobian
 
 
 #: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices).
@@ -388,6 +388,9 @@ class Polytope:
         () -> the vertex matrices as nested lists of arb balls (for the proof; may raise UnsupportedExpression).
     meta : dict
         What the artefact records about it.
+    sparse_balls : callable or None
+        () -> the vertex matrices as {(i, j): arb} of their nonzero entries (the proof above
+        ``proofs.MAX_PROOF_STATES`` states, where n^2 balls would not do); None where not built.
     """
 
     kind: str
@@ -396,6 +399,7 @@ class Polytope:
     proved: bool
     balls: object
     meta: dict
+    sparse_balls: object = None
 
 
 def affine_polytope(model: Model, A_sym: sp.Matrix, U_vertices: np.ndarray) -> Polytope:
@@ -421,8 +425,13 @@ def affine_polytope(model: Model, A_sym: sp.Matrix, U_vertices: np.ndarray) -> P
         fA = proofs.BoxFunction(model, {"A": A_sym}, list(model.u))
         return [fA([proofs.arb(float(c)) for c in vtx])["A"] for vtx in U_vertices]
 
+    def sparse_balls():
+        entries = nonzero_entries(A_sym)
+        f = proofs.compile_claims(model, list(entries.values()), list(model.u))
+        return [dict(zip(entries, f([proofs.arb(float(c)) for c in vtx]))) for vtx in U_vertices]
+
     return Polytope("affine in u", [np.asarray(A_num(*vtx), dtype=float) for vtx in U_vertices],
-                    [f"u = {np.round(vtx, 6).tolist()}" for vtx in U_vertices], proofs.affine_in(A_sym, model.u), balls, {})
+                    [f"u = {np.round(vtx, 6).tolist()}" for vtx in U_vertices], proofs.affine_in(A_sym, model.u), balls, {}, sparse_balls)
 
 
 def entry_polytope(model: Model, J: sp.Matrix) -> Polytope:

@@ -40,6 +40,7 @@ from ashc_cli.design.contraction.network import network_polytope
 from ashc_cli.design.contraction.network import prove as prove_network
 from ashc_cli.design.contraction.proof import prove_lmi
 from ashc_cli.design.contraction.precheck import refute_rate
+from ashc_cli.design.contraction.structured import structured_M
 from ashc_cli.design.contraction.terms import (MAX_VARYING_ENTRIES, MAX_VERTEX_TERMS, Polytope, affine_polytope, decompose, entry_polytope,
                                  jacobian_samples, refuse_jumps, SubBoxes, term_polytope)
 from ashc_cli.design.contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES, M_MIN_EIG, MARGIN_TOL, SCALE_FREE_MARGIN, certify_rate,  # noqa: F401
@@ -47,7 +48,7 @@ from ashc_cli.design.contraction.vertex import (BISECTION_RTOL, FULL_MAX_STATES,
                                   structures, sweep, vertices)
 from ashc_cli.errors import DesignError, NumericalError, SpecError
 from ashc_cli.problem.grids import domain_grid
-from ashc_cli.problem.model import Model, jumps, sparse_jacobian, tidy
+from ashc_cli.problem.model import Model, jumps, nonzero_entries, sparse_jacobian, tidy
 from ashc_cli.design.upstream import dp_function
 
 NAME = "stabilise"
@@ -135,7 +136,7 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
     """
     A = sparse_jacobian(model.f, model.x) if J is None else J
     xs, us = set(model.x), list(model.u)
-    for (i, j), e in np.ndenumerate(np.array(A, dtype=object)):
+    for (i, j), e in nonzero_entries(A).items():
         if e.free_symbols & xs:
             raise DesignError("concrete", f"f(x, u) is not affine in x: df{i + 1}/d{model.x[j]} = {e} depends on x",
                               "f(x, u) = A(u) x + b(u) for stabilisability.method polytopic_lmi or given")
@@ -153,13 +154,14 @@ def affine_form(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matrix, sp
 
 def _depends_on_x(model: Model, J: sp.Matrix) -> bool:
     """Whether df/dx depends on the states (or f has a jump in them, whose Jacobian is free of x almost everywhere)."""
-    return any(e.free_symbols & set(model.x) for e in J) or jumps(model.f, model.x)
+    xs = set(model.x)
+    return any(e.free_symbols & xs for e in nonzero_entries(J).values()) or jumps(model.f, model.x)
 
 
 def _u_only(model: Model, J: sp.Matrix) -> bool:
     """df/dx free of x but not affine in u (x' = -exp(u) x + u): the vertices of U do not bound it, and the term
     polytope over U does (the states do not enter, so the certificate holds for every x)."""
-    return not _depends_on_x(model, J) and not all(_affine_in(e, list(model.u)) for e in J)
+    return not _depends_on_x(model, J) and not all(_affine_in(e, list(model.u)) for e in nonzero_entries(J).values())
 
 
 def _affine_in(e: sp.Expr, us: list) -> bool:
@@ -220,7 +222,7 @@ def polytopes(model: Model, J: sp.Matrix) -> tuple[list[Polytope], sp.Matrix, sp
         network[0].meta["_terms"] = decomposition
         found.insert(0 if len(decomposition) > MAX_VERTEX_TERMS else len(found), network[0])
     args = set(model.x) | set(model.u)
-    entries = sum(1 for e in J if e.free_symbols & args)
+    entries = sum(1 for e in nonzero_entries(J).values() if e.free_symbols & args)
     if entries <= MAX_VARYING_ENTRIES and entries != len(decomposition):
         found.append(entry_polytope(model, J))
     if not found:
@@ -366,6 +368,13 @@ def _certify(model: Model, st, poly: Polytope, explain: bool = True) -> tuple[np
             raise DesignError("stabilisability.M", f"does not satisfy eq. (28) at lambda = {lam:g} on the {poly.kind} polytope",
                               f"a decay_rate <= {lam_max:.6g}, the largest this M certifies", check="lmi_margin")
         meta.update(solver="none (M given; verified in numpy)")
+    elif model.n > FULL_MAX_STATES and st.decay_rate != "maximise" and (found := structured_M(scaled, float(st.decay_rate) / scale, st.structure)) is not None:
+        # a large plant: the metric its structure gives (the stored energy of a ladder) checked by an eigenvalue, no SDP
+        M, name, tried = found
+        lam = float(st.decay_rate)
+        meta.update(solver=f"none: M = {name}, checked by the generalised eigenvalue at every vertex (no SDP)",
+                    structure="diagonal" if not np.any(M - np.diag(np.diag(M))) else "full",
+                    structured_candidates=[[t, r * scale] for t, r in tried])
     elif model.n > FULL_MAX_STATES and (found := _lyapunov(model, st, scaled, scale)) is not None:
         M, lam, how = found
         meta.update(solver="none: M from the Lyapunov equation (A + lambda/2 I)^T M + M (A + lambda/2 I) = -I (scipy, no SDP)",
