@@ -11,7 +11,9 @@ tables (Markdown, ready for README):
    the ladder at n = 256 and 512, and `stabilise` with `decay_rate: maximise` at 64 states;
 3. the contraction certificates (issue 20): the MORwiki RC ladder at N = 5..1000, a chain of 100 masses,
    an ill-conditioned ladder, the CSTR and the inverted pendulum, and the objectives rate and min_gain
-   (with the falsified error over the bound).
+   (with the falsified error over the bound);
+4. large plants fast and proved (issue 44): T0, the bare import of the dependencies, and the switched ladder at
+   n = 16..512 and three small nonlinear plants in multiples of T0, with their verdicts and the growth exponent.
 
 With ``--against REV`` (``make bench BENCH_AGAINST=REV``) it prints only the closed loops of this tree and of the
 git revision REV side by side (issue 40: a restructuring of the loops must keep their speed): Cuk ``simulate``,
@@ -20,7 +22,7 @@ in turn (A B A B ...) on the same design folder, the median of ``--pairs`` runs 
 ratios pair by pair (a ratio holds when the machine's speed drifts).
 
     python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900] [--runs 10000] [--no-closed-loops]
-                          [--no-certificates | --only-certificates] [--against REV [--pairs 5]]
+                          [--no-certificates | --only-certificates | --only-large] [--against REV [--pairs 5]]
 """
 
 from __future__ import annotations
@@ -276,6 +278,60 @@ def certificates(tmp: Path, timeout: float) -> list[dict]:
     return out
 
 
+#: The import a design needs, timed bare in a fresh process: T0, the unit of issue 44's targets.
+IMPORTS = "import numpy, scipy.linalg, scipy.optimize, scipy.integrate, sympy, cvxpy, clarabel, h5py, pydantic, yaml, typer"
+#: Issue 44's small nonlinear plants: spec, label, target in T0.
+SMALL_PLANTS = (("specs/magnetic_levitation.yaml", "magnetic levitation (3 states, linear_gain)", 5.0),
+                ("specs/inverted_pendulum.yaml", "inverted pendulum (2 states, linear_gain)", 5.0),
+                ("specs/saturating_spring.yaml", "saturating spring (2 states, Jacobian terms)", 5.0))
+
+
+def verdict_of(text: str) -> str:
+    """The verdict on `ashc design`'s last line: "proved" or "sampled (k of 15 proved)"."""
+    line = next((line for line in reversed(text.splitlines()) if line.startswith("design '")), "")
+    if ": proved" in line:
+        return "proved"
+    if "holds on samples only (" in line:
+        return "sampled (" + line.split("holds on samples only (", 1)[1].split(" conditions proved")[0] + " proved)"
+    return "failed" if line else "?"
+
+
+def large_plants(tmp: Path, timeout: float) -> tuple[float, list[dict]]:
+    """Issue 44's rows: T0 (the bare import), the switched ladder at n = 16 ... 512 (`ashc design`, wall, peak memory,
+    verdict, wall / T0, and the growth exponent), and three small nonlinear plants against 5 T0."""
+    t0 = min(run_child([sys.executable, "-c", IMPORTS], timeout)[0] for _ in range(3))
+    out = []
+
+    def timed(label: str, n: int, cmd: list[str], target: str) -> dict:
+        try:
+            wall, mem, text, rc = run_child(cmd, timeout)
+        except subprocess.TimeoutExpired:
+            wall, mem, text, rc = float("nan"), float("nan"), "", -1
+        row = {"work": label, "n": n, "wall": wall, "mem": mem, "rc": rc, "target": target, "verdict": verdict_of(text), "t0": wall / t0}
+        out.append(row)
+        print(f"  measured {label}: {wall:.1f} s = {wall / t0:.1f} T0, {mem:.0f} MiB, {row['verdict']}", file=sys.stderr, flush=True)
+        return row
+
+    for N in (4, 8, 16, 32, 64, 128):
+        path = ladder_spec(tmp, N)
+        timed(f"switched ladder n = {4 * N}, `design`", 4 * N, ASHC + ["design", str(path), "--out", str(tmp / f"large{N}")],
+              {64: "<= 20 T0, proved", 128: "<= 60 T0, <= 2 GiB, proved"}.get(N, ""))
+    good = [r for r in out if r["rc"] == 0 and np.isfinite(r["wall"])]
+    if len(good) >= 2:
+        slope = np.polyfit(np.log([r["n"] for r in good]), np.log([r["wall"] - t0 for r in good]), 1)[0]
+        out[-1]["note"] = f"wall - T0 grows like n^{slope:.2f} over n = {good[0]['n']}..{good[-1]['n']}"
+    for spec, label, target in SMALL_PLANTS:
+        timed(f"{label}, `design`", 0, ASHC + ["design", spec, "--out", str(tmp / Path(spec).stem)], f"<= {target:g} T0")
+    return t0, out
+
+
+def print_large(t0: float, rows: list[dict]) -> None:
+    print(f"\n| large plants fast and proved (issue 44; T0 = bare import = {t0:.2f} s) | wall (s) | wall / T0 | peak RSS (MiB) | verdict | target | note | exit |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['work']} | {r['wall']:.2f} | {r['t0']:.1f} | {r['mem']:.0f} | {r['verdict']} | {r['target']} | {r.get('note', '')} | {r['rc']} |")
+
+
 #: The paired closed-loop rows of ``--against``: label, spec, the command after ``ashc``, the stage it times.
 PAIRED = (
     ("Cuk `simulate`", "specs/cuk_converter.yaml", ["simulate", "--force", "--frozen"], "simulate"),
@@ -324,6 +380,7 @@ def main() -> int:
     ap.add_argument("--no-closed-loops", action="store_true", help="leave out the closed-loop table")
     ap.add_argument("--no-certificates", action="store_true", help="leave out the contraction-certificate table (issue 20)")
     ap.add_argument("--only-certificates", action="store_true", help="only the contraction-certificate table")
+    ap.add_argument("--only-large", action="store_true", help="only the large-plant table (issue 44: ladder n = 16..512, small plants, in T0)")
     ap.add_argument("--against", metavar="REV", help="only the closed loops, this tree against git revision REV, paired")
     ap.add_argument("--pairs", type=int, default=5, help="counted pairs of --against (after one warm-up pair)")
     args = ap.parse_args()
@@ -339,6 +396,10 @@ def main() -> int:
         return 0
 
     rows = []
+    if args.only_large:
+        with tempfile.TemporaryDirectory() as tmp:
+            print_large(*large_plants(Path(tmp), args.timeout))
+        return 0
     if args.only_certificates:
         with tempfile.TemporaryDirectory() as tmp:
             certs = certificates(Path(tmp), args.timeout)
@@ -351,8 +412,7 @@ def main() -> int:
         tmp = Path(tmp)
         # Cold start: `ashc --help`, and the bare import time of the dependencies a design needs.
         help_wall, *_ = run_child(ASHC + ["--help"], args.timeout)
-        imports = "import numpy, scipy.linalg, scipy.optimize, scipy.integrate, sympy, cvxpy, clarabel, h5py, pydantic, yaml, typer"
-        import_wall, _, _, _ = run_child([sys.executable, "-c", imports], args.timeout)
+        import_wall, _, _, _ = run_child([sys.executable, "-c", IMPORTS], args.timeout)
         rows.append(measure("Cuk (n = 4)", 4, ASHC + ["design", "specs/cuk_converter.yaml", "--out", str(tmp / "cuk")], args.timeout))
         cuk_wall = rows[0]["total"]
         for N in args.stages:
@@ -394,7 +454,10 @@ def main() -> int:
         print("| --- | --- | --- | --- | --- | --- |")
         for r in certs:
             print(f"| {r['work']} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
-    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs}) + "\n")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0, large = large_plants(Path(tmp), args.timeout)
+    print_large(t0, large)
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs, "large": large, "t0": t0}) + "\n")
     return 0
 
 

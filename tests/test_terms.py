@@ -141,9 +141,14 @@ def test_a_tiny_term_with_a_huge_coefficient_keeps_both_corners_on_every_sub_box
     grid = terms.SubBoxes(model, terms.decompose(model, sparse_jacobian(model.f, model.x)))
     for _ in range(3):
         poly = grid.polytope()
-        # every sub-box contributes both ends of its range of df/dx: the largest vertex is the true sup (26.3)
-        assert len(poly.matrices) == 2 * len(grid.boxes)
+        # every sub-box contributes both ends of its range of df/dx (no rounding merges them), and of all those corners
+        # the hull's two ends are kept (one term: the LMI at them implies it between): the largest is the true sup (26.3)
+        ends = [end for sub in grid.boxes for end in grid.ranges(sub)[0]]
+        assert len(set(ends)) == 2 * len(grid.boxes)
+        assert len(poly.matrices) == 2 and poly.meta["subdivision"].endswith(f"{2 * len(grid.boxes) - 2} corners inside it left out)")
         assert max(A[0, 0] for A in poly.matrices) == pytest.approx(-1 + 40 * 2.94e15 * np.exp(-36.0), rel=1e-6)
+        theta = sorted(float(label.split(" = ")[1]) for label in poly.labels)
+        assert theta == pytest.approx([min(ends), max(ends)], rel=1e-5)     # the labels print 6 digits
         grid.split(poly, np.eye(1), 0.0, share=1.0)
 
 
@@ -190,3 +195,35 @@ def test_a_steep_diode_is_enclosed_as_written_not_after_a_split_that_overflows()
     art = stabilise.run(model, {})
     # J = [[-1 - d, 1], [-1, -1]], d >= 0: M = I certifies rate 2 at every d, and no M does better at d = 0
     assert art.values["lambda"] == pytest.approx(2.0, rel=1e-4) and art.checks["lmi_margin"].evidence == "proved"
+
+
+def test_the_corners_left_out_of_a_subdivided_polytope_lie_inside_the_hull_of_those_kept():
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(3)
+    for K in (1, 2, 3):
+        points = rng.random((200, K)) ** 3          # crowded near a corner, as sub-boxes' term ranges are
+        keep = terms.hull_points(points)
+        assert 0 < len(keep) < len(points)
+        dropped = np.setdiff1d(np.arange(len(points)), keep)
+        if K == 1:
+            assert points[keep].min() == points.min() and points[keep].max() == points.max()
+        else:
+            assert np.all(Delaunay(points[keep]).find_simplex(points[dropped]) >= 0)
+    # a flat set (one term constant) is kept whole: no hull of full dimension to decide on
+    flat = np.c_[rng.random(20), np.ones(20)]
+    assert len(terms.hull_points(flat)) == 20
+
+
+def test_an_infeasible_feedback_lmi_costs_one_solve_not_one_per_condition_cap(monkeypatch):
+    from ashc_cli.design.contraction import feedback
+
+    calls = []
+    original = feedback._min_gain
+    monkeypatch.setattr(feedback, "_min_gain", lambda *a: calls.append(a[-1]) or original(*a))
+    A = np.array([[1.0, 0.0], [0.0, 1.0]])                 # the second state is unreachable from B: no K helps
+    B = np.array([[1.0], [0.0]])
+    assert feedback.solve_lmi_feedback([A], B, 0.5)[0] is None and calls == [feedback.FEEDBACK_CONDITION[-1]]
+    calls.clear()
+    M, K, _, status = feedback.solve_lmi_feedback([np.array([[0.0, 1.0], [0.0, 0.0]])], np.array([[0.0], [1.0]]), 0.5)
+    assert M is not None and calls[0] == feedback.FEEDBACK_CONDITION[-1] and f"<= {feedback.FEEDBACK_CONDITION[len(calls) - 2]:g} I" in status

@@ -64,9 +64,16 @@ def solve_lmi_feedback(A_list: list[np.ndarray], B: np.ndarray, lam: float, stru
     status : str
         cvxpy's status string, with the condition cap used.
     """
+    # The loosest cap first: its feasible set holds every tighter one's, so when the solver declares it infeasible no
+    # cap is feasible (a refinement round or a bisection step that fails costs one solve, not three).  Otherwise the
+    # tightest feasible cap is used, as if tried in order.
+    loosest = FEEDBACK_CONDITION[-1]
+    last = _min_gain(A_list, B, lam, structure, weights, loosest)
+    if last[0] is None and "infeasible" in last[3]:
+        return None, None, np.inf, last[3]
     status = "not solved"
     for kappa in FEEDBACK_CONDITION:
-        M, K, mu, status = _min_gain(A_list, B, lam, structure, weights, kappa)
+        M, K, mu, status = _min_gain(A_list, B, lam, structure, weights, kappa) if kappa != loosest else last
         if M is not None:
             return M, K, mu, f"{status} (I <= M^-1 <= {kappa:g} I)"
     return None, None, np.inf, status

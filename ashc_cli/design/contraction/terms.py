@@ -512,6 +512,48 @@ MAX_SUBDIVIDED_VERTICES = 2048
 # whole box: a sub-box needs fewer boxes for the same tolerance, and no clock decides how many it gets.
 
 
+#: A corner is left out of a subdivided polytope only when it lies this far inside every facet of the hull of the
+#: corners (in coordinates scaled to the unit box): far beyond the rounding of qhull's facets (1e-15), so the hull
+#: of the corners kept contains it, and the LMI at the kept corners implies it there (the LMI is affine in theta).
+HULL_INSIDE = 1e-9
+
+
+def hull_points(points: np.ndarray) -> np.ndarray:
+    """The indices of the points on (or within ``HULL_INSIDE`` of) the boundary of their convex hull: the vertices
+    the LMI must be imposed at.  A sub-box refinement's corner sets overlap in term space, and most of their corners
+    lie inside the hull of the others (256 corners, 30 on the hull, on a levitation plant's two terms): the LMI at an
+    interior corner is implied by the rest, and each vertex costs the SDP a cone.
+
+    Parameters
+    ----------
+    points : ndarray (N, K)
+        The corners, one row each, in term values.
+
+    Returns
+    -------
+    ndarray of int
+        Sorted indices of the points kept (all of them when the hull is degenerate or K is 0).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    N, K = points.shape
+    if K == 0 or N <= K + 1:
+        return np.arange(N)
+    lo, width = points.min(axis=0), np.ptp(points, axis=0)
+    if np.any(width <= 0):
+        return np.arange(N)             # flat in one term: a hull of lower dimension, kept whole
+    unit = (points - lo) / width
+    if K == 1:
+        return np.flatnonzero((unit[:, 0] <= HULL_INSIDE) | (unit[:, 0] >= 1 - HULL_INSIDE))
+    try:
+        hull = ConvexHull(unit)
+    except QhullError:
+        return np.arange(N)
+    # qhull's equations: unit normal n and offset c with n . x + c <= 0 inside
+    depth = unit @ hull.equations[:, :-1].T + hull.equations[:, -1]
+    return np.flatnonzero(depth.max(axis=1) > -HULL_INSIDE)
+
+
 class SubBoxes:
     """The term polytope over a set of sub-boxes of state_box x U, refined where the LMI binds.
 
@@ -569,6 +611,10 @@ class SubBoxes:
                     seen.add(key)
                     corners.append(corner)
                     owner.append(b)
+        interior = len(corners)
+        keep = hull_points(np.array(corners, dtype=float))
+        corners, owner = [corners[k] for k in keep], [owner[k] for k in keep]
+        interior -= len(corners)
         matrices = [terms.A0 + sum((t * A for t, A in zip(c, self.dense)), np.zeros_like(terms.A0)) for c in corners]
         labels = [", ".join(f"{t} = {v:.6g}" for t, v in zip(terms.thetas, c)) for c in corners]
 
@@ -582,7 +628,7 @@ class SubBoxes:
         names = [str(self.args[d]) for d in self.used]
         meta = {"jacobian_terms": [str(t) for t in terms.thetas], "term_ranges": terms.ranges.tolist(), "ranges_proved": True,
                 "subdivision": f"{len(self.boxes)} sub-boxes of state_box x U along {names}, refined where the LMI binds "
-                               f"({len(matrices)} distinct vertices)",
+                               f"({len(matrices)} vertices of the hull of their corners; {interior} corners inside it left out)",
                 "range_method": "ball-arithmetic enclosure of each term on each sub-box by branch and bound (rigorous)"}
         poly = Polytope("Jacobian terms", matrices, labels, True, balls, meta)
         poly.meta["_owner"] = owner

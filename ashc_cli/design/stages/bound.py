@@ -553,7 +553,8 @@ def _dbar(model: Model, M: np.ndarray, L: np.ndarray, th: dict) -> dict:
         at = [grid[:, np.argmax(th[k])].tolist() for k in ("norm_q0", "norm_q0_identity", "norm_ls")]
     dp_delta = th["dp_delta"] if th["dp_delta"] is not None else th["dpd_series"].to_sympy(list(model.xi))
     db = {"dbar_q0_sampled": dbar_q0, "dbar_q0_proved": np.inf, "dbar_id": dbar_id, "dbar_ls": dbar_ls, "at": at}
-    if model.n <= proofs.MAX_PROOF_STATES:   # the proof works on the formula (the one readers get)
+    # the proof works on the formula (the one readers get); above MAX_PROOF_STATES states for a diagonal M only
+    if model.n <= proofs.MAX_PROOF_STATES or not np.any(M - np.diag(np.diag(M))):
         db["dbar_q0_proved"] = prove_sup_norm(model, M, dp_delta, model.V, np.asarray(at[0], dtype=float))
     if np.isfinite(db["dbar_q0_proved"]):
         dbar_q0 = max(dbar_q0, db["dbar_q0_proved"])

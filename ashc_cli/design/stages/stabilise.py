@@ -273,12 +273,13 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if st.feedback == "linear_gain" and any(e.free_symbols & set(model.x) for e in model.g):
         raise DesignError("concrete.g", "feedback linear_gain needs a constant input matrix g (the closed loop's g(z) K would vary with the state)",
                           "g independent of x, or feedback identity", check="lmi_margin")
-    results, first_error = [], None
+    results, first_failed = [], None
     for poly in candidates:
         try:
-            results.append((poly, *_certify(model, st, poly)))
-        except DesignError as exc:
-            first_error = first_error or exc
+            # explained (with the bisection for the largest rate a hint names) only if nothing certifies, below
+            results.append((poly, *_certify(model, st, poly, explain=False)))
+        except DesignError:
+            first_failed = first_failed or poly
             continue
         if st.decay_rate != "maximise":
             break                      # a fixed rate: the first polytope that certifies it
@@ -286,7 +287,7 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if terms_found is not None and (st.decay_rate == "maximise" or not results):
         results += _refine(model, st, terms_found, results)
     if not results:
-        raise first_error
+        _certify(model, st, first_failed)          # raises, with the hint the refusal needs
     poly, M, K, lam, meta = max(results, key=lambda r: r[3])
     if st.objective == "min_gain":
         M, lam, meta = _min_gain(model, st, poly, upstream, M, lam, meta)
