@@ -227,3 +227,25 @@ def test_an_infeasible_feedback_lmi_costs_one_solve_not_one_per_condition_cap(mo
     calls.clear()
     M, K, _, status = feedback.solve_lmi_feedback([np.array([[0.0, 1.0], [0.0, 0.0]])], np.array([[0.0], [1.0]]), 0.5)
     assert M is not None and calls[0] == feedback.FEEDBACK_CONDITION[-1] and f"<= {feedback.FEEDBACK_CONDITION[len(calls) - 2]:g} I" in status
+
+
+def test_a_term_whose_range_ends_at_zero_is_enclosed_without_spending_the_box_budget():
+    # x2^2 and tanh(x1)^2 on boxes around 0: their inf is 0, which no relative tolerance reaches; the search spent
+    # the budget (20000 boxes) on a gap of 5e-324 in 23 searches of the saturating spring's stabilise stage (30 s).
+    from ashc_cli.numerics import boxsearch
+
+    from ashc_cli.numerics import proofs
+
+    from .conftest import SPECS
+
+    model = build_model(parse_spec_text((SPECS / "saturating_spring.yaml").read_text()))
+    x1, x2 = list(model.x)
+    for term, var, box in ((x2**2, x2, [-1.0, 1.0]), (sp.tanh(x1) ** 2, x1, [-0.5, 2.0])):
+        fun = proofs.compile_claims(model, [term], [var])
+        with boxsearch.work_budget() as work:
+            lo, hi, ok = terms.enclose_term(fun, np.array([box]))
+        assert ok and -1e-6 * hi <= lo <= 0.0 and hi >= max(float(term.subs(var, v)) for v in box)
+        assert work.spent == 0, work.as_meta()
+    with boxsearch.work_budget() as work:
+        stabilise.run(model, {})
+    assert work.spent == 0 and work.searches > 0, work.as_meta()

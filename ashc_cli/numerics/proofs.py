@@ -212,7 +212,7 @@ def compile_claims(model: Model, exprs: Sequence[sp.Expr], args: Sequence[sp.Sym
 
 
 def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
-               max_boxes: int | None = None) -> tuple[float, bool, np.ndarray]:
+               max_boxes: int | None = None, atol: float = 0.0) -> tuple[float, bool, np.ndarray]:
     """A proved upper bound of sup over the box of output ``index`` of fun, whether it is finite, and where the
     largest value found lies (:func:`boxsearch.sup_on_box`).
 
@@ -231,6 +231,8 @@ def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
     max_boxes : int, optional
         Boxes of branch and bound (default: the stage's ``proofs.max_boxes``, :func:`boxsearch.box_budget`); when
         spent, the bound reached so far is returned (still rigorous) and the stage's proof work records it.
+    atol : float
+        ... or within atol (absolute): needed where the sup is 0, which no relative tolerance reaches.
 
     Returns
     -------
@@ -241,17 +243,17 @@ def sup_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
     argmax : ndarray (d,)
         Where the largest value found lies (nan if none).
     """
-    res = boxsearch.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, max_boxes=max_boxes, seeds=seeds)
+    res = boxsearch.sup_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, atol=atol, max_boxes=max_boxes, seeds=seeds)
     return float(res.upper), bool(np.isfinite(res.upper)), np.asarray(res.argmax, dtype=float)
 
 
 def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = None, rtol: float = 1e-6,
-               max_boxes: int | None = None) -> tuple[float, bool]:
+               max_boxes: int | None = None, atol: float = 0.0) -> tuple[float, bool]:
     """A proved lower bound of inf over the box of output ``index`` of fun and whether it is finite.
 
     Parameters
     ----------
-    fun, box, index, seeds, rtol, max_boxes
+    fun, box, index, seeds, rtol, max_boxes, atol
         As for :func:`sup_on_box`.
 
     Returns
@@ -261,7 +263,7 @@ def inf_on_box(fun, box: np.ndarray, index: int = 0, seeds: np.ndarray | None = 
     finite : bool
         Whether ``lower`` is finite.
     """
-    res = boxsearch.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, max_boxes=max_boxes, seeds=seeds)
+    res = boxsearch.inf_on_box(fun, np.asarray(box, dtype=float), index=index, rtol=rtol, atol=atol, max_boxes=max_boxes, seeds=seeds)
     return float(res.lower), bool(np.isfinite(res.lower))
 
 
