@@ -20,11 +20,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
-import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 
 from ashc_cli.problem.spec_checks import check_shapes
+from ashc_cli.problem.spec_yaml import load_yaml
 from ashc_cli.errors import SpecError
 from ashc_cli.problem.expr import RESERVED_NAMES
 
@@ -133,13 +133,28 @@ class Concrete(_Strict):
         return _bounds_by_name(value, [f"y{k + 1}" for k in range(len(h))] if isinstance(h, list) else None, "output")
 
 
+class LinearisationPoint(_Strict):
+    """A state and an input of the plant (``stabilisability.linearise_at``)."""
+
+    x: list[FiniteFloat] = Field(min_length=1)
+    u: list[FiniteFloat] = Field(min_length=1)
+
+
 class Stabilisability(_Strict):
     """How the incremental Lyapunov function V(x, z) = (x - z)^T M (x - z) is obtained (eq. (28))."""
 
     method: Literal["polytopic_lmi", "given"]
     decay_rate: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["maximise"]
     feedback: Literal["identity", "linear_gain"] = "identity"
-    M: list[list[FiniteFloat]] | None = None
+    #: ``method: given``: the matrix of V(x, z) = (x - z)^T M (x - z), n x n symmetric positive definite, or ``lyapunov``
+    #: (M from the Lyapunov equation of the closed loop linearised at ``linearise_at``, shifted by the decay rate).
+    M: list[list[FiniteFloat]] | Literal["lyapunov"] | None = None
+    #: ``method: given`` with ``feedback: linear_gain``: the gain K (m x n) of k(z, x, u) = u + K (z - x), or ``lqr``
+    #: (K = -R^-1 B^T P of the Riccati equation of the linearisation, Q = I, R = I).
+    K: list[list[FiniteFloat]] | Literal["lqr"] | None = None
+    #: Where ``M: lyapunov`` and ``K: lqr`` linearise the plant: the states and the inputs (default: the centres of
+    #: ``concrete.state_box`` and of ``concrete.input_bounds``); also the centre of the norm-bound proof.
+    linearise_at: LinearisationPoint | None = None
     #: The form of M searched by ``polytopic_lmi``: ``full``, ``diagonal`` (n unknowns, a sparse LMI: fast for
     #: large networks), or ``auto`` (full up to ``stabilise.FULL_MAX_STATES`` states, else diagonal first and
     #: full only if the diagonal LMI is infeasible).
@@ -493,88 +508,6 @@ def keys_sha256(spec: Spec, keys: Sequence[str]) -> str:
 _YAML_KINDS = {"list": "a list", "str": "a string", "int": "a number", "float": "a number", "bool": "a boolean"}
 
 
-class _SafeStrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses aliases (no billion-laughs) and duplicate keys (a typo must not hide)."""
-
-    def compose_node(self, parent, index):  # noqa: D401 - PyYAML hook
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.MarkedYAMLError("while composing", None, "aliases (*name) are not allowed in a spec", event.start_mark)
-        return super().compose_node(parent, index)
-
-    def construct_document(self, node):
-        _refuse_duplicate_keys(node, "")
-        return super().construct_document(node)
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            if not isinstance(key, str):
-                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"key {key!r} is not a name (every key of a spec is text)", key_node.start_mark)
-            if key in seen:
-                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark, f"duplicate key '{key}'", key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
-
-
-def _refuse_duplicate_keys(node: yaml.Node, path: str) -> None:
-    """Refuse a key written twice in one mapping, naming the field it is in (``concrete.input_bounds``)."""
-    if isinstance(node, yaml.MappingNode):
-        seen = set()
-        for key_node, value_node in node.value:
-            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
-            if key in seen:
-                shown = key if len(key) <= 40 else key[:37] + "..."
-                raise yaml.MarkedYAMLError("while constructing a mapping", node.start_mark,
-                                           f"duplicate key '{shown}'" + (f" in {path}" if path else ""), key_node.start_mark)
-            if key is not None:
-                seen.add(key)
-            _refuse_duplicate_keys(value_node, f"{path}.{key}" if path else str(key))
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _refuse_duplicate_keys(item, f"{path}[{i}]")
-    elif isinstance(node, yaml.ScalarNode) and node.tag in (_FLOAT_TAG, _INT_TAG) and not path.startswith("stabilisability.M"):
-        _refuse_unheld_digits(node, path)
-
-
-_FLOAT_TAG, _INT_TAG = "tag:yaml.org,2002:float", "tag:yaml.org,2002:int"
-
-
-def _refuse_unheld_digits(node: yaml.ScalarNode, path: str) -> None:
-    """Refuse a number written with more digits than a double holds (2.99999999999999999 reads as 3.0).
-
-    Exact decisions (l(V) inside U, kappa(V) covering Y, identities) read each number as the decimal it is
-    written as; that is only the number the tool computes with when the double holds every written digit.
-    """
-    import decimal
-
-    text = node.value.replace("_", "")
-    try:
-        written = decimal.Decimal(text)
-    except decimal.InvalidOperation:
-        return   # .inf, .nan and the like: the validators say what is wrong with them
-    if not written.is_finite():
-        return
-    value = float(written)
-    if value in (float("inf"), float("-inf")) or decimal.Decimal(repr(value)) != written:
-        raise SpecError(path or f"line {node.start_mark.line + 1}", f"{node.value} has more significant digits than a double holds (it would be read as {value!r})",
-                        "the number written with at most 17 significant digits (every exact decision reads the digits written)")
-
-
-def _yaml_load(text: str, source: str) -> Any:
-    try:
-        return yaml.load(text, Loader=_SafeStrictLoader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark
-        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
-        duplicate = str(exc.problem).startswith("duplicate key")
-        raise SpecError(where, f"malformed YAML ({exc.problem})",
-                        "every key once in a mapping" if duplicate else "a YAML mapping written to docs/spec-format.md") from None
-    except (yaml.YAMLError, RecursionError) as exc:
-        raise SpecError(source, f"malformed YAML ({type(exc).__name__})", "a YAML mapping written to docs/spec-format.md") from None
-
-
 # --- validation errors to one line -----------------------------------------------------------------------
 
 
@@ -747,7 +680,7 @@ def parse_spec_text(text: str, source: str = "spec") -> Spec:
     SpecError
         On malformed YAML, a missing or unknown key, a wrong type, length or value.
     """
-    data = _yaml_load(text, source)
+    data = load_yaml(text, source)
     if not isinstance(data, dict):
         what = "empty" if data is None else f"top level is {_YAML_KINDS.get(type(data).__name__, type(data).__name__)}"
         raise SpecError(source, what, "a YAML mapping with keys name, concrete, stabilisability, abstract, ...")

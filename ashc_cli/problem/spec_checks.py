@@ -71,19 +71,38 @@ def check_shapes(spec: Spec) -> None:
         raise SpecError("abstract.delta", f"'identity' needs as many abstract inputs as states, got {mh} and {nh}", "an n_hat x m_hat matrix of expressions")
     elif a.delta not in ("identity", "flatten") and (nh, mh) != (1, 1):
         raise SpecError("abstract.delta", "a single expression needs one abstract state and one input", f"a {nh} x {mh} matrix of expressions")
-    st = spec.stabilisability
-    if st.method == "given":
-        if st.M is None:
-            raise SpecError("stabilisability.M", "missing for method 'given'", f"a symmetric {n} x {n} matrix")
-        _check_len("stabilisability.M", st.M, n, "one row per state")
-        for i, row in enumerate(st.M):
-            _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")
-    elif st.M is not None:
-        raise SpecError("stabilisability.M", "given with method 'polytopic_lmi'", "method: given, or no M")
+    _check_given(spec, n, m)
     _check_names(spec)
     _check_units(spec)
     _check_simulate(spec, n, m, p, nh, mh)
     _check_task(spec, n, p, nh)
+
+
+def _check_given(spec: Spec, n: int, m: int) -> None:
+    """stabilisability.M, K and linearise_at: their shapes, and that they come with the method and feedback that read them."""
+    st = spec.stabilisability
+    if st.method != "given":
+        for key in ("M", "K", "linearise_at"):
+            if getattr(st, key) is not None:
+                raise SpecError(f"stabilisability.{key}", "given with method 'polytopic_lmi'", f"method: given, or no {key}")
+        return
+    if st.M is None:
+        raise SpecError("stabilisability.M", "missing for method 'given'", f"a symmetric {n} x {n} matrix, or lyapunov")
+    if st.M != "lyapunov":
+        _check_len("stabilisability.M", st.M, n, "one row per state")
+        for i, row in enumerate(st.M):
+            _check_len(f"stabilisability.M[{i}]", row, n, "one column per state")
+    if st.K is not None and st.feedback != "linear_gain":
+        raise SpecError("stabilisability.K", f"given with feedback '{st.feedback}'", "feedback: linear_gain (k(z, x, u) = u + K (z - x)), or no K")
+    if st.feedback == "linear_gain" and st.K is None:
+        raise SpecError("stabilisability.K", "missing for method 'given' with feedback 'linear_gain'", f"a {m} x {n} matrix, or lqr")
+    if isinstance(st.K, list):
+        _check_len("stabilisability.K", st.K, m, "one row per input")
+        for i, row in enumerate(st.K):
+            _check_len(f"stabilisability.K[{i}]", row, n, "one column per state")
+    if st.linearise_at is not None:
+        _check_len("stabilisability.linearise_at.x", st.linearise_at.x, n, "one value per state")
+        _check_len("stabilisability.linearise_at.u", st.linearise_at.u, m, "one value per input")
 
 
 def _check_box(where: str, box: list[list[float]], p: int) -> None:

@@ -40,6 +40,7 @@ from ashc_cli.design.contraction.network import network_polytope
 from ashc_cli.design.contraction.network import prove as prove_network
 from ashc_cli.design.contraction.proof import prove_lmi
 from ashc_cli.design.contraction.precheck import refute_rate
+from ashc_cli.design.contraction import given
 from ashc_cli.design.contraction.structured import structured_M
 from ashc_cli.design.contraction.terms import (MAX_VARYING_ENTRIES, MAX_VERTEX_TERMS, Polytope, affine_polytope, decompose, entry_polytope,
                                  jacobian_samples, refuse_jumps, SubBoxes, term_polytope)
@@ -266,6 +267,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     if st.feedback == "identity" or _gain_accepted(model):
         # a sampled state where no M (no K) can work: refused in seconds, before the enclosures and the SDP
         refute_rate(model, J, 0.0 if st.decay_rate == "maximise" else float(st.decay_rate), _linear_gain_choice(model, st))
+    if st.method == "given":
+        return _given(model, st, J)
     candidates, A_sym, b_sym = polytopes(model, J)
     if st.feedback == "linear_gain" and not model.affine:
         raise DesignError("stabilisability.feedback", "linear_gain needs an input-affine plant with a constant g, and concrete.f is not affine in the inputs",
@@ -299,6 +302,49 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         # The certificate holds while x stays in the box: the bound stage's region reads this key.
         meta["condition"] = "J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (" + poly.kind + ")"
         meta["state_box"] = model.state_box.tolist()
+    return _artefact(model, st, poly, A_sym, b_sym, M, K, lam, meta)
+
+
+def _given(model: Model, st, J: sp.Matrix) -> Artefact:
+    """``method: given`` (:mod:`ashc_cli.design.contraction.given`): M and K from the spec or the linearisation, the
+    largest rate they certify on the first polytope when df/dx has few enough terms to enumerate (the vertex
+    argument, exact), else by the norm-bound test (one enclosure per entry); ``maximise`` takes that rate."""
+    x0, u0 = given.linearisation_point(model, st)
+    A0 = given.linearise(model, J, x0, u0)
+    B = given.input_matrix(model) if st.feedback == "linear_gain" else np.zeros((model.n, model.m))
+    K = given.gain(st, A0, B) if st.feedback == "linear_gain" else np.zeros((model.m, model.n))
+    try:
+        poly, A_sym, b_sym = (lambda found: (found[0][0], found[1], found[2]))(polytopes(model, J))
+        M, shift = given.metric(st, A0 + B @ K)
+        lam_max = largest_decay_rate_for([np.asarray(A.toarray() if hasattr(A, "toarray") else A) + B @ K for A in poly.matrices], M)
+        route = f"the vertices of the {poly.kind} polytope (exact)"
+    except DesignError as exc:
+        if exc.where != "concrete" or "distinct nonlinear terms" not in exc.what:
+            raise
+        nb = given.norm_bound(model, J, A0)
+        poly = given.norm_polytope(nb, f"chosen because {exc.what}")
+        A_sym, b_sym = J, sp.zeros(model.n, 1)
+        M, shift = given.metric(st, A0 + B @ K, nb)
+        lam_max = given.largest_rate(nb, M, A0 + B @ K)
+        route = "the norm-bound test (df/dx has too many terms to enumerate its vertices)"
+    # maximise: a little below the largest rate, so that the proof sees a strictly negative margin
+    lam = lam_max * (1 - given.BACKOFF) if st.decay_rate == "maximise" else float(st.decay_rate)
+    if lam > lam_max * (1 + 1e-12) or lam_max <= 0:
+        what = f"does not satisfy eq. (28) at any positive decay rate by {route} (the largest lambda it allows is {lam_max:.6g})" if lam_max <= 0 else \
+            f"does not satisfy eq. (28) at lambda = {lam:g} by {route} (the largest rate it certifies is {lam_max:.6g})"
+        raise DesignError("stabilisability.M", what,
+                          f"a decay_rate <= {lam_max:.6g}" if lam_max > 0 else
+                          "another M or K (lyapunov, lqr, another linearise_at)" + (", or a smaller concrete.state_box" if poly.kind != "affine in u" else ""),
+                          check="lmi_margin")
+    meta = {"solver": "none (M given; verified in numpy)" if shift is None else
+            f"none: M from the Lyapunov equation of A0 + B K shifted by {shift:.6g} (scipy)", "route": route,
+            "linearise_at": {"x": x0.tolist(), "u": u0.tolist()}, "largest_rate_certified": lam_max,
+            "K_source": "given" if isinstance(st.K, list) else ("lqr (Q = I, R = I)" if st.K == "lqr" else "none (identity feedback)")}
+    if J.free_symbols & set(model.x) and poly.kind != "affine in u":
+        meta["condition"] = "J(x, u)^T M + M J(x, u) <= -lambda M on state_box x U (" + poly.kind + ")"
+        meta["state_box"] = model.state_box.tolist()
+    meta.update(method=st.method, feedback=st.feedback, polytope=poly.kind, vertices_count=len(poly.matrices),
+                **{k: v for k, v in poly.meta.items() if not k.startswith("_")})
     return _artefact(model, st, poly, A_sym, b_sym, M, K, lam, meta)
 
 
@@ -357,18 +403,6 @@ def _certify(model: Model, st, poly: Polytope, explain: bool = True) -> tuple[np
     meta["lmi_scale"] = scale
     if st.feedback == "linear_gain":
         M, K, lam, meta = _synthesise_feedback(model, st, scaled, meta, poly, scale, explain)
-    elif st.method == "given":
-        M = np.array(st.M, dtype=float)
-        if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
-            raise SpecError("stabilisability.M", "is not symmetric", "a symmetric positive definite matrix")
-        if np.linalg.eigvalsh(M).min() <= 0:
-            raise DesignError("stabilisability.M", f"is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(M).min():.4g})", "M > 0", check="M_positive")
-        lam_max = largest_decay_rate_for(poly.matrices, M)
-        lam = lam_max if st.decay_rate == "maximise" else float(st.decay_rate)
-        if lam > lam_max * (1 + 1e-12) or lam_max <= 0:
-            raise DesignError("stabilisability.M", f"does not satisfy eq. (28) at lambda = {lam:g} on the {poly.kind} polytope",
-                              f"a decay_rate <= {lam_max:.6g}, the largest this M certifies", check="lmi_margin")
-        meta.update(solver="none (M given; verified in numpy)")
     elif model.n > FULL_MAX_STATES and st.decay_rate != "maximise" and (found := structured_M(scaled, float(st.decay_rate) / scale, st.structure)) is not None:
         # a large plant: the metric its structure gives (the stored energy of a ladder) checked by an eigenvalue, no SDP
         M, name, tried = found
@@ -513,6 +547,8 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
 
     if "_network" in poly.meta:
         proved_margin, proof = prove_network(model, poly.meta["_terms"], poly.meta["_network"], lam)
+    elif "_normbound" in poly.meta:
+        proved_margin, proof = given.prove(poly.meta["_normbound"], M, B_K if np.ndim(B_K) == 2 else np.zeros((model.n, model.n)), lam)
     else:
         proved_margin, proof = prove_lmi(model, poly, K, M, lam)
     margin_evidence = proofs.PROVED if proved_margin <= 0 else proofs.SAMPLED
@@ -681,6 +717,7 @@ def summarise(art: Artefact) -> dict:
         "method": art.meta.get("method"),
         "polytope": art.meta.get("polytope"),
         "proof": art.meta.get("lmi_proof"),
+        "route": art.meta.get("route"),
         "A": [str(e) for e in art.exprs["A"]],
     }
 
@@ -698,4 +735,7 @@ def headline(art: Artefact) -> str:
     str
         lambda and lmi_margin.
     """
-    return f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"
+    line = f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"
+    if "route" in art.meta:          # method: given, M (and K) checked by the vertex argument or the norm-bound test
+        line += f" (method given, by {art.meta['route']}; {art.checks['lmi_margin'].evidence})"
+    return line
