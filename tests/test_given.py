@@ -99,3 +99,15 @@ def test_a_metric_that_cannot_carry_the_box_is_refused_with_the_rate_it_allows()
     model = build_model(parse_spec_text(ring(8, theta=1.2)))
     with pytest.raises(DesignError, match=r"stabilisability\.M: does not satisfy eq\. \(28\) at any positive decay rate by the norm-bound test .*\(the largest lambda it allows is -"):
         stabilise.run(model, {})
+
+
+def test_polytopic_lmi_on_too_many_terms_takes_the_norm_bound_test_by_itself_and_says_so():
+    text = ring(8).replace("  method: given\n", "  method: polytopic_lmi\n").replace("  M: lyapunov\n", "")
+    art = stabilise.run(build_model(parse_spec_text(text)), {})
+    assert art.meta["route"].startswith("automatic: the norm-bound test") and art.meta["method"] == "polytopic_lmi"
+    assert art.checks["lmi_margin"].evidence == proofs.PROVED and float(art.values["lambda"]) > 0.5
+    assert "(method polytopic_lmi, by automatic: the norm-bound test" in stabilise.headline(art)
+    # where even that proves nothing, the refusal names both and what to change
+    wide = ring(8, theta=1.2).replace("  method: given\n", "  method: polytopic_lmi\n").replace("  M: lyapunov\n", "")
+    with pytest.raises(DesignError, match=r"^stabilisability: df/dx has 44 distinct nonlinear terms .*; the norm-bound test with M from the Lyapunov"):
+        stabilise.run(build_model(parse_spec_text(wide)), {})

@@ -81,8 +81,11 @@ def check_shapes(spec: Spec) -> None:
 def _check_given(spec: Spec, n: int, m: int) -> None:
     """stabilisability.M, K and linearise_at: their shapes, and that they come with the method and feedback that read them."""
     st = spec.stabilisability
+    if st.linearise_at is not None:     # read by method given and by polytopic_lmi's norm-bound route
+        _check_len("stabilisability.linearise_at.x", st.linearise_at.x, n, "one value per state")
+        _check_len("stabilisability.linearise_at.u", st.linearise_at.u, m, "one value per input")
     if st.method != "given":
-        for key in ("M", "K", "linearise_at"):
+        for key in ("M", "K"):
             if getattr(st, key) is not None:
                 raise SpecError(f"stabilisability.{key}", "given with method 'polytopic_lmi'", f"method: given, or no {key}")
         return
@@ -100,9 +103,7 @@ def _check_given(spec: Spec, n: int, m: int) -> None:
         _check_len("stabilisability.K", st.K, m, "one row per input")
         for i, row in enumerate(st.K):
             _check_len(f"stabilisability.K[{i}]", row, n, "one column per state")
-    if st.linearise_at is not None:
-        _check_len("stabilisability.linearise_at.x", st.linearise_at.x, n, "one value per state")
-        _check_len("stabilisability.linearise_at.u", st.linearise_at.u, m, "one value per input")
+
 
 
 def _check_box(where: str, box: list[list[float]], p: int) -> None:

@@ -269,7 +269,12 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         refute_rate(model, J, 0.0 if st.decay_rate == "maximise" else float(st.decay_rate), _linear_gain_choice(model, st))
     if st.method == "given":
         return _given(model, st, J)
-    candidates, A_sym, b_sym = polytopes(model, J)
+    try:
+        candidates, A_sym, b_sym = polytopes(model, J)
+    except DesignError as exc:
+        if not _too_many_terms(exc) or st.objective != "rate":
+            raise
+        return _automatic_norm_bound(model, st, J, exc)
     if st.feedback == "linear_gain" and not model.affine:
         raise DesignError("stabilisability.feedback", "linear_gain needs an input-affine plant with a constant g, and concrete.f is not affine in the inputs",
                           "feedback identity (k(x, z, u) = u: the interface applies l(xi))", check="lmi_margin")
@@ -305,6 +310,31 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     return _artefact(model, st, poly, A_sym, b_sym, M, K, lam, meta)
 
 
+def _too_many_terms(exc: DesignError) -> bool:
+    """Whether :func:`polytopes` refused df/dx for having too many terms and entries to enumerate as vertices."""
+    return exc.where == "concrete" and "distinct nonlinear terms" in exc.what
+
+
+def _automatic_norm_bound(model: Model, st, J: sp.Matrix, refused: DesignError) -> Artefact:
+    """``polytopic_lmi`` on a df/dx with too many terms to enumerate: M from the Lyapunov equation of the linearisation
+    (and K by LQR with ``linear_gain``), proved by the norm-bound test (:func:`_given`), the choice recorded."""
+    auto = st.model_copy(update={"M": "lyapunov", "K": "lqr" if st.feedback == "linear_gain" else None})
+    try:
+        art = _given(model, auto, J)
+    except DesignError as exc:
+        import re
+
+        largest = re.search(r"the largest lambda it allows is (\S+)\)", exc.what)
+        found = f"the largest rate it allows is {largest.group(1)}" if largest else exc.what
+        raise DesignError("stabilisability", f"{refused.what}; the norm-bound test with M from the Lyapunov equation of the linearisation"
+                          f"{' and K by LQR' if st.feedback == 'linear_gain' else ''} proves no positive rate ({found})",
+                          "a smaller concrete.state_box, a stabilisability.linearise_at nearer the operating point, or method: given with your M "
+                          "(and K)", check="lmi_margin") from None
+    art.meta["route"] = "automatic: " + art.meta["route"] + (", M from the Lyapunov equation of the linearisation"
+                                                            + (", K by LQR" if st.feedback == "linear_gain" else ""))
+    return art
+
+
 def _given(model: Model, st, J: sp.Matrix) -> Artefact:
     """``method: given`` (:mod:`ashc_cli.design.contraction.given`): M and K from the spec or the linearisation, the
     largest rate they certify on the first polytope when df/dx has few enough terms to enumerate (the vertex
@@ -319,7 +349,7 @@ def _given(model: Model, st, J: sp.Matrix) -> Artefact:
         lam_max = largest_decay_rate_for([np.asarray(A.toarray() if hasattr(A, "toarray") else A) + B @ K for A in poly.matrices], M)
         route = f"the vertices of the {poly.kind} polytope (exact)"
     except DesignError as exc:
-        if exc.where != "concrete" or "distinct nonlinear terms" not in exc.what:
+        if not _too_many_terms(exc):
             raise
         nb = given.norm_bound(model, J, A0)
         poly = given.norm_polytope(nb, f"chosen because {exc.what}")
@@ -736,6 +766,6 @@ def headline(art: Artefact) -> str:
         lambda and lmi_margin.
     """
     line = f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"
-    if "route" in art.meta:          # method: given, M (and K) checked by the vertex argument or the norm-bound test
-        line += f" (method given, by {art.meta['route']}; {art.checks['lmi_margin'].evidence})"
+    if "route" in art.meta:          # method given, or too many terms: the vertex argument or the norm-bound test
+        line += f" (method {art.meta.get('method', 'given')}, by {art.meta['route']}; {art.checks['lmi_margin'].evidence})"
     return line
