@@ -693,10 +693,18 @@ def test_a_refusal_suggests_only_what_the_tool_accepts_for_the_plant(tmp_path):
     from ashc_cli.errors import DesignError
     from .bad_inputs import MANY_TERMS, UNSTABLE_GENERAL
 
+    hints = {}
     for text in (MANY_TERMS, UNSTABLE_GENERAL):
         with pytest.raises(DesignError) as exc:
             run(parse_spec_text(text), tmp_path / text[6:16], ("stabilise",))
-        assert "method: given" not in exc.value.expected and "linear_gain" not in exc.value.expected, exc.value.line()
+        assert "linear_gain" not in exc.value.expected, exc.value.line()
+        hints[text] = exc.value.expected
+    # too many terms: the hint's decay rate and method given (with an M) are accepted and certify
+    assert hints[MANY_TERMS].startswith("decay_rate <= 0.2 (or maximise)") and "method: given with your M" in hints[MANY_TERMS]
+    art = run(parse_spec_text(MANY_TERMS.replace("decay_rate: 0.5", "decay_rate: 0.19")), tmp_path / "many_ok", ("stabilise",))["stabilise"]
+    assert art.meta["route"].startswith("automatic: the norm-bound test")
+    given_M = MANY_TERMS.replace("{method: polytopic_lmi, decay_rate: 0.5}", "{method: given, decay_rate: 0.19, M: lyapunov}")
+    assert run(parse_spec_text(given_M), tmp_path / "many_given", ("stabilise",))["stabilise"].values["lambda"] == 0.19
     # the hints given are accepted: with linear_gain where it applies (input-affine, constant g), the plant is certified
     text = UNSTABLE_GENERAL.replace('f: ["x + sin(u)"]', 'f_bar: ["x"], g: [["1"]]')
     with pytest.raises(DesignError, match="feedback: linear_gain"):

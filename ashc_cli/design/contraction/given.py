@@ -140,7 +140,7 @@ def gain(st, A0: np.ndarray, B: np.ndarray) -> np.ndarray:
 SHIFTS = (0.25, 0.5, 0.75, 0.9)
 
 
-def metric(st, A_cl: np.ndarray, nb: NormBound | None = None) -> tuple[np.ndarray, float | None]:
+def metric(st, A_cl: np.ndarray, nb: NormBound | None = None, BK: np.ndarray | None = None) -> tuple[np.ndarray, float | None]:
     """M of ``stabilisability.M`` and the shift s of ``lyapunov`` (None for a given matrix).
 
     Parameters
@@ -149,12 +149,15 @@ def metric(st, A_cl: np.ndarray, nb: NormBound | None = None) -> tuple[np.ndarra
     A_cl : ndarray (n, n)
         The closed loop's linearisation A0 + B K.
     nb : NormBound, optional
-        On the norm-bound route: ``lyapunov`` tries :data:`SHIFTS` and keeps the M with the largest proved rate
-        (else the shift halfway).
+        On the norm-bound route: ``lyapunov`` tries :data:`SHIFTS` and the identity, and keeps the M with the
+        largest proved rate (else the shift halfway).
+    BK : ndarray (n, n), optional
+        B K, for the rates of the norm-bound route (zeros when absent).
 
     Returns
     -------
     (ndarray (n, n), float or None)
+        M and the shift of its Lyapunov equation (0.0 for the identity, None for a given M).
     """
     if st.M != "lyapunov":
         M = np.array(st.M, dtype=float)
@@ -177,7 +180,9 @@ def metric(st, A_cl: np.ndarray, nb: NormBound | None = None) -> tuple[np.ndarra
         shift = rate + fraction * (sup - rate)
         M = lyapunov_M(A_cl, shift)
         if M is not None:
-            found.append((largest_rate(nb, M, A_cl) if nb is not None else 0.0, shift, M))
+            found.append((largest_rate(nb, M, BK if BK is not None else np.zeros_like(A_cl)) if nb is not None else 0.0, shift, M))
+    if nb is not None:   # the identity too: a plant contracting in the Euclidean norm is proved best by it
+        found.append((largest_rate(nb, np.eye(len(A_cl)), BK if BK is not None else np.zeros_like(A_cl)), 0.0, np.eye(len(A_cl))))
     if not found:
         raise DesignError("stabilisability.M", f"lyapunov: no positive definite solution at the shifts tried up to {sup:.6g}", "a given M")
     _, shift, M = max(found, key=lambda f: f[0])
@@ -185,7 +190,8 @@ def metric(st, A_cl: np.ndarray, nb: NormBound | None = None) -> tuple[np.ndarra
 
 
 def norm_bound(model: Model, J, A0: np.ndarray) -> NormBound:
-    """C >= |df/dx - A0| entrywise over ``concrete.state_box`` x U (one ball-arithmetic enclosure per nonzero entry).
+    """The middle A_mid of the enclosure of each entry of df/dx over ``concrete.state_box`` x U and C >= |df/dx - A_mid|
+    entrywise (one ball-arithmetic enclosure per nonzero entry).
 
     Parameters
     ----------
@@ -194,17 +200,18 @@ def norm_bound(model: Model, J, A0: np.ndarray) -> NormBound:
     J : sympy Matrix (n, n)
         df/dx(x, u).
     A0 : ndarray (n, n)
-        The centre (the linearisation).
+        The linearisation (its shape; the test is centred on the enclosures' middles, where C is smallest).
 
     Returns
     -------
     NormBound
+        ``A0`` is the middle of the enclosures.
     """
     if model.state_box is None:
         raise DesignError("concrete.state_box", "missing: the norm-bound test encloses df/dx over a box of states", "one [lo, hi] pair per state")
     args = list(model.x) + list(model.u)
     box = np.r_[model.state_box, model.U]
-    C = np.zeros_like(A0)
+    C, centre = np.zeros_like(A0), np.zeros_like(A0)
     proved, entries = True, nonzero_entries(J)
     for (i, j), e in entries.items():
         used = [k for k, a in enumerate(args) if a in e.free_symbols]
@@ -217,8 +224,10 @@ def norm_bound(model: Model, J, A0: np.ndarray) -> NormBound:
         if fun is None or not ok:
             raise DesignError("concrete", f"df{i + 1}/d{model.x[j]} = {e} cannot be enclosed over state_box x U in ball arithmetic",
                               "df/dx of functions ball arithmetic encloses (polynomials, exp, log, sin, cos, tanh, sqrt, ...)", check="lmi_margin")
-        C[i, j] = np.nextafter(max(hi - A0[i, j], A0[i, j] - lo, 0.0), np.inf)
-    return NormBound(A0, C, proved, len(entries))
+        # the centre of the test is the middle of the enclosure (the smallest C), not the linearisation
+        centre[i, j] = 0.5 * (lo + hi)
+        C[i, j] = np.nextafter(max(hi - centre[i, j], centre[i, j] - lo, 0.0), np.inf)
+    return NormBound(centre, C, proved, len(entries))
 
 
 def beta(M: np.ndarray, C: np.ndarray) -> float:
@@ -236,20 +245,22 @@ def beta(M: np.ndarray, C: np.ndarray) -> float:
     return float(np.linalg.norm(np.abs(T) @ C @ np.abs(np.linalg.inv(T)), 2))
 
 
-def largest_rate(nb: NormBound, M: np.ndarray, A_cl: np.ndarray) -> float:
-    """The largest lambda with A_cl^T M + M A_cl + (lambda + 2 beta) M <= 0 (a generalised eigenvalue; <= 0: none).
+def largest_rate(nb: NormBound, M: np.ndarray, BK: np.ndarray) -> float:
+    """The largest lambda with A_cl^T M + M A_cl + (lambda + 2 beta) M <= 0, A_cl = nb.A0 + B K (a generalised
+    eigenvalue; <= 0: none).
 
     Parameters
     ----------
     nb : NormBound
     M : ndarray (n, n)
-    A_cl : ndarray (n, n)
-        The closed loop at the centre, A0 + B K.
+    BK : ndarray (n, n)
+        B K (zeros for identity feedback).
 
     Returns
     -------
     float
     """
+    A_cl = nb.A0 + BK
     S = -(A_cl.T @ M + M @ A_cl)
     return float(sla.eigh(0.5 * (S + S.T), M, eigvals_only=True).min()) - 2.0 * beta(M, nb.C)
 

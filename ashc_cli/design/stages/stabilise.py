@@ -324,12 +324,14 @@ def _automatic_norm_bound(model: Model, st, J: sp.Matrix, refused: DesignError) 
     except DesignError as exc:
         import re
 
-        largest = re.search(r"the largest lambda it allows is (\S+)\)", exc.what)
-        found = f"the largest rate it allows is {largest.group(1)}" if largest else exc.what
-        raise DesignError("stabilisability", f"{refused.what}; the norm-bound test with M from the Lyapunov equation of the linearisation"
-                          f"{' and K by LQR' if st.feedback == 'linear_gain' else ''} proves no positive rate ({found})",
-                          "a smaller concrete.state_box, a stabilisability.linearise_at nearer the operating point, or method: given with your M "
-                          "(and K)", check="lmi_margin") from None
+        below = re.search(r"the largest rate it certifies is (\S+)\)", exc.what)
+        none = re.search(r"the largest lambda it allows is (\S+)\)", exc.what)
+        how = (f"proves lambda = {below.group(1)} at most, below the decay_rate {st.decay_rate}" if below else
+               f"proves no positive rate (the largest it allows is {none.group(1)})" if none else exc.what)
+        hint = "a smaller concrete.state_box, a stabilisability.linearise_at nearer the operating point, or method: given with your M (and K)"
+        raise DesignError("stabilisability", f"{refused.what}; the norm-bound test with M from the Lyapunov equation of the linearisation "
+                          f"(or the identity){' and K by LQR' if st.feedback == 'linear_gain' else ''} {how}",
+                          (f"decay_rate <= {below.group(1)} (or maximise), " if below else "") + hint, check="lmi_margin") from None
     art.meta["route"] = "automatic: " + art.meta["route"] + (", M from the Lyapunov equation of the linearisation"
                                                             + (", K by LQR" if st.feedback == "linear_gain" else ""))
     return art
@@ -354,8 +356,8 @@ def _given(model: Model, st, J: sp.Matrix) -> Artefact:
         nb = given.norm_bound(model, J, A0)
         poly = given.norm_polytope(nb, f"chosen because {exc.what}")
         A_sym, b_sym = J, sp.zeros(model.n, 1)
-        M, shift = given.metric(st, A0 + B @ K, nb)
-        lam_max = given.largest_rate(nb, M, A0 + B @ K)
+        M, shift = given.metric(st, nb.A0 + B @ K, nb, B @ K)      # lyapunov: of the middle of the enclosures
+        lam_max = given.largest_rate(nb, M, B @ K)
         route = "the norm-bound test (df/dx has too many terms to enumerate its vertices)"
     # maximise: a little below the largest rate, so that the proof sees a strictly negative margin
     lam = lam_max * (1 - given.BACKOFF) if st.decay_rate == "maximise" else float(st.decay_rate)
@@ -367,7 +369,8 @@ def _given(model: Model, st, J: sp.Matrix) -> Artefact:
                           "another M or K (lyapunov, lqr, another linearise_at)" + (", or a smaller concrete.state_box" if poly.kind != "affine in u" else ""),
                           check="lmi_margin")
     meta = {"solver": "none (M given; verified in numpy)" if shift is None else
-            f"none: M from the Lyapunov equation of A0 + B K shifted by {shift:.6g} (scipy)", "route": route,
+            ("none: M = I (the norm-bound test proves more with it than with the Lyapunov solutions)" if shift == 0.0 else
+             f"none: M from the Lyapunov equation of A0 + B K shifted by {shift:.6g} (scipy)"), "route": route,
             "linearise_at": {"x": x0.tolist(), "u": u0.tolist()}, "largest_rate_certified": lam_max,
             "K_source": "given" if isinstance(st.K, list) else ("lqr (Q = I, R = I)" if st.K == "lqr" else "none (identity feedback)")}
     if J.free_symbols & set(model.x) and poly.kind != "affine in u":
