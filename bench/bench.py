@@ -325,11 +325,46 @@ def large_plants(tmp: Path, timeout: float) -> tuple[float, list[dict]]:
     return t0, out
 
 
+#: Issue 43's rows: `ashc example ring --stages N` has 2 N + N (N - 1) / 2 distinct nonlinear terms.
+RING_TERMS = {2: 5, 3: 9, 5: 20, 8: 44, 11: 77}
+
+
+def terms_rows(tmp: Path, timeout: float) -> list[dict]:
+    """`ashc stabilise` on the pendulum ring against its number of distinct nonlinear terms (5 ... 77): wall, peak
+    memory, the route taken (the vertex argument or the norm-bound test), the rate and its evidence."""
+    out = []
+    for N, terms in RING_TERMS.items():
+        path = tmp / f"ring_{N}.yaml"
+        subprocess.run(ASHC + ["example", "ring", "--stages", str(N), "--output", str(path)], check=True, capture_output=True, cwd=ROOT)
+        folder = tmp / f"ring{N}"
+        try:
+            wall, mem, _, rc = run_child(ASHC + ["stabilise", str(path), "--out", str(folder)], timeout)
+        except subprocess.TimeoutExpired:
+            wall, mem, rc = float("nan"), float("nan"), -1
+        proc = subprocess.run(ASHC + ["summary", str(folder), "--json"], capture_output=True, text=True, cwd=ROOT)
+        try:
+            st = json.loads(proc.stdout)["stabilise"]
+            route = st.get("route") or f"vertex argument ({st.get('polytope')})"
+            note = f"lambda = {st['lambda']:.4g}; {route}; {'proved' if 'not proved' not in str(st.get('proof')) else 'sampled'}"
+        except (ValueError, KeyError):
+            note = "?"
+        out.append({"work": f"ring of {N} pendulums, n = {2 * N}, {terms} terms, `stabilise`", "wall": wall, "mem": mem, "rc": rc, "note": note})
+        print(f"  measured ring N = {N}: {wall:.1f} s, {mem:.0f} MiB, {note}", file=sys.stderr, flush=True)
+    return out
+
+
 def print_large(t0: float, rows: list[dict]) -> None:
     print(f"\n| large plants fast and proved (issue 44; T0 = bare import = {t0:.2f} s) | wall (s) | wall / T0 | peak RSS (MiB) | verdict | target | note | exit |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         print(f"| {r['work']} | {r['wall']:.2f} | {r['t0']:.1f} | {r['mem']:.0f} | {r['verdict']} | {r['target']} | {r.get('note', '')} | {r['rc']} |")
+
+
+def print_terms(rows: list[dict]) -> None:
+    print("\n| certificates against the number of terms (issue 43) | wall (s) | peak RSS (MiB) | note | exit |")
+    print("| --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['work']} | {r['wall']:.2f} | {r['mem']:.0f} | {r['note']} | {r['rc']} |")
 
 
 #: The paired closed-loop rows of ``--against``: label, spec, the command after ``ashc``, the stage it times.
@@ -399,6 +434,7 @@ def main() -> int:
     if args.only_large:
         with tempfile.TemporaryDirectory() as tmp:
             print_large(*large_plants(Path(tmp), args.timeout))
+            print_terms(terms_rows(Path(tmp), args.timeout))
         return 0
     if args.only_certificates:
         with tempfile.TemporaryDirectory() as tmp:
@@ -456,8 +492,10 @@ def main() -> int:
             print(f"| {r['work']} | {r['wall']:.2f} | {r['mem']:.0f} | {r['target']} | {r['note']} | {r['rc']} |")
     with tempfile.TemporaryDirectory() as tmp:
         t0, large = large_plants(Path(tmp), args.timeout)
+        terms = terms_rows(Path(tmp), args.timeout)
     print_large(t0, large)
-    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs, "large": large, "t0": t0}) + "\n")
+    print_terms(terms)
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs, "large": large, "t0": t0, "terms": terms}) + "\n")
     return 0
 
 

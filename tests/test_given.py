@@ -10,6 +10,7 @@ from ashc_cli.design.contraction import given
 from ashc_cli.design.stages import stabilise
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.numerics import proofs
+from ashc_cli.problem import examples
 from ashc_cli.problem.model import build_model, sparse_jacobian
 from ashc_cli.problem.spec import parse_spec_text
 
@@ -17,22 +18,11 @@ from .conftest import SPECS
 
 
 def ring(N: int = 8, theta: float = 0.15, **stab) -> str:
-    """N pendulums, each coupled to every other through sin(th_j - th_i), with cubic damping: N + N (N - 1) / 2 + N
-    distinct nonlinear terms (44 at N = 8), 2 N states."""
-    states, f = [], []
-    for i in range(N):
-        states += [f"th{i + 1}", f"om{i + 1}"]
-    for i in range(N):
-        coupling = " + ".join(f"a*sin(th{j + 1} - th{i + 1})" for j in range(N) if j != i)
-        f += [f"om{i + 1}", f"-k*sin(th{i + 1}) - c*om{i + 1} - d*om{i + 1}**3 + {coupling}"]
-    g = [["0"] for _ in range(2 * N)]
-    g[1] = ["1"]
-    spec = {"name": "pendulum_ring", "description": "pendulums coupled through sin of their differences",
-            "parameters": {"k": 4.0, "c": 1.5, "d": 0.2, "a": 0.2},
-            "concrete": {"states": states, "inputs": ["u"], "f_bar": f, "g": g, "h": ["th1"], "input_bounds": [[-1.0, 1.0]],
-                         "output_set": [[-0.02, 0.02]], "state_box": [[-theta, theta] if k % 2 == 0 else [-0.5, 0.5] for k in range(2 * N)]},
-            "stabilisability": {"method": "given", "decay_rate": "maximise", "M": "lyapunov", **stab},
-            "abstract": {"states": ["xi"], "inputs": ["v"], "phi_bar": ["0"], "l": ["xi"], "domain": [[-0.3, 0.3]]}}
+    """`ashc example ring` (N pendulums coupled all to all, 2 N + N (N - 1) / 2 distinct terms: 44 at N = 8) with method
+    given and M: lyapunov, the angles' box +-theta."""
+    spec = yaml.safe_load(examples.ring(N))
+    spec["stabilisability"] = {"method": "given", "decay_rate": "maximise", "M": "lyapunov", **stab}
+    spec["concrete"]["state_box"] = [[-theta, theta] if k % 2 == 0 else [-0.5, 0.5] for k in range(2 * N)]
     return yaml.safe_dump(spec, sort_keys=False, width=300)
 
 

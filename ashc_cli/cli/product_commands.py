@@ -359,9 +359,10 @@ def example(
     kind: Annotated[str | None, typer.Argument(metavar="KIND", help=(
         "A shipped spec (cuk_converter, or short: cuk; `--list` shows them all) or a family of scalable plants: 'ladder' "
         "(an N-stage switched LC ladder, n = 4 N), 'rc_ladder' (the MORwiki nonlinear RC ladder with N diodes, n = N; "
-        "without --stages the shipped 5-node spec) or 'chain' (N masses on springs, n = 2 N)."), show_default=False)] = None,
+        "without --stages the shipped 5-node spec), 'chain' (N masses on springs, n = 2 N) or 'ring' (N pendulums coupled all to "
+        "all, n = 2 N, 2 N + N (N - 1) / 2 distinct nonlinear terms)."), show_default=False)] = None,
     stages: Annotated[int | None, typer.Option("--stages", min=1, max=4096, show_default=False,
-                                               help="Number of stages N of a family (cells, nodes or masses) [default: 1].")] = None,
+                                               help="Number of stages N of a family (cells, nodes, masses or pendulums) [default: 1].")] = None,
     output: Annotated[Path | None, typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
     list_them: Annotated[bool, typer.Option("--list", help="List the shipped specs and the families, one line each.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing --output file (else refused: it may hold your edits).")] = False,
@@ -375,7 +376,7 @@ def example(
     from ashc_cli.problem import examples
 
     families = {"ladder": (examples.ladder, 256, lambda N: 4 * N), "rc_ladder": (examples.rc_ladder, 4096, lambda N: N),
-                "chain": (examples.chain, 1024, lambda N: 2 * N)}
+                "chain": (examples.chain, 1024, lambda N: 2 * N), "ring": (examples.ring, 64, lambda N: 2 * N)}
     if list_them:
         for name, text in examples.shipped().items():
             typer.echo(f"{name:<24} {text}")
@@ -394,7 +395,7 @@ def example(
         text, what = make(stages), f"{stages}-stage {kind}, n = {states(stages)}"
     else:
         if stages is not None:
-            raise SpecError("--stages", f"{stages}", f"no --stages for a shipped spec ('{kind}'): only the families ladder, rc_ladder and chain take it")
+            raise SpecError("--stages", f"{stages}", f"no --stages for a shipped spec ('{kind}'): only the families ladder, rc_ladder, chain and ring take it")
         name, text = examples.shipped_spec(kind)
         what = f"the shipped spec {name}"
     if output is None:

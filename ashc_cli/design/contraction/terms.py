@@ -19,8 +19,9 @@ from ashc_cli.problem.grids import domain_grid, maximise_on_box
 from ashc_cli.problem.model import Model, nonzero_entries, sparse_jacobian
 
 
-#: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices).
-MAX_VARYING_ENTRIES = 12
+#: At most this many Jacobian entries may vary over the state box (the polytope has 2^k vertices; more go to the
+#: norm-bound test, whose cost grows with the entries).
+MAX_VARYING_ENTRIES = 6
 
 
 RANGE_SAMPLES = 40000
@@ -244,8 +245,9 @@ def jacobian_samples(model: Model, J: sp.Matrix, count: int | None = None, seed:
 
 # --- the Jacobian written over the plant's nonlinear terms ----------------------------------------------------
 
-#: At most this many terms are enumerated as vertices (2^K corners of the box of term values).
-MAX_VERTEX_TERMS = 10
+#: At most this many terms are enumerated as vertices (2^K corners of the box of term values; each refinement round of
+#: `maximise` solves SDPs over up to 2048 of them: 9 terms took 157 s on a 3-pendulum ring, the norm-bound test 3 s).
+MAX_VERTEX_TERMS = 6
 
 
 @dataclass
@@ -545,6 +547,11 @@ MAX_SUBDIVIDED_VERTICES = 2048
 HULL_INSIDE = 1e-9
 
 
+#: Above this many terms the corners are all kept: qhull's facets grow like N^(K/2) (9 terms: 8 GiB and 10 minutes
+#: for the 512-corner sub-boxes of a 3-pendulum ring).
+HULL_MAX_TERMS = 4
+
+
 def hull_points(points: np.ndarray) -> np.ndarray:
     """The indices of the points on (or within ``HULL_INSIDE`` of) the boundary of their convex hull: the vertices
     the LMI must be imposed at.  A sub-box refinement's corner sets overlap in term space, and most of their corners
@@ -559,12 +566,13 @@ def hull_points(points: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of int
-        Sorted indices of the points kept (all of them when the hull is degenerate or K is 0).
+        Sorted indices of the points kept (all of them when the hull is degenerate, K is 0 or above
+        ``HULL_MAX_TERMS``).
     """
     from scipy.spatial import ConvexHull, QhullError
 
     N, K = points.shape
-    if K == 0 or N <= K + 1:
+    if K == 0 or N <= K + 1 or K > HULL_MAX_TERMS:
         return np.arange(N)
     lo, width = points.min(axis=0), np.ptp(points, axis=0)
     if np.any(width <= 0):

@@ -294,6 +294,15 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     terms_found = next((p.meta.get("_terms") for p in candidates if p.kind == "Jacobian terms"), None)
     if terms_found is not None and (st.decay_rate == "maximise" or not results):
         results += _refine(model, st, terms_found, results)
+    if not results and st.objective == "rate" and not any(p.kind in ("affine in u", "Jacobian terms", "Jacobian entries") for p in candidates):
+        # only the network certificate was tried (too many terms to enumerate): the norm-bound test before refusing
+        refused = DesignError("stabilisability", "the network certificate gives no decay rate")
+        try:
+            _certify(model, st, first_failed)
+        except DesignError as exc:
+            refused = exc
+        return _automatic_norm_bound(model, st, J, DesignError(refused.where, f"{refused.what} (df/dx has too many terms to enumerate "
+                                                                                "its vertices)", refused.expected))
     if not results:
         _certify(model, st, first_failed)          # raises, with the hint the refusal needs
     poly, M, K, lam, meta = max(results, key=lambda r: r[3])
@@ -346,15 +355,22 @@ def _given(model: Model, st, J: sp.Matrix) -> Artefact:
     B = given.input_matrix(model) if st.feedback == "linear_gain" else np.zeros((model.n, model.m))
     K = given.gain(st, A0, B) if st.feedback == "linear_gain" else np.zeros((model.m, model.n))
     try:
-        poly, A_sym, b_sym = (lambda found: (found[0][0], found[1], found[2]))(polytopes(model, J))
-        M, shift = given.metric(st, A0 + B @ K)
-        lam_max = largest_decay_rate_for([np.asarray(A.toarray() if hasattr(A, "toarray") else A) + B @ K for A in poly.matrices], M)
-        route = f"the vertices of the {poly.kind} polytope (exact)"
+        candidates, A_sym, b_sym = polytopes(model, J)
+        why = "df/dx has too many terms to enumerate its vertices; the network certificate holds for its own diagonal M only"
     except DesignError as exc:
         if not _too_many_terms(exc):
             raise
+        candidates, why = [], exc.what
+    # a hull of every df/dx (not the network's lower corners, which bound the LMI for its own diagonal M only)
+    hulls = [p for p in candidates if "_network" not in p.meta]
+    if hulls:
+        poly = hulls[0]
+        M, shift = given.metric(st, A0 + B @ K)
+        lam_max = largest_decay_rate_for([np.asarray(A.toarray() if hasattr(A, "toarray") else A) + B @ K for A in poly.matrices], M)
+        route = f"the vertices of the {poly.kind} polytope (exact)"
+    else:
         nb = given.norm_bound(model, J, A0)
-        poly = given.norm_polytope(nb, f"chosen because {exc.what}")
+        poly = given.norm_polytope(nb, f"chosen because {why}")
         A_sym, b_sym = J, sp.zeros(model.n, 1)
         M, shift = given.metric(st, nb.A0 + B @ K, nb, B @ K)      # lyapunov: of the middle of the enclosures
         lam_max = given.largest_rate(nb, M, B @ K)
