@@ -58,8 +58,9 @@ def test_the_norm_bound_holds_for_every_deviation_within_its_bounds_and_the_proo
     nb = given.NormBound(A0, 0.05 * C, True, int(np.count_nonzero(C)))
     rate = given.largest_rate(nb, M, np.zeros((n, n)))
     assert rate > 0
-    assert given.prove(nb, M, np.zeros((n, n)), 0.99 * rate)[0] <= 0
-    assert given.prove(nb, M, np.zeros((n, n)), 1.01 * rate)[0] > 0
+    model = build_model(parse_spec_text(ring(3)))                      # only its g is read, and only with a gain
+    assert given.prove(model, nb, M, np.zeros((1, n)), 0.99 * rate)[0] <= 0
+    assert given.prove(model, nb, M, np.zeros((1, n)), 1.01 * rate)[0] > 0
 
 
 def test_lqr_and_lyapunov_give_a_proved_certificate_on_the_inverted_pendulum_by_the_vertex_argument():
@@ -101,3 +102,9 @@ def test_polytopic_lmi_on_too_many_terms_takes_the_norm_bound_test_by_itself_and
     wide = ring(8, theta=1.2).replace("  method: given\n", "  method: polytopic_lmi\n").replace("  M: lyapunov\n", "")
     with pytest.raises(DesignError, match=r"^stabilisability: df/dx has 44 distinct nonlinear terms .*; the norm-bound test with M from the Lyapunov"):
         stabilise.run(build_model(parse_spec_text(wide)), {})
+
+
+def test_a_gain_from_lqr_on_the_norm_bound_route_is_proved_with_b_k_in_ball_arithmetic():
+    art = stabilise.run(build_model(parse_spec_text(ring(8, feedback="linear_gain", K="lqr"))), {})
+    assert art.meta["route"].startswith("the norm-bound test") and art.meta["K_source"].startswith("lqr")
+    assert np.any(art.values["K"] != 0) and art.checks["lmi_margin"].evidence == proofs.PROVED

@@ -265,16 +265,18 @@ def largest_rate(nb: NormBound, M: np.ndarray, BK: np.ndarray) -> float:
     return float(sla.eigh(0.5 * (S + S.T), M, eigvals_only=True).min()) - 2.0 * beta(M, nb.C)
 
 
-def prove(nb: NormBound, M: np.ndarray, BK: np.ndarray, lam: float) -> tuple[float, str]:
+def prove(model: Model, nb: NormBound, M: np.ndarray, K: np.ndarray, lam: float) -> tuple[float, str]:
     """A proved upper bound of the largest eigenvalue of A_cl^T M + M A_cl + lambda M + gamma I (<= 0: eq. (28) holds
     for every df/dx the enclosures hold), in ball arithmetic, or inf.
 
     Parameters
     ----------
+    model : Model
+        Supplies g (constant with a gain: formed in ball arithmetic, its parameters exact doubles).
     nb : NormBound
     M : ndarray (n, n)
-    BK : ndarray (n, n)
-        B K (zeros for identity feedback), as floats (B constant, K the certificate's).
+    K : ndarray (m, n)
+        The gain (zeros for identity feedback): B K is formed in ball arithmetic, not rounded.
     lam : float
 
     Returns
@@ -288,7 +290,11 @@ def prove(nb: NormBound, M: np.ndarray, BK: np.ndarray, lam: float) -> tuple[flo
     b = _beta_upper(Mb, nb.C)
     if not np.isfinite(b):
         return np.inf, "the ball Cholesky factor of M or its inverse could not be formed"
-    A = [[arb(float(nb.A0[i, j])) + arb(float(BK[i, j])) for j in range(n)] for i in range(n)]   # B K: exact doubles of the floats used
+    A = [[arb(float(nb.A0[i, j])) for j in range(n)] for i in range(n)]
+    if np.any(K != 0):      # B K in ball arithmetic (as the vertex proof forms it), not the rounded float product
+        B = proofs.BoxFunction(model, {"g": model.g}, list(model.x))([arb(0)] * n)["g"]
+        Kb = proofs.matrix_balls(K)
+        A = [[A[i][j] + sum((B[i][k] * Kb[k][j] for k in range(K.shape[0])), arb(0)) for j in range(n)] for i in range(n)]
     MA = [[sum((Mb[i][k] * A[k][j] for k in range(n)), arb(0)) for j in range(n)] for i in range(n)]
     S = [[-(MA[j][i] + MA[i][j] + (arb(lam) + 2 * arb(b)) * Mb[i][j]) for j in range(n)] for i in range(n)]
     bound = -proofs.psd_lower_bound_balls(S)
@@ -331,7 +337,9 @@ def _beta_upper(Mb: list, C: np.ndarray) -> float:
     v = np.maximum(v, 1e-12)
     Yb = arb_mat(X.T.tolist()) * arb_mat(X.tolist()) * arb_mat([[float(x)] for x in v])
     rho = max(proofs.upper(Yb[i, 0] / arb(float(v[i]))) for i in range(n))
-    return float(np.nextafter(np.sqrt(rho), np.inf)) if rho >= 0 else 0.0
+    if not np.isfinite(rho):
+        return np.inf
+    return float(np.nextafter(np.sqrt(rho), np.inf)) if rho > 0 else 0.0
 
 
 def norm_polytope(nb: NormBound, why: str) -> Polytope:

@@ -333,6 +333,9 @@ def _automatic_norm_bound(model: Model, st, J: sp.Matrix, refused: DesignError) 
     except DesignError as exc:
         import re
 
+        if exc.where not in ("stabilisability.M", "stabilisability.decay_rate"):
+            raise           # not the test's rate (g not constant, df/dx not enclosed, ...): its own words
+
         below = re.search(r"the largest rate it certifies is (\S+)\)", exc.what)
         none = re.search(r"the largest lambda it allows is (\S+)\)", exc.what)
         how = (f"proves lambda = {below.group(1)} at most, below the decay_rate {st.decay_rate}" if below else
@@ -597,7 +600,7 @@ def _artefact(model: Model, st, poly: Polytope, A_sym: sp.Matrix, b_sym: sp.Matr
     if "_network" in poly.meta:
         proved_margin, proof = prove_network(model, poly.meta["_terms"], poly.meta["_network"], lam)
     elif "_normbound" in poly.meta:
-        proved_margin, proof = given.prove(poly.meta["_normbound"], M, B_K if np.ndim(B_K) == 2 else np.zeros((model.n, model.n)), lam)
+        proved_margin, proof = given.prove(model, poly.meta["_normbound"], M, K if st.feedback == "linear_gain" else np.zeros_like(K), lam)
     else:
         proved_margin, proof = prove_lmi(model, poly, K, M, lam)
     margin_evidence = proofs.PROVED if proved_margin <= 0 else proofs.SAMPLED
@@ -786,5 +789,7 @@ def headline(art: Artefact) -> str:
     """
     line = f"lambda = {art.values['lambda']:.6g}, lmi_margin = {art.values['lmi_margin']:.3g}"
     if "route" in art.meta:          # method given, or too many terms: the vertex argument or the norm-bound test
-        line += f" (method {art.meta.get('method', 'given')}, by {art.meta['route']}; {art.checks['lmi_margin'].evidence})"
+        proved = art.checks["lmi_margin"].evidence == proofs.PROVED
+        line += (f" (method {art.meta.get('method', 'given')}, by {art.meta['route']}; "
+                 + (f"proved margin {art.values['lmi_margin_proved']:.3g})" if proved else "sampled)"))
     return line
