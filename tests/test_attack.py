@@ -41,7 +41,7 @@ abstract:
 def sampled_design(tmp_path_factory):
     """The steep plant designed with sampled Jacobian ranges (the enclosure disabled): its LMI row passes, sampled."""
     mp = pytest.MonkeyPatch()
-    mp.setattr(terms, "_enclose_entry", lambda *a, **k: None)
+    mp.setattr(terms, "enclose_entry", lambda *a, **k: None)
     spec = parse_spec_text(STEEP)
     arts = run(spec, tmp_path_factory.mktemp("steep"), DESIGN)
     mp.undo()

@@ -465,7 +465,7 @@ def test_enclosed_ranges_prove_the_lmi_of_a_smooth_plant():
 
 
 def test_sampled_ranges_say_sampled(monkeypatch):
-    monkeypatch.setattr(terms, "_enclose_entry", lambda *a, **k: None)
+    monkeypatch.setattr(terms, "enclose_entry", lambda *a, **k: None)
     art = stabilise.run(_two_state("-0.5*x1 - 2*x2 + 0.04*tanh(5*(x1 + 0.0517))"), {})
     assert not art.meta["ranges_proved"] and art.checks["lmi_margin"].evidence == "sampled"
     assert "only sampled" in art.meta["lmi_proof"]

@@ -30,7 +30,7 @@ import scipy.linalg as sla
 from flint import arb
 
 from ashc_cli.design.contraction.lyapunov import lyapunov_M
-from ashc_cli.design.contraction.terms import Polytope, enclose_term
+from ashc_cli.design.contraction.terms import Polytope, enclose_entry
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.numerics import proofs
 from ashc_cli.problem.model import Model, nonzero_entries
@@ -212,22 +212,17 @@ def norm_bound(model: Model, J, A0: np.ndarray) -> NormBound:
     args = list(model.x) + list(model.u)
     box = np.r_[model.state_box, model.U]
     C, centre = np.zeros_like(A0), np.zeros_like(A0)
-    proved, entries = True, nonzero_entries(J)
+    entries = nonzero_entries(J)
     for (i, j), e in entries.items():
-        used = [k for k, a in enumerate(args) if a in e.free_symbols]
-        try:
-            fun = proofs.compile_claims(model, [e], [args[k] for k in used])
-        except proofs.interval.UnsupportedExpression:
-            proved, fun = False, None
-        if fun is not None:
-            lo, hi, ok = enclose_term(fun, box[used]) if used else (*(lambda b: (proofs.lower(b), proofs.upper(b)))(fun([])[0]), True)
-        if fun is None or not ok:
+        enclosed = enclose_entry(model, e, args, box)
+        if enclosed is None:
             raise DesignError("concrete", f"df{i + 1}/d{model.x[j]} = {e} cannot be enclosed over state_box x U in ball arithmetic",
                               "df/dx of functions ball arithmetic encloses (polynomials, exp, log, sin, cos, tanh, sqrt, ...)", check="lmi_margin")
+        lo, hi = enclosed
         # the centre of the test is the middle of the enclosure (the smallest C), not the linearisation
         centre[i, j] = 0.5 * (lo + hi)
         C[i, j] = np.nextafter(max(hi - centre[i, j], centre[i, j] - lo, 0.0), np.inf)
-    return NormBound(centre, C, proved, len(entries))
+    return NormBound(centre, C, True, len(entries))     # every entry enclosed, or refused above
 
 
 def beta(M: np.ndarray, C: np.ndarray) -> float:

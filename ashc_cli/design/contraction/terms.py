@@ -121,7 +121,7 @@ def jacobian_polytope(model: Model, J: sp.Matrix | None = None) -> tuple[sp.Matr
         neg_lo, _ = maximise_on_box(pts, -vals, lambda z, fun=fun: -float(fun(*z)[0, 0]), box)
         lo = -neg_lo
         sampled.append((lo, hi))
-        enclosed = _enclose_entry(model, J[i, j], args, box)
+        enclosed = enclose_entry(model, J[i, j], args, box)
         if enclosed is not None:
             ranges.append(enclosed)
             how.append("enclosed")
@@ -180,9 +180,25 @@ def enclose_term(fun, box: np.ndarray) -> tuple[float, float, bool]:
     return lo, hi, ok_lo and ok_hi
 
 
-def _enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) -> tuple[float, float] | None:
+def enclose_entry(model: Model, entry: sp.Expr, args: list, box: np.ndarray) -> tuple[float, float] | None:
     """Proved bounds lo <= entry <= hi over the box (ball arithmetic, branch and bound), or None where ball
-    arithmetic cannot enclose the entry or the enclosure is not finite."""
+    arithmetic cannot enclose the entry or the enclosure is not finite.
+
+    Parameters
+    ----------
+    model : Model
+        Supplies the parameter values.
+    entry : sympy Expr
+        One entry of df/dx (or a term of it).
+    args : list of Symbol
+        The variables of the box's rows (the states, then the inputs).
+    box : ndarray (len(args), 2)
+        The box.
+
+    Returns
+    -------
+    (float, float) or None
+    """
     # Only the coordinates the entry depends on (a network's term reads two nodes of a thousand).
     free = entry.free_symbols
     used = [k for k, a in enumerate(args) if a in free]
@@ -378,7 +394,7 @@ def decompose(model: Model, J: sp.Matrix) -> Terms:
     box = np.r_[model.state_box, model.U]
     pts = None
     for theta in order:
-        enclosed = _enclose_entry(model, theta, args, box)
+        enclosed = enclose_entry(model, theta, args, box)
         if enclosed is not None:
             ranges.append(enclosed)
             how.append("enclosed")

@@ -331,19 +331,15 @@ def _automatic_norm_bound(model: Model, st, J: sp.Matrix, refused: DesignError) 
     try:
         art = _given(model, auto, J)
     except DesignError as exc:
-        import re
-
-        if exc.where not in ("stabilisability.M", "stabilisability.decay_rate"):
+        largest = getattr(exc, "largest_rate", None)
+        if largest is None:
             raise           # not the test's rate (g not constant, df/dx not enclosed, ...): its own words
-
-        below = re.search(r"the largest rate it certifies is (\S+)\)", exc.what)
-        none = re.search(r"the largest lambda it allows is (\S+)\)", exc.what)
-        how = (f"proves lambda = {below.group(1)} at most, below the decay_rate {st.decay_rate}" if below else
-               f"proves no positive rate (the largest it allows is {none.group(1)})" if none else exc.what)
+        how = (f"proves lambda = {largest:.6g} at most, below the decay_rate {st.decay_rate}" if largest > 0 else
+               f"proves no positive rate (the largest it allows is {largest:.6g})")
         hint = "a smaller concrete.state_box, a stabilisability.linearise_at nearer the operating point, or method: given with your M (and K)"
         raise DesignError("stabilisability", f"{refused.what}; the norm-bound test with M from the Lyapunov equation of the linearisation "
                           f"(or the identity){' and K by LQR' if st.feedback == 'linear_gain' else ''} {how}",
-                          (f"decay_rate <= {below.group(1)} (or maximise), " if below else "") + hint, check="lmi_margin") from None
+                          (f"decay_rate <= {largest:.6g} (or maximise), " if largest > 0 else "") + hint, check="lmi_margin") from None
     art.meta["route"] = "automatic: " + art.meta["route"] + (", M from the Lyapunov equation of the linearisation"
                                                             + (", K by LQR" if st.feedback == "linear_gain" else ""))
     return art
@@ -383,10 +379,12 @@ def _given(model: Model, st, J: sp.Matrix) -> Artefact:
     if lam > lam_max * (1 + 1e-12) or lam_max <= 0:
         what = f"does not satisfy eq. (28) at any positive decay rate by {route} (the largest lambda it allows is {lam_max:.6g})" if lam_max <= 0 else \
             f"does not satisfy eq. (28) at lambda = {lam:g} by {route} (the largest rate it certifies is {lam_max:.6g})"
-        raise DesignError("stabilisability.M", what,
-                          f"a decay_rate <= {lam_max:.6g}" if lam_max > 0 else
-                          "another M or K (lyapunov, lqr, another linearise_at)" + (", or a smaller concrete.state_box" if poly.kind != "affine in u" else ""),
-                          check="lmi_margin")
+        refusal = DesignError("stabilisability.M", what,
+                              f"a decay_rate <= {lam_max:.6g}" if lam_max > 0 else
+                              "another M or K (lyapunov, lqr, another linearise_at)" + (", or a smaller concrete.state_box" if poly.kind != "affine in u" else ""),
+                              check="lmi_margin")
+        refusal.largest_rate = lam_max          # read by _automatic_norm_bound, which words its own refusal
+        raise refusal
     meta = {"solver": "none (M given; verified in numpy)" if shift is None else
             ("none: M = I (the norm-bound test proves more with it than with the Lyapunov solutions)" if shift == 0.0 else
              f"none: M from the Lyapunov equation of A0 + B K shifted by {shift:.6g} (scipy)"), "route": route,
