@@ -2,9 +2,9 @@
 
 import dataclasses
 import json
+import re
 
 import pytest
-import re
 
 from ashc_cli.errors import DesignError
 from ashc_cli.design.verdict import FAILS, PROVED, ROWS, SAMPLED, verdict
@@ -94,7 +94,10 @@ def test_check_cli_on_samples_only_exits_0_unless_proved_is_required(tmp_path):
     strict = ashc("check", str(spec), "--out", str(tmp_path / "d"), "--require", "proved")
     assert strict.returncode == 3
     assert "error: check: --require proved: the verdict holds on samples only" in strict.stderr
-    # design's last line says the same, and the published bound carries "(sampled)"
+    # design's last line says the same; the published bound rests on proved rows only (the fitted p's PDE residual is
+    # proved and carried as its own term), so G carries no "(sampled)" and the residual's term is printed
     design = ashc("design", str(spec), "--out", str(tmp_path / "d"))
     assert design.returncode == 0
-    assert ": holds on samples only (" in design.stdout and " (sampled) ||v||_inf" in design.stdout
+    assert ": holds on samples only (" in design.stdout and " (sampled) ||v||_inf" not in design.stdout
+    assert "invariance PDE residual" not in data["sampled"]
+    assert re.search(r"\|\|v\|\|_inf \+ [0-9.e+-]+ when", design.stdout), design.stdout

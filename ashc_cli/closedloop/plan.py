@@ -132,7 +132,8 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     sqrt(W0 e^(-(lambda - eps) t) / alpha_h) + G v_max <= EPS for all t >= 0; the left side is largest at t = 0,
     so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).  With
     disturbances (``concrete.disturbances``) every w in their box is admitted: v_max = (EPS - sqrt(W0 / alpha_h) -
-    G_w ||w||_inf) / G, capped by the region's limit with w; the governor is refused (it cannot see w).
+    G_w ||w||_inf) / G, capped by the region's limit with w; the governor is refused (it cannot see w).  A fitted p's
+    PDE residual (``bound.residual_term``) is spent the same way, before any v, and refuses the governor too.
     Governor: the level W_max = min(EPS^2 alpha_h, w0_max_certified), kept invariant (less GOVERNOR_MARGIN); it
     needs W0 <= W_max.
 
@@ -164,7 +165,8 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     start = float(np.sqrt(max(W0, 0.0) / alpha_h))          # sqrt(W0 / alpha_h), the first term of eq. (9) at t = 0
     # A spec with disturbances admits every w in disturbance_bounds: the bound's G_w ||w||_inf is spent before any v,
     # and the region's v limit is the one that keeps {W <= c} invariant with w (bound.v_max_certified_with_w).
-    w_term = float(bd.get("disturbance_term", 0.0))
+    # A fitted p's PDE residual is a disturbance that is always there (bound.residual_term, docs/guaranteed.md).
+    w_term = float(bd.get("disturbance_term", 0.0)) + float(bd.get("residual_term", 0.0))
     if "disturbance_term" in bd:
         v_cert = float(bd.get("v_max_certified_with_w", v_cert))
     start_w = start + w_term
@@ -176,7 +178,7 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
                                              "no tolerance is certified from this start")
     elif not tolerance > start_w:
         taken = f"the start alone takes sqrt(W0 / alpha_h) = {start:.6g}" if w_term == 0 else \
-            f"the start and the disturbance take sqrt(W0 / alpha_h) + G_w ||w||_inf = {start:.6g} + {w_term:.6g}"
+            f"the start and the disturbance take sqrt(W0 / alpha_h) + G_w ||w||_inf (+ p's residual term) = {start:.6g} + {w_term:.6g}"
         budget_refusal = (f"{taken} of the tolerance {tolerance:g} (W0 = {W0:.6g}, alpha_h = {alpha_h:.6g}), which leaves no v "
                           "(eq. (9) at t = 0)")
     elif not v_cert > 0:
@@ -189,6 +191,9 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     if governor_refusal is None and "disturbance_term" in bd:
         governor_refusal = ("the governor keeps W below its level from the interface's own r(s), which cannot see the disturbance "
                             "e(x) w of concrete.disturbance_bounds (the budget mode counts it)")
+    if governor_refusal is None and float(bd.get("residual_term", 0.0)) > 0:
+        governor_refusal = ("the governor keeps W below its level from the interface's own r(s), which does not count the fitted p's PDE "
+                            "residual (bound.rho_bar; the budget mode counts it)")
     if governor_refusal is None and not W0 <= level:
         governor_refusal = (f"W(xi0, x0) = {W0:.6g} is above the level the governor keeps, W_max = {level:.6g} "
                             f"(tolerance^2 alpha_h less {GOVERNOR_MARGIN:g}{region})")

@@ -570,7 +570,7 @@ def start_region(plan: TaskPlan, up: dict[str, Artefact]) -> float:
     bd = up["bound"].values
     alpha_h, G = float(bd["alpha_h"]), float(bd["gain"])
     # rho_psi - margin - deviation - G |v|_2 - G_w ||w||_inf (the disturbance's term at its bound, when the spec has one)
-    room = plan.certified + plan.eps - G * plan.v_max * np.sqrt(plan.v.shape[0]) - float(bd.get("disturbance_term", 0.0))
+    room = plan.certified + plan.eps - G * plan.v_max * np.sqrt(plan.v.shape[0]) - float(bd.get("disturbance_term", 0.0)) - float(bd.get("residual_term", 0.0))
     if not room > 0:
         return 0.0
     return float(min(float(bd.get("w0_max_certified", np.inf)), alpha_h * room ** 2))

@@ -42,6 +42,7 @@ import scipy.optimize as sopt
 import sympy as sp
 
 from ashc_cli.numerics import chebyshev, proofs
+from ashc_cli.design import series_proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.design.bound_proofs import jacobian_norm_expr, prove_alpha_h, prove_sup_norm  # noqa: F401 (jacobian_norm_expr: bound's API)
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
@@ -447,12 +448,32 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     db = _dbar(model, M, L, th)
     gain = error_bound_gain(alpha["alpha_h"], lam, eps, db["dbar"])
     region = _region(model, upstream, M, L, lam, eps, db, th)
+    residual = _residual(upstream["manifold"], M, alpha["alpha_h"], lam, eps)
+    if residual and np.isfinite(region["v_max"]) and db["dbar"] > 0:
+        # rho, like a disturbance, takes rho_bar / dbar of the v that keeps the region's sublevel set invariant
+        region["v_max"] = region["v_max"] - residual["rho_bar"] / db["dbar"]
     art = _artefact(model, upstream, M, L, lam, eps, gain, alpha, th, db, region)
+    art.values.update(residual)
     if model.e is not None:
         _disturbance(model, art, M, L)
         art.values["bound_sampled"] = ", ".join(bound_sampled({**upstream, NAME: art})) or "none"
         art.values["bound_evidence"] = PROVED if art.values["bound_sampled"] == "none" else SAMPLED
     return art
+
+
+def _residual(man: Artefact, M: np.ndarray, alpha_h: float, lam: float, eps: float) -> dict:
+    """A fitted p's residual rho of eq. (14a), carried like a disturbance: e' gains rho(xi), |L^T rho| <= rho_bar on V,
+    so |psi - y| gains residual_term = G(rho_bar) (:func:`error_bound_gain` with rho_bar for dbar, the Young step of
+    eq. (36)).  From the manifold's proved bounds where it has them, else from its grid (then sampled, like the
+    check).  Empty for a p that solves eq. (14a) exactly."""
+    chk = man.checks.get("pde_residual")
+    if chk is None or (chk.evidence == PROVED and "residual_proved" not in man.values):
+        return {}
+    proved = "residual_proved" in man.values
+    rows = np.asarray(man.values["residual_proved"] if proved else man.values.get("residual_rows", [chk.value]), dtype=float)
+    rows = np.broadcast_to(rows, (M.shape[0],))
+    rho_bar = series_proofs.residual_norm_bound(M, rows)
+    return {"rho_bar": rho_bar, "residual_term": error_bound_gain(alpha_h, lam, eps, rho_bar), "evidence_residual": PROVED if proved else SAMPLED}
 
 
 def _disturbance(model: Model, art: Artefact, M: np.ndarray, L: np.ndarray) -> None:
@@ -708,7 +729,7 @@ def summarise(art: Artefact) -> dict:
         "dbar": float(v.get("dbar", v["dbar_q0"])), "dbar_how": v.get("dbar_how", ""),
         "w0_max_certified": float(v.get("w0_max_certified", np.inf)), "v_max_certified": float(v.get("v_max_certified", np.inf)),
         "region_limits": v.get("region_limits", ""),
-        **{k: float(v[k]) for k in ("ebar", "gain_w", "w_max", "disturbance_term", "v_max_certified_with_w") if k in v},
+        **{k: float(v[k]) for k in ("ebar", "gain_w", "w_max", "disturbance_term", "v_max_certified_with_w", "rho_bar", "residual_term") if k in v},
         "bound_evidence": str(v.get("bound_evidence", SAMPLED)), "bound_sampled": str(v.get("bound_sampled", "")),
         "evidence": {k: str(v.get(f"evidence_{k}", SAMPLED)) for k in ("lambda", "alpha_h", "dbar", "region")},
         "dbar_argmax": {"q0": np.asarray(v["dbar_argmax"])[0].tolist(), "q0_identity": np.asarray(v["dbar_argmax"])[1].tolist(),
@@ -726,6 +747,7 @@ def headline(art: Artefact) -> str:
     """
     v = art.values
     w = f" + G_w ||w||_inf, G_w = {float(v['gain_w']):.5g}" if "gain_w" in v else ""
+    w += f" + {float(v['residual_term']):.3g} (p's PDE residual)" if float(v.get("residual_term", 0.0)) > 0 else ""
     return f"alpha_h = {v['alpha_h']:.5g}, dbar = {v.get('dbar', v['dbar_q0']):.5g}, gain G = {gain_text(v)} (|psi - y| <= G ||v||_inf{w} {region_text(v)})"
 
 
@@ -741,7 +763,8 @@ def disturbance_text(v: dict) -> str:
     -------
     str
     """
-    return f" + {float(v['gain_w']):.5g} ||w||_inf" if "gain_w" in v else ""
+    rho = f" + {float(v['residual_term']):.3g}" if float(v.get("residual_term", 0.0)) > 0 else ""
+    return (f" + {float(v['gain_w']):.5g} ||w||_inf" if "gain_w" in v else "") + rho
 
 
 def region_text(v: dict) -> str:

@@ -31,6 +31,7 @@ import sympy as sp
 
 from ashc_cli.numerics import chebyshev
 from ashc_cli.numerics import proofs
+from ashc_cli.design import series_proofs
 from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, NumericalError
 from ashc_cli.problem.grids import domain_grid
@@ -392,6 +393,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         which = f" (the Chebyshev series and its formula; they differ by {on['deviation']:.2g})" if series is not None else ""
         art.checks["pde_residual"] = Check(on["residual"], True, f"max over a {points}-point grid of V of |dp/dxi phi_bar - f_bar(p) - g(p) l| (eq. (14a)){which}; "
                                                                     f"{on['relative']:.3g} of the size of its row's terms at the worst row")
+        if series is not None:
+            _prove_residual(model, series, art)
     if l_proved:
         how = ("l affine: its values at the corners of V, in exact rationals" if proofs.affine_in(model.l, list(model.xi))
                else "the ball-arithmetic enclosure of l(V)")
@@ -399,6 +402,20 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     else:
         art.checks["l_in_U"] = Check(grid_excursion, l_inside, f"largest excursion of l(V) outside U on a {points}-point grid (<= 0: l maps V into U)")
     return art
+
+
+def _prove_residual(model: Model, series, art: Artefact) -> None:
+    """A fitted p's residual rho of eq. (14a), bounded over V by Chebyshev models (``values/residual_proved``, per row):
+    p does not solve eq. (14a) exactly, and the bound stage carries rho as a disturbance (rho_bar, docs/guaranteed.md)."""
+    proof = series_proofs.prove_pde_residual(model, series)
+    art.meta["residual_proof"] = proof["how"]
+    if proof["bounds"] is None:
+        return
+    art.values["residual_proved"] = proof["bounds"]
+    chk = art.checks["pde_residual"]
+    art.checks["pde_residual"] = Check(float(proof["bounds"].max()), chk.passed,
+                                       f"{chk.description}; proved: sup over V of |rho_i| <= residual_proved_i, largest {proof['bounds'].max():.3g} "
+                                       f"({proof['how']}), carried into the bound as a disturbance", proofs.PROVED)
 
 
 def _solve(model: Model, plant: ManifoldPlant):

@@ -147,7 +147,7 @@ def run_tracking(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> t
     gain = float(up["bound"].value("gain"))
     # a constant disturbance w0 (simulate.tracking.disturbance) adds G_w |w0| (the bound stage's disturbance term)
     w_inf, v_cert = _disturbance_of(tr, up, v_cert)
-    bound = gain * v_inf + (float(up["bound"].value("gain_w")) * w_inf if w_inf > 0 else 0.0)
+    bound = gain * v_inf + (float(up["bound"].value("gain_w")) * w_inf if w_inf > 0 else 0.0) + float(up["bound"].values.get("residual_term", 0.0))
     # Theorem 2's whole bound: the decaying W0 term (eq. (8)) plus the uniform one, G ||v||_inf.
     theorem_bound = np.sqrt(max(W0, 0.0) * np.exp(-(lam - eps) * (t - t[0])) / alpha_h) + bound
     span = float(np.ptp(model.Y, axis=1).max())

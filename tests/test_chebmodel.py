@@ -1,0 +1,155 @@
+"""Chebyshev models (numerics/chebmodel.py) and the fitted p's PDE residual proved with them (design/series_proofs.py):
+every bound must hold at every point, checked in 60-digit arithmetic, and stay near the true size (so a loose bound fails)."""
+
+import mpmath
+import numpy as np
+import pytest
+import sympy as sp
+import yaml
+
+from ashc_cli.design import series_proofs
+from ashc_cli.design.stages import manifold
+from ashc_cli.numerics import chebyshev
+from ashc_cli.numerics.chebmodel import ChebModel, TooWide, bound_on_pieces, evaluate, reexpand
+from ashc_cli.problem.model import build_model
+from ashc_cli.problem.spec import parse_spec_text
+
+mpmath.mp.dps = 60
+T = sp.Symbol("t")
+
+
+def _cheb_mp(c, t):
+    """sum c_k T_k(t) in 60 digits (T_k(t) = cos(k acos t))."""
+    t = mpmath.mpf(t)
+    return mpmath.fsum(mpmath.mpf(float(ck)) * mpmath.chebyt(k, t) for k, ck in enumerate(c))
+
+
+@pytest.mark.parametrize("expr", [sp.exp(3 * T) * sp.sin(2 * T), 1 / (T + sp.Rational(5, 2)), sp.tanh(4 * T + 1), sp.sqrt(T + 2) - T**3,
+                                  sp.exp(40 * (sp.Rational(1, 20) * T + sp.Rational(1, 50))) - 1])
+def test_a_model_holds_its_function_at_every_point(expr):
+    # The model's polynomial plus remainder contains the function (in 60 digits) at 401 points of [-1, 1], the
+    # remainder is round-off sized, and the bound of |f| (the sum of |coefficients| + r) is within 1.5 of its maximum.
+    fn = sp.lambdify(T, expr, "mpmath")
+
+    def build(centre, half):
+        return [evaluate(expr, {T: ChebModel.affine(centre, half)}, {})]
+
+    bound, pieces = bound_on_pieces(build)
+    m = build(0.0, 1.0)[0] if pieces == 1 else None
+    points = np.linspace(-1, 1, 401)
+    true_max = max(abs(fn(mpmath.mpf(float(t)))) for t in points)
+    assert true_max <= bound[0] <= 1.5 * true_max + 1e-12
+    if m is not None:
+        assert m.r < 1e-12 * max(1.0, float(true_max))
+        assert all(abs(_cheb_mp(m.c, t) - fn(mpmath.mpf(float(t)))) <= m.r for t in points)
+
+
+def test_a_range_too_wide_for_taylor_is_split_and_log_of_zero_refused():
+    # tanh on [-3, 5] has poles at +-i pi / 2 within reach of one expansion: the interval is halved until each
+    # piece's Lagrange remainder is small; log(t + 1) reaches log 0 at t = -1 and is refused after the last split.
+    bound, pieces = bound_on_pieces(lambda c, h: [evaluate(sp.tanh(4 * T + 1), {T: ChebModel.affine(c, h)}, {})])
+    assert pieces > 1 and np.tanh(5) <= bound[0] <= 1.5
+    with pytest.raises(TooWide):
+        bound_on_pieces(lambda c, h: [evaluate(sp.log(T + 1), {T: ChebModel.affine(c, h)}, {})], max_depth=3)
+
+
+def test_products_carry_their_rounding():
+    # (1 + t)^40 - sum binom(40, k) t^k is 0; in floats the coefficients of both sides differ by round-off, and the
+    # model's remainder must cover it at every point.
+    a = ChebModel.affine(1.0, 1.0).powi(40)
+    exact = [mpmath.binomial(40, k) for k in range(41)]
+    for t in np.linspace(-1, 1, 101):
+        true = mpmath.fsum(e * mpmath.mpf(float(t)) ** k for k, e in enumerate(exact))
+        assert abs(_cheb_mp(a.c, t) - true) <= a.r
+    assert a.r < 1e-3 * 2.0**40 * 1e-10
+
+
+@pytest.mark.parametrize("centre,half", [(0.5, 0.5), (-0.25, 0.25), (0.8125, 0.0625)])
+def test_reexpand_holds_the_series_on_the_piece(centre, half):
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=(4, 25)) / np.arange(1, 26) ** 2
+    new, r = reexpand(c, centre, half)
+    for tau in np.linspace(-1, 1, 41):
+        t = centre + half * tau
+        for i in range(4):
+            assert abs(_cheb_mp(c[i], t) - _cheb_mp(new[i], tau)) <= r[i]
+    assert r.max() < 1e-12
+
+
+def _ladder_spec(stages: int = 3) -> str:
+    from ashc_cli.problem.examples import rc_ladder
+
+    data = yaml.safe_load(rc_ladder(stages))
+    data.pop("simulate", None)
+    return yaml.safe_dump(data)
+
+
+def _residual_mp(model, series, xi):
+    """rho(xi) row by row in 60 digits (phi_bar = 0: rho = -(f_bar(p) + g(p) l)), p the series' exact polynomial."""
+    piece = series.pieces[0] if isinstance(series, chebyshev.PiecewiseSeries) else series
+    lo, hi = (float(v) for v in piece.box[0])
+    s = (2 * mpmath.mpf(xi) - mpmath.mpf(lo) - mpmath.mpf(hi)) / (mpmath.mpf(hi) - mpmath.mpf(lo))
+    p = [_cheb_mp(row, s) for row in piece.coeffs.reshape(model.n, -1)]
+    F = model.f_bar + model.g * model.l
+    env = {**{x: v for x, v in zip(model.x, p)}, model.xi[0]: mpmath.mpf(xi), **{k: mpmath.mpf(v) for k, v in model.values.items()}}
+    return [abs(sp.lambdify(list(env), e, "mpmath")(*env.values())) for e in F]
+
+
+def test_the_fitted_ladder_residual_is_proved_and_tight():
+    # The nonlinear RC ladder (diodes exp(40 v)): p fitted by Newton continuation; the proved bound of each row of
+    # the residual holds at 201 points in 60 digits and is within 100 times its sampled maximum.
+    model = build_model(parse_spec_text(_ladder_spec()))
+    art = manifold.run(model, {})
+    series = art.series["p"]
+    proof = series_proofs.prove_pde_residual(model, series)
+    assert proof["bounds"] is not None, proof["how"]
+    lo, hi = model.V[0]
+    worst = np.zeros(model.n)
+    for xi in np.linspace(lo, hi, 201):
+        worst = np.maximum(worst, [float(v) for v in _residual_mp(model, series, float(xi))])
+    assert np.all(worst <= proof["bounds"])
+    assert proof["bounds"].max() <= 100 * worst.max()
+    chk = art.checks["pde_residual"]
+    assert chk.evidence == "proved" and chk.value == proof["bounds"].max()
+    assert np.array_equal(art.values["residual_proved"], proof["bounds"])
+
+
+def test_a_perturbed_p_gets_a_larger_proved_residual():
+    # A p that does not solve eq. (14a) (1e-6 T_8 added to one row): the proved bound of that row covers the
+    # residual this makes, sampled in 60 digits, so a bound that ignored the series' high coefficients would fail.
+    model = build_model(parse_spec_text(_ladder_spec()))
+    series = manifold.run(model, {}).series["p"]
+    c = series.coeffs.copy()
+    c[1, -1] += 1e-6
+    bent = chebyshev.Series(c, series.box, series.shape)
+    proof = series_proofs.prove_pde_residual(model, bent)
+    lo, hi = model.V[0]
+    worst = np.zeros(model.n)
+    for xi in np.linspace(lo, hi, 301):
+        worst = np.maximum(worst, [float(v) for v in _residual_mp(model, bent, float(xi))])
+    assert worst.max() > 1e-6
+    assert np.all(worst <= proof["bounds"])
+
+
+def test_residual_norm_bound_covers_the_weighted_norm():
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(6, 6))
+    M = A @ A.T + np.eye(6)
+    b = rng.uniform(0, 1, 6)
+    L = np.linalg.cholesky(M)
+    worst = max(np.linalg.norm(L.T @ (b * s)) for s in np.array(np.meshgrid(*[[-1, 1]] * 6)).reshape(6, -1).T)
+    assert worst <= series_proofs.residual_norm_bound(M, b) <= np.sqrt(b @ np.abs(M) @ b) * (1 + 1e-12)
+
+
+def test_the_residual_term_is_spent_by_the_budget_and_refuses_the_governor():
+    # A bound with a fitted p's residual: the budget pays residual_term before any v, the governor (which sees only
+    # the interface's r) is refused with the reason, and auto runs the budget.
+    from ashc_cli.closedloop import plan as gplan
+    from ashc_cli.design.artefacts import Artefact
+
+    values = {"alpha_h": 1.0, "gain": 2.0, "lambda": 2.0, "epsilon": 1.0, "w0_max_certified": np.inf, "v_max_certified": np.inf}
+    clean = gplan.guaranteed_plan(1.0, "auto", 0.0, {"bound": Artefact(stage="bound", values=dict(values))})
+    fitted = gplan.guaranteed_plan(1.0, "auto", 0.0, {"bound": Artefact(stage="bound", values={**values, "residual_term": 0.1})})
+    assert clean.mode == "governor" and fitted.mode == "budget"
+    assert fitted.budget_v_max == pytest.approx((1.0 - 0.1) / 2.0)
+    assert "PDE residual" in fitted.governor_refusal
