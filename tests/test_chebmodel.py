@@ -153,3 +153,75 @@ def test_the_residual_term_is_spent_by_the_budget_and_refuses_the_governor():
     assert clean.mode == "governor" and fitted.mode == "budget"
     assert fitted.budget_v_max == pytest.approx((1.0 - 0.1) / 2.0)
     assert "PDE residual" in fitted.governor_refusal
+
+
+def test_a_piecewise_is_decided_on_the_range_or_hulled_across_a_break():
+    # Decided: on [-1, -0.5] the condition t < 0 holds everywhere, so the model is the first branch's, exactly;
+    # straddling t = 0.25 the model is the hull of both branches (their mean, half the gap in the remainder).
+    f = sp.Piecewise((T, T < 0), (T + sp.Rational(1, 1000), True))
+    left = evaluate(f, {T: ChebModel.affine(-0.75, 0.25)}, {})
+    assert left.r == 0.0 and np.allclose(left.c, [-0.75, 0.25])
+    both = evaluate(f, {T: ChebModel.affine(0.0, 1.0)}, {})
+    for t in np.linspace(-1, 1, 201):
+        value = t if t < 0 else t + 1e-3
+        assert abs(np.polynomial.chebyshev.chebval(t, both.c) - value) <= both.r
+    assert both.r < 1e-3
+
+
+def _inverse_of(text):
+    from ashc_cli.design.stages import inverse, kappa
+
+    model = build_model(parse_spec_text(text))
+    man = manifold.run(model, {})
+    kap = kappa.run(model, {"manifold": man})
+    return model, man, inverse.run(model, {"manifold": man, "kappa": kap})
+
+
+def test_the_fitted_ladders_inverse_rows_are_proved_and_hold_in_60_digits():
+    # m is a Chebyshev interpolant of kappa^-1 and p a fitted series: the left inverse, kappa's monotonicity and
+    # conditions (i), (ii) are proved by Chebyshev models; the proved |m(kappa(xi)) - xi| holds at 301 points of V
+    # (m's formula and p's series in 60 digits) and is within 100 times the largest of them.
+    model, man, inv = _inverse_of(_ladder_spec())
+    for name in ("left_inverse", "kappa_monotone", "condition_i", "condition_ii"):
+        assert inv.checks[name].evidence == "proved", (name, inv.meta.get("proof_fitted_p"))
+    y = sp.Symbol("y", real=True)
+    m_of_y = sp.lambdify(y, inv.expr("m_of_y")[0], "mpmath")
+    series = man.series["p"]
+    out = int(np.flatnonzero(np.asarray(model.C)[0])[0])
+    lo, hi = (float(v) for v in series.box[0])
+    worst = 0.0
+    for xi in np.linspace(*model.V[0], 301):
+        s = (2 * mpmath.mpf(float(xi)) - mpmath.mpf(lo) - mpmath.mpf(hi)) / (mpmath.mpf(hi) - mpmath.mpf(lo))
+        kappa = _cheb_mp(series.coeffs.reshape(model.n, -1)[out], s)
+        worst = max(worst, abs(m_of_y(kappa) - mpmath.mpf(float(xi))))
+    proved = inv.checks["left_inverse"].value
+    assert worst <= proved <= 100 * max(float(worst), 1e-13)
+
+
+def test_a_bent_m_gets_a_larger_proved_left_inverse_bound():
+    # m's formula plus 1e-8 ((y - y0) / w)^2 (y0, w the middle and half width of kappa(V)): m(kappa(xi)) - xi reaches
+    # 1e-8 at the ends of V, and the proved bound covers it without being loose.
+    from ashc_cli.design import series_proofs
+
+    model, man, inv = _inverse_of(_ladder_spec())
+    y = sp.Symbol("y", real=True)
+    k_lo, k_hi = np.asarray(inv.value("kappa_range"))[0]
+    bent = inv.expr("m_of_y")[0] + sp.Float(1e-8) * ((y - sp.Float((k_lo + k_hi) / 2)) / sp.Float((k_hi - k_lo) / 2)) ** 2
+    fitted = series_proofs.prove_fitted_inverse(model, man.series["p"], bent, y, 1e-6)
+    assert 0.99e-8 <= fitted["left"] <= 1.5e-8
+
+
+def test_a_sampled_residual_marks_the_bound_sampled():
+    # A fitted p whose residual could not be proved (the row stays sampled): the bound names it, prints G with
+    # "(sampled)", and still carries the grid's residual as its term.
+    from ashc_cli.design.artefacts import Artefact, Check
+    from ashc_cli.design.stages import bound
+
+    arts = {"stabilise": Artefact(stage="stabilise", checks={k: Check(1.0, True, "", "proved") for k in ("lmi_margin", "M_positive")}),
+            "manifold": Artefact(stage="manifold", values={"residual_rows": np.array([1e-9, 2e-9])},
+                                 checks={"pde_residual": Check(2e-9, True, "grid"), "l_in_U": Check(0.0, True, "", "proved")}),
+            "bound": Artefact(stage="bound", checks={k: Check(1.0, True, "", "proved") for k in ("h_lipschitz", "alpha_h", "condition_B", "certified_region")})}
+    assert bound.bound_sampled(arts) == ["manifold.pde_residual"]
+    assert bound.gain_text({"gain": 2.0, "bound_evidence": "sampled"}) == "2 (sampled)"
+    term = bound._residual(arts["manifold"], np.eye(2), 1.0, 2.0, 1.0)
+    assert term["evidence_residual"] == "sampled" and term["rho_bar"] >= np.sqrt(5e-18)

@@ -10,7 +10,9 @@ from dataclasses import replace
 import numpy as np
 import sympy as sp
 
+from ashc_cli.design import series_proofs
 from ashc_cli.design.artefacts import Artefact
+from ashc_cli.design.inverse_construct import CONDITION_II_RTOL, LEFT_INVERSE_TOL
 from ashc_cli.errors import DesignError
 from ashc_cli.numerics import proofs
 from ashc_cli.problem.model import Model, sparse_jacobian
@@ -259,6 +261,45 @@ def mark_proved(art: Artefact, proof: dict) -> None:
     for name, proved in relabel.items():
         if proved:
             relabel_proved(art, name, how, values.get(name))
+
+
+def prove_scalar_rows(art: Artefact, model: Model, man: Artefact, proof: dict, m: tuple) -> None:
+    """Mark the scalar path's rows proved: by :func:`prove_scalar_inverse` (``proof``), and for a fitted p (a Chebyshev
+    series) by Chebyshev models (:func:`ashc_cli.design.series_proofs.prove_fitted_inverse`): the left inverse, kappa's
+    monotonicity, condition (i) and, where eq. (10) is proved, condition (ii), each with its proved value (relative
+    as the check measures it) when that is within the check's tolerance.
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact (checks left_inverse, kappa_monotone, condition_i, condition_ii), changed in place.
+    model, man : Model, Artefact
+        The spec's systems and the manifold's artefact (series ``p`` when p was fitted; ``p_grid``).
+    proof : dict
+        :func:`prove_scalar_inverse`'s result.
+    m : (sympy Expr, Symbol)
+        m's formula in the output and that output's symbol.
+    """
+    art.meta["proof"] = proof["how"]
+    mark_proved(art, proof)
+    series = man.series.get("p")
+    if series is None or art.checks["left_inverse"].evidence == proofs.PROVED:
+        return
+    fitted = series_proofs.prove_fitted_inverse(model, series, m[0], m[1], LEFT_INVERSE_TOL)
+    art.meta["proof_fitted_p"] = fitted["how"]
+    if fitted["left"] is None or fitted["left"] > LEFT_INVERSE_TOL:
+        return
+    how = fitted["how"]
+    relabel_proved(art, "left_inverse", how, fitted["left"])
+    relabel_proved(art, "kappa_monotone", how, fitted["min_abs_dkappa"])
+    cond_i = fitted["condition_i"] / max(1.0, float(np.abs(np.asarray(man.value("p_grid"))).max()))
+    if cond_i <= LEFT_INVERSE_TOL and art.checks["condition_i"].evidence != proofs.PROVED:
+        relabel_proved(art, "condition_i", how, cond_i)
+    covers = art.checks.get("V_covers_Y")
+    if fitted["condition_ii"] is not None and covers is not None and covers.evidence == proofs.PROVED:
+        cond_ii = fitted["condition_ii"] / max(1.0, float(np.ptp(model.Y, axis=1).max()))
+        if cond_ii <= CONDITION_II_RTOL and art.checks["condition_ii"].evidence != proofs.PROVED:
+            relabel_proved(art, "condition_ii", how + "; every y of Y is kappa(xi) for a xi of V (eq. (10), proved)", cond_ii)
 
 
 def relabel_proved(art: Artefact, name: str, how: str, value: float | None = None) -> None:

@@ -310,12 +310,40 @@ def evaluate(expr: sp.Expr, env: Mapping[sp.Symbol, ChebModel], values: Mapping[
             out = out * evaluate(a, env, values, memo)
     elif isinstance(expr, sp.Pow):
         out = _power(expr, env, values, memo)
+    elif isinstance(expr, sp.Piecewise):
+        out = _piecewise(expr.args, env, values, memo)
     elif expr.func in _UNARY and len(expr.args) == 1:
         out = evaluate(expr.args[0], env, values, memo).unary(_UNARY[expr.func])
     else:
         raise UnsupportedExpression(expr, f"{expr.func.__name__} has no Chebyshev model (a kink or a branch)")
     memo[expr] = out
     return out
+
+
+_RELATIONS = {sp.StrictLessThan: (True, True), sp.LessThan: (True, False), sp.StrictGreaterThan: (False, True), sp.GreaterThan: (False, False)}
+
+
+def _piecewise(branches: tuple, env, values, memo) -> ChebModel:
+    """A Piecewise whose conditions are decided on the models' ranges; where one is not (a piece straddles a break),
+    the hull of the two sides: the mean of both models with half their difference added to the remainder."""
+    (branch, cond), rest = branches[0], branches[1:]
+    if cond is sp.true or not rest:
+        if cond is not sp.true and not rest:
+            raise UnsupportedExpression(sp.Piecewise(*branches), "a Piecewise without a last branch for every other case")
+        return evaluate(branch, env, values, memo)
+    if type(cond) not in _RELATIONS:
+        raise UnsupportedExpression(cond, "a condition other than <, <=, >, >=")
+    less, strict = _RELATIONS[type(cond)]
+    lo, hi = evaluate(cond.lhs - cond.rhs, env, values, memo).range()
+    true = (hi < 0 if strict else hi <= 0) if less else (lo > 0 if strict else lo >= 0)
+    false = (lo >= 0 if strict else lo > 0) if less else (hi <= 0 if strict else hi < 0)
+    if true:
+        return evaluate(branch, env, values, memo)
+    if false:
+        return _piecewise(rest, env, values, memo)
+    a, b = evaluate(branch, env, values, memo), _piecewise(rest, env, values, memo)
+    mid, half = (a + b) * 0.5, (a - b) * 0.5
+    return ChebModel(mid.c, _up(mid.r + half.bound(), 2))
 
 
 def _power(expr: sp.Pow, env, values, memo) -> ChebModel:

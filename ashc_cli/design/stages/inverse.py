@@ -44,7 +44,8 @@ from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy
 from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, Branch, branch_residuals, closed_form_branches,
                                                composed_tolerances, kappa_inverse_on_Y, numeric_inverse)
-from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, real_interval, relabel_proved
+from ashc_cli.design.inverse_proofs import (mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, prove_scalar_rows, real_interval,
+                                            relabel_proved)
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
@@ -724,9 +725,7 @@ def _scalar_artefact(model: Model, man: Artefact, kap: Artefact, branch: Branch,
     art.checks["m_real_on_Y"] = Check(float(max(real_lo - Y[0, 0], Y[0, 1] - real_hi)), real_covers_Y, "Y inside the output interval where m is real (<= 0)")
     _certify(art, model, *certified)
     _checks_common(art, model, p_function(man, model), m, p_grid)
-    proof = prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii)
-    art.meta["proof"] = proof["how"]
-    mark_proved(art, proof)
+    prove_scalar_rows(art, model, man, prove_scalar_inverse(model, kappa[0], kap.expr("dkappa_dxi")[0, 0], m_of_y, y, symbolic_ii), (m_of_y, y))
     return art
 
 
