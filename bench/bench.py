@@ -320,6 +320,26 @@ def large_plants(tmp: Path, timeout: float) -> tuple[float, list[dict]]:
     if len(good) >= 2:
         slope = np.polyfit(np.log([r["n"] for r in good]), np.log([r["wall"] - t0 for r in good]), 1)[0]
         out[-1]["note"] = f"wall - T0 grows like n^{slope:.2f} over n = {good[0]['n']}..{good[-1]['n']}"
+    lams = {}
+    for structure in ("auto", "full"):
+        def ill(spec, structure=structure):
+            spec["stabilisability"].update(decay_rate="maximise", structure=structure)
+            spec["parameters"]["L"] /= 100.0
+            spec["parameters"]["r"] /= 10.0
+        where = tmp / f"ill_spec_{structure}"
+        where.mkdir(exist_ok=True)
+        path = example_spec(where, "ladder", 16, ill)
+        folder = tmp / f"ill_{structure}"
+        row = timed(f"ill-conditioned ladder n = 64 (L / 100, r / 10), `stabilise` maximise, structure: {structure}", 0,
+                    ASHC + ["stabilise", str(path), "--out", str(folder)], "<= 40 T0, lambda within 1% of the dense SDP" if structure == "auto" else "")
+        proc = subprocess.run(ASHC + ["summary", str(folder), "--json"], capture_output=True, text=True, cwd=ROOT)
+        try:
+            lams[structure] = float(json.loads(proc.stdout)["stabilise"]["lambda"])
+            row["note"], row["verdict"] = f"lambda = {lams[structure]:.8g}", "(stabilise only)"
+        except (ValueError, KeyError):
+            row["note"] = "?"
+    if len(lams) == 2:
+        out[-2]["note"] += f" ({100 * (lams['full'] - lams['auto']) / lams['full']:.2g}% below the dense SDP's bisection)"
     for spec, label, target in SMALL_PLANTS:
         timed(f"{label}, `design`", 0, ASHC + ["design", spec, "--out", str(tmp / Path(spec).stem)], f"<= {target:g} T0")
     return t0, out
