@@ -225,3 +225,39 @@ def test_a_sampled_residual_marks_the_bound_sampled():
     assert bound.gain_text({"gain": 2.0, "bound_evidence": "sampled"}) == "2 (sampled)"
     term = bound._residual(arts["manifold"], np.eye(2), 1.0, 2.0, 1.0)
     assert term["evidence_residual"] == "sampled" and term["rho_bar"] >= np.sqrt(5e-18)
+
+
+def test_a_residual_that_leaves_no_v_empties_the_region(tmp_path):
+    # From an independent review: the CSTR with pde_tolerance 0.05 (a degree-1 p, residual 0.0865 in the metric)
+    # left ||v||_inf <= -0.0126 and the region check passed; now the region fails and says why.
+    from ashc_cli.design.pipeline import run
+
+    from .conftest import SPECS
+
+    data = yaml.safe_load((SPECS / "cstr.yaml").read_text())
+    data["abstract"]["pde_tolerance"] = 0.05
+    chk = run(parse_spec_text(yaml.safe_dump(data)), tmp_path, ["bound"])["bound"].checks["certified_region"]
+    assert not chk.passed and "leaves no v that keeps" in chk.description
+
+
+def test_a_piecewise_p_whose_pieces_jump_keeps_its_residual_sampled():
+    # e = p(xi) - x jumps where xi crosses a break of a piecewise p; the bound carries rho only, so a p whose pieces
+    # do not meet exactly (proved jumps > 0: here the ladder's p split at the middle of V, each half interpolated
+    # again) keeps the PDE row sampled and says why.
+    from ashc_cli.design.artefacts import Check
+
+    model = build_model(parse_spec_text(_ladder_spec()))
+    art = manifold.run(model, {})
+    s = art.series["p"]
+    lo, hi = (float(v) for v in s.box[0])
+    mid = (lo + hi) / 2
+    halves = []
+    for a, b in ((lo, mid), (mid, hi)):
+        t = np.cos(np.pi * (np.arange(14) + 0.5) / 14)
+        values = s(a + (b - a) * (t + 1) / 2)[:, 0, :]
+        halves.append(chebyshev.Series(np.polynomial.chebyshev.chebfit(t, values.T, 13).T, [[a, b]], (model.n, 1)))
+    pw = chebyshev.PiecewiseSeries(tuple(halves))
+    assert series_proofs.jumps(pw).max() > 0
+    art.checks["pde_residual"] = Check(1e-12, True, "grid")
+    manifold._prove_residual(model, pw, art)
+    assert art.checks["pde_residual"].evidence == "sampled" and "jump" in art.meta["residual_proof"]

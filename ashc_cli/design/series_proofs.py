@@ -18,7 +18,7 @@ from ashc_cli.numerics.chebmodel import ChebModel, TooWide, bound_on_pieces, eva
 from ashc_cli.errors import UnsupportedExpression
 from ashc_cli.problem.model import Model
 
-__all__ = ["prove_pde_residual", "residual_norm_bound", "prove_fitted_inverse"]
+__all__ = ["prove_pde_residual", "residual_norm_bound", "prove_fitted_inverse", "jumps"]
 
 
 def _pieces(series) -> list:
@@ -137,9 +137,18 @@ def _xi_model(lo: float, hi: float, centre: float, half: float) -> ChebModel:
     return ChebModel.interval(*_ends(m + w * centre)) + ChebModel.interval(*_ends(w * half)) * ChebModel.affine(0.0, 1.0)
 
 
-def _jumps(series) -> np.ndarray:
-    """Proved bounds of |p_i| jumps where the pieces of a piecewise p meet (sum c_k at the right end of one piece,
-    sum (-1)^k c_k at the left end of the next, in arb); zeros for one piece."""
+def jumps(series) -> np.ndarray:
+    """Proved bounds of the jumps of each p_i where the pieces of a piecewise p meet (sum c_k at the right end of one
+    piece, sum (-1)^k c_k at the left end of the next, in arb); zeros for one piece.
+
+    Parameters
+    ----------
+    series : chebyshev.Series or chebyshev.PiecewiseSeries
+
+    Returns
+    -------
+    ndarray (rows,)
+    """
     pieces = _pieces(series)
     out = np.zeros(pieces[0].coeffs.shape[0])
     for left, right in zip(pieces[:-1], pieces[1:]):
@@ -219,7 +228,7 @@ def prove_fitted_inverse(model: Model, series, m_of_y: sp.Expr, y: sp.Symbol, to
 
             here, used = bound_on_pieces(build, max_depth=10)
             left, pieces = max(left, float(here[0])), pieces + used
-        eps = 2.0 ** int(np.ceil(np.log2(max(left, 1e-300) * 2.0 / min(float(np.diff(s.box[0])[0]) for s in _pieces(series)))))
+        eps = max(2.0 ** int(np.ceil(np.log2(max(left, 1e-300) * 2.0 / min(float(np.diff(s.box[0])[0]) for s in _pieces(series))))), 2.0**-40)
         for piece in _pieces(series):
             lo, hi = (float(v) for v in piece.box[0])
             coeffs = piece.coeffs.reshape(model.n, -1)
@@ -239,10 +248,10 @@ def prove_fitted_inverse(model: Model, series, m_of_y: sp.Expr, y: sp.Symbol, to
     if signs - {1} and signs - {-1}:
         out["how"] = "not proved: the models of dkappa/dxi do not keep one sign on V"
         return out
-    jumps = _jumps(series)
-    jump_k = float((np.abs(np.asarray(model.C, dtype=float)) @ jumps).max()) if model.C is not None else (0.0 if not jumps.any() else np.inf)
+    jumps_p = jumps(series)
+    jump_k = float((np.abs(np.asarray(model.C, dtype=float)) @ jumps_p).max()) if model.C is not None else (0.0 if not jumps_p.any() else np.inf)
     out.update(left=left, min_abs_dkappa=float(min(lows)), pieces=pieces,
-               condition_i=float(np.nextafter(lip_p * left * (1 + 1e-12) + jumps.max(), np.inf)),
+               condition_i=float(np.nextafter(lip_p * left * (1 + 1e-12) + jumps_p.max(), np.inf)),
                condition_ii=float(np.nextafter(lip_k * left * (1 + 1e-12) + jump_k, np.inf)) if np.isfinite(jump_k) else None,
                how=f"Chebyshev models of m(kappa(xi)) - xi and dkappa/dxi on {pieces} sub-interval(s) of V; (i) and (ii) through "
                    f"the Lipschitz bounds {lip_p:.3g} of p and {lip_k:.3g} of kappa on V widened by delta")

@@ -449,11 +449,20 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
     gain = error_bound_gain(alpha["alpha_h"], lam, eps, db["dbar"])
     region = _region(model, upstream, M, L, lam, eps, db, th)
     residual = _residual(upstream["manifold"], M, alpha["alpha_h"], lam, eps)
-    if residual and np.isfinite(region["v_max"]) and db["dbar"] > 0:
-        # rho, like a disturbance, takes rho_bar / dbar of the v that keeps the region's sublevel set invariant
-        region["v_max"] = region["v_max"] - residual["rho_bar"] / db["dbar"]
+    empty = None
+    if residual and np.isfinite(region["w0_max"]):
+        # rho, like a disturbance, takes rho_bar / dbar of the v that keeps {W <= c} invariant ((dbar v + rho_bar)^2
+        # <= eps (lambda - eps) c at W = c); with dbar = 0 it must fit by itself
+        rho, room = residual["rho_bar"], float(np.sqrt(eps * (lam - eps) * region["w0_max"]))
+        if db["dbar"] > 0 and np.isfinite(region["v_max"]):
+            region["v_max"] = region["v_max"] - rho / db["dbar"]
+        if not region["v_max"] > 0 or rho > room:
+            empty = f"p's PDE residual (rho_bar = {rho:.3g}) leaves no v that keeps {{W <= {region['w0_max']:.4g}}} invariant (room {room:.3g})"
     art = _artefact(model, upstream, M, L, lam, eps, gain, alpha, th, db, region)
     art.values.update(residual)
+    if empty is not None:
+        chk = art.checks["certified_region"]
+        art.checks["certified_region"] = Check(chk.value, False, f"{chk.description}; fails: {empty}", chk.evidence)
     if model.e is not None:
         _disturbance(model, art, M, L)
         art.values["bound_sampled"] = ", ".join(bound_sampled({**upstream, NAME: art})) or "none"

@@ -408,6 +408,9 @@ def _prove_residual(model: Model, series, art: Artefact) -> None:
     """A fitted p's residual rho of eq. (14a), bounded over V by Chebyshev models (``values/residual_proved``, per row):
     p does not solve eq. (14a) exactly, and the bound stage carries rho as a disturbance (rho_bar, docs/guaranteed.md)."""
     proof = series_proofs.prove_pde_residual(model, series)
+    jump = float(series_proofs.jumps(series).max())
+    if proof["bounds"] is not None and jump > 0:    # e = p(xi) - x would jump where xi crosses a break: not in the bound
+        proof = {"bounds": None, "how": f"not proved: the pieces of p jump by up to {jump:.3g} at their breaks (the bound carries rho, not the jumps)"}
     art.meta["residual_proof"] = proof["how"]
     if proof["bounds"] is None:
         return
