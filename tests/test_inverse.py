@@ -613,3 +613,55 @@ def test_a_numeric_m_whose_preimage_leaves_V_is_refused_naming_the_output(tmp_pa
         run(parse_spec_text(text), tmp_path, ["inverse"])
     # The exact solution there lies outside V by the 0.0108 the message gives.
     assert _tank_inverse_exact(np.array([0.9]), np.array([-1.0]))[0, 0] == pytest.approx(0.8108, abs=1e-4)
+
+
+def _bilinear_one_output() -> str:
+    import yaml
+
+    from .conftest import SPECS
+
+    data = yaml.safe_load((SPECS / "bilinear_two_input.yaml").read_text())
+    data["name"] = "bilinear_one_output"
+    data["concrete"].update(h=["x1 + x3"], output_set=[[0.1, 1.0]])
+    data["simulate"]["tracking"].update(xi0=[0.3, 0.5], reference_levels=[[0.6], [0.3], [0.8]])
+    data["simulate"]["m_relation"]["u"] = ["0.8 + 0.2*sin(t)", "0.4 + 0.2*cos(t)"]
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def test_more_abstract_states_than_outputs_with_a_nonlinear_p(tmp_path):
+    # The bilinear plant with one output y = x1 + x3 and two abstract states: p = (xi1, xi2, 2 xi1 xi2) is nonlinear,
+    # so m = K (x - p0) does not exist; the outputs are augmented with the state that completes kappa = xi1 (1 + 2 xi2)
+    # to a square map (x2 = xi2), and m = ((x1 + x3) / (1 + 2 x2), x2) is found and proved: m(p(xi)) = xi on V and
+    # h(p(m(x))) = h(x) wherever (h(x), x2) is in the certified box.
+    from ashc_cli.design.pipeline import run
+
+    arts = run(parse_spec_text(_bilinear_one_output()), tmp_path, ["bound"])
+    art = arts["inverse"]
+    assert art.meta["augmented_outputs"] == ["x2"] and "outputs augmented with x2" in art.meta["method"]
+    x1, x2, x3 = sp.symbols("x1 x2 x3")
+    m = art.expr("m").xreplace({s: sp.Symbol(str(s)) for s in art.expr("m").free_symbols})
+    assert sp.simplify(m[0] - (x1 + x3) / (1 + 2 * x2)) == 0 and m[1] == x2
+    assert np.allclose(art.values["m_domain"], [[0.1, 1.0], [0.0, 1.0]])
+    for name in ("left_inverse", "condition_i", "condition_ii", "V_covers_Y"):
+        assert art.checks[name].passed and art.checks[name].evidence == "proved", name
+    assert "(h, x2)" in inverse.headline(art)
+
+
+def test_the_m_relation_runs_on_augmented_outputs(tmp_path):
+    # simulate's m-relation scenario checks x0 against the certified box in (h, x2) and tracks y with psi.
+    import yaml
+
+    from .conftest import ashc
+
+    spec = tmp_path / "bilinear_one_output.yaml"
+    spec.write_text(_bilinear_one_output())
+    proc = ashc("simulate", str(spec), "--out", str(tmp_path / "d"))
+    assert proc.returncode == 0, proc.stderr
+    assert "m-relation max|psi - y| = " in proc.stderr
+    err = float(proc.stderr.split("m-relation max|psi - y| = ")[1].split()[0])
+    assert err < 1e-8
+    data = yaml.safe_load(spec.read_text())
+    data["simulate"]["m_relation"]["x0"] = [0.3, 1.4, 0.1]     # h(x0) = 0.4 is in Y, but x2 = 1.4 is outside [0, 1]
+    spec.write_text(yaml.safe_dump(data, sort_keys=False))
+    proc = ashc("simulate", str(spec), "--out", str(tmp_path / "d"))
+    assert proc.returncode != 0 and "outside the set where m is certified" in proc.stderr and "(h, x2)" in proc.stderr

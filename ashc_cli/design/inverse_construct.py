@@ -18,7 +18,7 @@ from ashc_cli.errors import CoverError, DesignError, FitError
 from ashc_cli.problem.grids import domain_grid
 from ashc_cli.problem.model import Model, lambdify, sparse_jacobian, within_budget
 
-__all__ = ["LEFT_INVERSE_TOL", "CONDITION_II_RTOL", "COMPOSE_SAFETY", "SOLVE_MAX_OPS", "Branch", "closed_form_branches", "branch_residuals", "numeric_inverse",
+__all__ = ["augment_outputs", "note_augmented", "LEFT_INVERSE_TOL", "CONDITION_II_RTOL", "COMPOSE_SAFETY", "SOLVE_MAX_OPS", "Branch", "closed_form_branches", "branch_residuals", "numeric_inverse",
            "composed_tolerances", "solve_kappa", "inverse_on_box", "kappa_inverse_on_Y"]
 
 #: m(p(xi)) - xi must be below this on V (absolute, in units of xi).
@@ -419,3 +419,79 @@ def kappa_inverse_on_Y(model: Model, man: Artefact, kap: Artefact, ys: list, y_g
     p_num = p_function(man, model)
     points = np.c_[np.asarray(man.value("p_grid"))[:, inside], np.broadcast_to(p_num(*fit["check_xi"])[:, 0, :], (model.n, fit["check_xi"].shape[1]))]
     return {**fit, "left_residual": left, "p_points": points}
+
+
+def augment_outputs(model: Model, man: Artefact, kap: Artefact) -> tuple[Model, Artefact, list[sp.Symbol]]:
+    """More abstract states than outputs (n_hat > p) with a nonlinear p: the outputs augmented with n_hat - p states
+    x_J, so that m = Phi^-1(h(x), x_J) with Phi(xi) = (kappa(xi), p_J(xi)) square (Theorem 6 with the outputs
+    (h, x_J)).
+
+    m(p(xi)) = xi wherever Phi is injective on V, and h(p(m(x))) = kappa(m(x)) = h(x) for every x with (h(x), x_J)
+    in Phi(V): conditions (i) and (ii) for the augmented outputs imply those for h.  The states are chosen greedily
+    at V's centre, each the one that keeps the smallest singular value of [dkappa/dxi; dp_J/dxi] (rows normalised)
+    largest; the augmented output box is Y times the range of p_J over V's grid.
+
+    Parameters
+    ----------
+    model : Model
+    man, kap : Artefact
+        The manifold (p, its grid) and kappa artefacts.
+
+    Returns
+    -------
+    model_aug : Model
+        ``model`` with h = (h, x_J) and Y = (Y, range of p_J on V).
+    kap_aug : Artefact
+        kappa = (kappa, p_J) and its Jacobian.
+    added : list of Symbol
+        The states x_J.
+    """
+    import dataclasses
+
+    xi_c = np.mean(np.asarray(model.V, dtype=float), axis=1)
+    dp = np.asarray(dp_function(man, model)(*xi_c), dtype=float).reshape(model.n, model.n_hat)
+    dk = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*xi_c), dtype=float).reshape(model.p, model.n_hat)
+
+    def rows_normalised(A: np.ndarray) -> np.ndarray:
+        return A / np.maximum(np.linalg.norm(A, axis=1, keepdims=True), 1e-300)
+
+    chosen: list[int] = []
+    for _ in range(model.n_hat - model.p):
+        scores = [(np.linalg.svd(rows_normalised(np.vstack([dk, dp[chosen + [j]]])), compute_uv=False).min(), -j) for j in range(model.n) if j not in chosen]
+        best, j = max(scores)
+        if not best > 1e-9:
+            raise DesignError("abstract.states", f"no {model.n_hat - model.p} states complete the outputs' kappa to an invertible map at V's centre "
+                              f"(xi = {xi_c.tolist()}): dkappa/dxi and dp/dxi have rank < n_hat there",
+                              "a p injective on V (full-rank dp/dxi), or abstract.m written by hand (checked, not trusted)", check="left_inverse")
+        chosen.append(-j)
+    p_grid = np.asarray(man.value("p_grid"), dtype=float)
+    added = [model.x[j] for j in chosen]
+    p_expr = man.expr("p")
+    kappa_aug = sp.Matrix(list(kap.expr("kappa")) + [p_expr[j] for j in chosen])
+    dkappa_aug = sp.Matrix.vstack(kap.expr("dkappa_dxi"), sp.Matrix([list(p_expr[j:j + 1, :].jacobian(model.xi)) for j in chosen]))
+    Y_aug = np.vstack([model.Y, np.c_[p_grid[chosen].min(axis=1), p_grid[chosen].max(axis=1)]])
+    model_aug = dataclasses.replace(model, h=sp.Matrix(list(model.h) + added), Y=Y_aug)
+    return model_aug, Artefact(stage="kappa", exprs={"kappa": kappa_aug, "dkappa_dxi": dkappa_aug}), added
+
+
+def note_augmented(art: Artefact, added: list[sp.Symbol]) -> Artefact:
+    """Record on the inverse's artefact that its outputs were augmented (:func:`augment_outputs`): ``meta/augmented_outputs``,
+    the method, and the certified set's meaning (m_domain has a row per augmented output, ``exprs/h`` evaluates them).
+
+    Parameters
+    ----------
+    art : Artefact
+        The inverse stage's artefact, changed in place.
+    added : list of Symbol
+        The states x_J the outputs were augmented with.
+
+    Returns
+    -------
+    Artefact
+        ``art``.
+    """
+    names = ", ".join(map(str, added))
+    art.meta.update(augmented_outputs=[str(s) for s in added], method=f"{art.meta['method']}; outputs augmented with {names} (n_hat > p)",
+                    m_domain_set=f"(h, {names})", m_domain=f"(h(x), {names}) in the box: the outputs augmented with {names}, so that kappa and p_J form a square map; "
+                    + str(art.meta.get("m_domain", "")))
+    return art

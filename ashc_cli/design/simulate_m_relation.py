@@ -65,8 +65,10 @@ def run_m_relation(model: Model, plant: DesignTerms, up: dict[str, Artefact]) ->
     box, set_name, _ = certified_set(up["inverse"])
     h_x0, m_x0 = plant.h_m(x0)
     y0 = h_x0[:, 0]
-    if outside_certified_set(box, y0):
-        shown = f"{y0[0]:.6g}" if y0.size == 1 else np.round(y0, 6).tolist()
+    # outputs augmented with states (n_hat > p, inverse.meta.augmented_outputs): the box is in (h, x_J), the inverse's h
+    y_cert = y0 if len(box) == y0.size else np.asarray(model.numeric(up["inverse"].expr("h"), list(model.x))(*x0), dtype=float).reshape(-1)
+    if outside_certified_set(box, y_cert):
+        shown = f"{y_cert[0]:.6g}" if y_cert.size == 1 else np.round(y_cert, 6).tolist()
         raise DesignError("simulate.m_relation.x0", f"y = h(x0) = {shown} is outside the set where m is certified, y in {set_name} = {format_box(box)} (x0 = {x0.tolist()})",
                           f"x0 with h(x0) in {format_box(box)} (inverse.m_domain)")
     xi0 = m_x0[:, 0]

@@ -42,10 +42,9 @@ from ashc_cli.design.artefacts import Artefact, Check
 from ashc_cli.errors import DesignError, FitError
 from ashc_cli.problem.grids import domain_grid, sample_states_with_output
 from ashc_cli.problem.model import Model, sparse_jacobian, tidy
-from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, Branch, branch_residuals, closed_form_branches,
-                                               composed_tolerances, kappa_inverse_on_Y, numeric_inverse)
-from ashc_cli.design.inverse_proofs import (mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, prove_scalar_rows, real_interval,
-                                            relabel_proved)
+from ashc_cli.design.inverse_construct import (COMPOSE_SAFETY, CONDITION_II_RTOL, LEFT_INVERSE_TOL, Branch, augment_outputs, branch_residuals, closed_form_branches,
+                                               composed_tolerances, kappa_inverse_on_Y, note_augmented, numeric_inverse)
+from ashc_cli.design.inverse_proofs import mark_proved, prove_affine_inverse, prove_multi_inverse, prove_scalar_inverse, prove_scalar_rows, real_interval, relabel_proved
 from ashc_cli.design.upstream import DOMAIN_RTOL, certified_set, format_box, p_function, sample_box
 
 NAME = "inverse"
@@ -596,9 +595,12 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         return _run_explicit(model, man, kap)
     if p_is_affine(man, model):
         return _run_linear(model, man, kap)
+    if model.n_hat > model.p:   # outputs augmented with the states that complete kappa to a square map
+        aug, kap_aug, added = augment_outputs(model, man, kap)
+        return note_augmented(_run_multi(aug, man, kap_aug), added)
     if model.n_hat != model.p:
-        raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs as many outputs as abstract states (n_hat = {model.n_hat}, p = {model.p})",
-                          "a square kappa, an affine p (m = P^+ (x - p0)), or abstract.m written by hand (checked, not trusted)")
+        raise DesignError("abstract.states", f"the left inverse m = kappa^-1(h(x)) of a nonlinear p needs at least as many abstract states as outputs (n_hat = {model.n_hat}, p = {model.p})",
+                          "an affine p (m = P^+ (x - p0)), more abstract states, or abstract.m written by hand (checked, not trusted)")
     if model.n_hat > 1:
         return _run_multi(model, man, kap)
     return _run_scalar(model, man, kap)
