@@ -8,6 +8,7 @@ import sympy as sp
 import yaml
 
 from ashc_cli.design import series_proofs
+from ashc_cli.errors import DesignError
 from ashc_cli.design.stages import manifold
 from ashc_cli.numerics import chebyshev
 from ashc_cli.numerics.chebmodel import ChebModel, TooWide, bound_on_pieces, evaluate, reexpand
@@ -141,19 +142,25 @@ def test_residual_norm_bound_covers_the_weighted_norm():
     assert worst <= series_proofs.residual_norm_bound(M, b) <= np.sqrt(b @ np.abs(M) @ b) * (1 + 1e-12)
 
 
-def test_the_residual_term_is_spent_by_the_budget_and_refuses_the_governor():
-    # A bound with a fitted p's residual: the budget pays residual_term before any v, the governor (which sees only
-    # the interface's r) is refused with the reason, and auto runs the budget.
+def test_the_residual_term_is_spent_by_the_budget_and_counted_by_the_governor():
+    # A bound with a fitted p's residual: the budget pays residual_term before any v; the governor runs while the
+    # residual alone fits below its level (rho_bar^2 / eps < (lambda - eps) W_max) and is refused, saying so, when not.
     from ashc_cli.closedloop import plan as gplan
     from ashc_cli.design.artefacts import Artefact
 
     values = {"alpha_h": 1.0, "gain": 2.0, "lambda": 2.0, "epsilon": 1.0, "w0_max_certified": np.inf, "v_max_certified": np.inf}
-    clean = gplan.guaranteed_plan(1.0, "auto", 0.0, {"bound": Artefact(stage="bound", values=dict(values))})
-    fitted = gplan.guaranteed_plan(1.0, "auto", 0.0, {"bound": Artefact(stage="bound", values={**values, "residual_term": 0.1})})
-    assert clean.mode == "governor" and fitted.mode == "budget"
-    assert fitted.budget_v_max == pytest.approx((1.0 - 0.1) / 2.0)
-    assert "PDE residual" in fitted.governor_refusal
-
+    fitted = {**values, "residual_term": 0.1, "rho_bar": 0.1 / np.sqrt(2.0)}
+    ok = gplan.guaranteed_plan(1.0, "auto", 0.0, {"bound": Artefact(stage="bound", values=fitted)})
+    assert ok.mode == "governor" and ok.budget_v_max == pytest.approx((1.0 - 0.1) / 2.0)
+    # EPS = 0.08 is below the budget's residual term 0.1 but above rho_bar = 0.0707: only the governor certifies it
+    between = gplan.guaranteed_plan(0.08, "auto", 0.0, {"bound": Artefact(stage="bound", values=fitted)})
+    assert between.mode == "governor" and "p's residual term" in between.budget_refusal
+    with pytest.raises(DesignError, match="cannot be guaranteed"):
+        gplan.guaranteed_plan(0.06, "governor", 0.0, {"bound": Artefact(stage="bound", values=fitted)})
+    try:
+        gplan.guaranteed_plan(0.06, "governor", 0.0, {"bound": Artefact(stage="bound", values=fitted)})
+    except DesignError as exc:
+        assert "PDE residual" in str(exc)
 
 def test_a_piecewise_is_decided_on_the_range_or_hulled_across_a_break():
     # Decided: on [-1, -0.5] the condition t < 0 holds everywhere, so the model is the first branch's, exactly;

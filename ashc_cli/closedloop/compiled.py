@@ -502,6 +502,8 @@ class TrackingLoop:
         self.U = np.ascontiguousarray(np.asarray(model.U, dtype=float).reshape(self.m, 2))
         self.lam = float(up["bound"].value("lambda"))
         self.eps = float(up["bound"].value("epsilon"))
+        # a fitted p's PDE residual, |L^T rho| <= rho_bar (bound.rho_bar): the comparison system and the governor count it
+        self.rho = float(up["bound"].values.get("rho_bar", 0.0))
 
     @staticmethod
     def _flags(q_kind: str, saturate) -> tuple[int, int]:
@@ -511,7 +513,7 @@ class TrackingLoop:
             raise Unsupported(str(exc)) from None
 
     def _prm(self, gain: float, v_max: float) -> np.ndarray:
-        return np.array([gain, v_max, self.lam, self.eps], dtype=float)
+        return np.array([gain, v_max, self.lam, self.eps, self.rho], dtype=float)
 
     def _loop(self, prm: np.ndarray, q_kind: str, saturate, lprm=None):
         """The core's Loop of this design with the loop's prm, the interface's codes and the law's parameters."""
@@ -576,7 +578,7 @@ class TrackingLoop:
             from ashc_cli.closedloop import governor as gov
 
             w_level, rate, grid, bisections, backoff = governor
-            prm = np.r_[prm, w_level, rate, 1.0, grid, bisections, np.asarray(backoff, dtype=float)]
+            prm = np.r_[prm[:4], w_level, rate, self.rho, grid, bisections, np.asarray(backoff, dtype=float)]
             rhs = gov.governor_rhs
         loop = self._loop(prm, q_kind, saturate, lprm)
         run = self.core.Segments(z0, t_bounds, t_eval, offsets, seg_refs, np.empty(0), rtol, atol)

@@ -10,6 +10,8 @@ closedloop/plan.py).
 
 from collections import namedtuple
 
+import math
+
 import numpy as np
 from numba import njit, types
 
@@ -232,15 +234,20 @@ def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     dv = np.empty(N)
     times(dpd, v_sp, dv)
     room = (lam - eps) * w_level + rate * (w_level - w)
+    # (|L^T r| + rho_bar)^2 / eps <= room, i.e. |L^T r| <= sqrt(eps room) - rho_bar (rho_bar: a fitted p's residual)
+    rho = prm[6]
+    reach = math.sqrt(max(eps * room, 0.0)) - rho
+    bound = eps * room if rho == 0.0 else (reach * reach if reach > 0.0 else 0.0)
     r = np.empty(N)
-    scale, _ = governor_scale(Point(L, l, feedback, qv, dv, g, U, sat), eps * room, prm, u, r)
+    scale, _ = governor_scale(Point(L, l, feedback, qv, dv, g, U, sat), bound, prm, u, r)
     for a in range(MH):
         v[a] = scale * v_sp[a]
     state_derivatives(phi, delta, v, fb, g, u, dz)
     q2 = weighted_norm2(L, r)
-    dz[NH + N] = -(lam - eps) * w + q2 / eps
+    q = q2 if rho == 0.0 else (math.sqrt(q2) + rho) ** 2
+    dz[NH + N] = -(lam - eps) * w + q / eps
     out[0] = scale
-    out[1] = room - q2 / eps
+    out[1] = room - q / eps
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LOOP, F1, F1, F1, F1, F1, F1), **OPTIONS)
@@ -265,7 +272,7 @@ def governor_rhs(t, z, dz, eval_xi, eval_x, eval_link, eval_u, law, loop, ref, v
     eval_link, eval_u, law : LINK_KERNEL, U_KERNEL, LAW
         Not read (v_sp is the set-point law, :func:`~ashc_cli.closedloop.laws.setpoint`).
     loop : Loop
-        As closed_loop's, with prm = [gain, v_max, lambda, eps, W_max, c, 1.0 (not read), grid, bisections, backoffs...].
+        As closed_loop's, with prm = [gain, v_max, lambda, eps, W_max, c, rho_bar, grid, bisections, backoffs...].
     ref : 1-D float array (n_hat,)
         The reference xi_ref.
     """

@@ -133,7 +133,8 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     so v_max = (EPS - sqrt(W0 / alpha_h)) / G, capped by v_max_certified (the bound holds only there).  With
     disturbances (``concrete.disturbances``) every w in their box is admitted: v_max = (EPS - sqrt(W0 / alpha_h) -
     G_w ||w||_inf) / G, capped by the region's limit with w; the governor is refused (it cannot see w).  A fitted p's
-    PDE residual (``bound.residual_term``) is spent the same way, before any v, and refuses the governor too.
+    PDE residual (``bound.residual_term``) is spent the same way, before any v; the governor counts it in its
+    condition (|L^T r(s)| + rho_bar)^2 / eps <= room.
     Governor: the level W_max = min(EPS^2 alpha_h, w0_max_certified), kept invariant (less GOVERNOR_MARGIN); it
     needs W0 <= W_max.
 
@@ -191,9 +192,11 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
     if governor_refusal is None and "disturbance_term" in bd:
         governor_refusal = ("the governor keeps W below its level from the interface's own r(s), which cannot see the disturbance "
                             "e(x) w of concrete.disturbance_bounds (the budget mode counts it)")
-    if governor_refusal is None and float(bd.get("residual_term", 0.0)) > 0:
-        governor_refusal = ("the governor keeps W below its level from the interface's own r(s), which does not count the fitted p's PDE "
-                            "residual (bound.rho_bar; the budget mode counts it)")
+    rho = float(bd.get("rho_bar", 0.0))
+    if governor_refusal is None and rho > 0 and not rho**2 < float(bd["epsilon"]) * (float(bd["lambda"]) - float(bd["epsilon"])) * level:
+        # at s = 0 the residual alone must fit: rho_bar^2 / eps < (lambda - eps) W_max
+        governor_refusal = (f"the fitted p's PDE residual (rho_bar = {rho:.3g}) alone reaches the governor's level W_max = {level:.6g}: "
+                            "the tolerance must exceed the bound's residual term")
     if governor_refusal is None and not W0 <= level:
         governor_refusal = (f"W(xi0, x0) = {W0:.6g} is above the level the governor keeps, W_max = {level:.6g} "
                             f"(tolerance^2 alpha_h less {GOVERNOR_MARGIN:g}{region})")

@@ -6,6 +6,8 @@ Design-independent: the per-design kernels reach these functions as numba first-
 (``cache=True``)."""
 from collections import namedtuple
 
+import math
+
 import numpy as np
 from numba import njit, types
 
@@ -219,8 +221,10 @@ def _loop_at(eval_x, at, loop, z, v, u, dz):
     times(dpd, v, dv)
     r = np.empty(N)
     residual(dv, 1.0, g, u, l, feedback, shift, r)
-    # w' = -(lambda - eps) w + |L^T r|^2 / eps
-    dz[NH + N] = -(lam - eps) * z[NH + N] + weighted_norm2(L, r) / eps
+    # w' = -(lambda - eps) w + (|L^T r| + rho_bar)^2 / eps (rho_bar: a fitted p's PDE residual, docs/guaranteed.md)
+    rho = prm[4] if prm.size > 4 else 0.0
+    q2 = weighted_norm2(L, r)
+    dz[NH + N] = -(lam - eps) * z[NH + N] + (q2 if rho == 0.0 else (math.sqrt(q2) + rho) ** 2) / eps
 
 
 @njit(types.void(XI_KERNEL, X_KERNEL, LAW, LOOP, types.float64, F1, F1, F1, F1, F1), **OPTIONS)
