@@ -742,3 +742,19 @@ def test_the_precheck_refutes_nothing_a_certificate_exists_for():
     for spec in (CUK, CUK.parent / "unstable_linear.yaml", CUK.parent / "quarter_car.yaml"):
         model = build_model(load_spec(spec))
         refute_rate(model, sparse_jacobian(model.f, model.x), 0.0)
+
+
+def test_a_refused_mode_outside_the_outputs_cone_is_named_with_its_states(tmp_path):
+    # Issue 43: a lag whose output y = x1 is tracked, with a state x2' = x1 (a position integrating it) that never acts
+    # on y: its mode s = 0 refutes every M; the refusal names x2 as the mode's state, says it cannot influence y, and
+    # says to leave it out; without x2 the same plant is certified.
+    from ashc_cli.design.pipeline import run
+    from ashc_cli.problem.influence import output_cone
+
+    from .bad_inputs import LAG_TASK
+
+    text = LAG_TASK.replace('states: [x], inputs: [u], f_bar: ["-2*x"], g: [["1"]]', 'states: [x, q], inputs: [u], f_bar: ["-2*x", "x"], g: [["1"], ["0"]]')
+    assert output_cone(build_model(parse_spec_text(text))) == ([0], [1])
+    with pytest.raises(DesignError, match=r"the mode lives in q, which cannot influence y .* leave them out of concrete.states"):
+        run(parse_spec_text(text), tmp_path / "with_q", ("stabilise",))
+    assert run(parse_spec_text(LAG_TASK), tmp_path / "without", ("stabilise",))["stabilise"].values["lambda"] == 2.0

@@ -18,6 +18,7 @@ import numpy as np
 
 from ashc_cli.design.contraction.terms import jacobian_samples
 from ashc_cli.errors import DesignError
+from ashc_cli.problem.influence import output_cone
 from ashc_cli.problem.model import Model
 
 __all__ = ["PRECHECK_POINTS", "refute_rate"]
@@ -66,16 +67,16 @@ def refute_rate(model: Model, J, lam: float, choices: str = "") -> None:
         if bad:
             s = max(bad, key=lambda z: z.real)
             if worst is None or s.real > worst[0].real:
-                worst = (s, point)
+                worst = (s, point, A)
     if worst is None:
         return
-    s, point = worst
+    s, point, A = worst
     n, reads = model.n, set().union(*(e.free_symbols for e in J))
     on_x, on_u = bool(reads & set(model.x)), bool(reads & set(model.u))
     parts = ([f"x = [{', '.join(f'{v:.4g}' for v in point[:n])}]"] if on_x else []) + ([f"u = [{', '.join(f'{v:.4g}' for v in point[n:])}]"] if on_u else [])
     at = ", ".join(parts) if parts else "every state (df/dx is constant)"
     leave = " (a state box that leaves this point out)" if on_x else ""
-    seen = f"(found among {len(points)} sampled points of state_box x U, before any LMI)"
+    seen = f"(found among {len(points)} sampled points of state_box x U, before any LMI){_mode_states(model, A, s)}"
     if linear_gain:
         raise DesignError("stabilisability.feedback", f"no gain K makes the plant contract at lambda = {lam:g}: at {at} the mode s = {_text(s)} of "
                           f"df/dx (Re s >= -lambda/2 = {-lam / 2:.4g}) is not reachable from the inputs (rank [A - s I, B] < {n}: "
@@ -85,6 +86,21 @@ def refute_rate(model: Model, J, lam: float, choices: str = "") -> None:
     raise DesignError("stabilisability", f"no M certifies any decay rate lambda > 0 (eq. (28)): at {at} df/dx has the eigenvalue "
                       f"{_text(s)}, real part >= 0, so the plant does not contract there {seen}",
                       f"a plant that is incrementally stable on the set{leave}{choices}", check="lmi_margin")
+
+
+def _mode_states(model: Model, A: np.ndarray, s: complex) -> str:
+    """Where the mode s of A lives (the states of its eigenvector within 10% of the largest entry), and whether they
+    can influence y at all (the output's cone, :func:`ashc_cli.problem.influence.output_cone`)."""
+    eig, vec = np.linalg.eig(A)
+    v = np.abs(vec[:, int(np.argmin(np.abs(eig - s)))])
+    where = [k for k in range(model.n) if v[k] >= 0.1 * v.max()]
+    names = ", ".join(str(model.x[k]) for k in where)
+    outside = output_cone(model)[1]
+    if set(where) <= set(outside):
+        gone = ", ".join(str(model.x[k]) for k in outside)
+        return (f"; the mode lives in {names}, which cannot influence y (no path of df/dx leads from them to h; the states outside "
+                f"the output's cone are {gone}): leave them out of concrete.states, since the design certifies every state")
+    return f"; the mode lives in {names}"
 
 
 def _special_points(box: np.ndarray) -> np.ndarray:
