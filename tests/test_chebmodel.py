@@ -1,6 +1,8 @@
 """Chebyshev models (numerics/chebmodel.py) and the fitted p's PDE residual proved with them (design/series_proofs.py):
 every bound must hold at every point, checked in 60-digit arithmetic, and stay near the true size (so a loose bound fails)."""
 
+import re
+
 import mpmath
 import numpy as np
 import pytest
@@ -268,3 +270,16 @@ def test_a_piecewise_p_whose_pieces_jump_keeps_its_residual_sampled():
     art.checks["pde_residual"] = Check(1e-12, True, "grid")
     manifold._prove_residual(model, pw, art)
     assert art.checks["pde_residual"].evidence == "sampled" and "jump" in art.meta["residual_proof"]
+
+
+def test_the_report_and_the_design_line_print_the_residual_term(tmp_path):
+    # The published bound of a fitted p carries its residual's term wherever it is printed: the design's line and
+    # the HTML report (with rho_bar).
+    from .conftest import SPECS, ashc
+
+    out = tmp_path / "d"
+    design = ashc("design", str(SPECS / "rc_ladder.yaml"), "--out", str(out))
+    assert design.returncode == 0 and re.search(r"\|\|v\|\|_inf \+ [0-9.]+e-[0-9]+ when", design.stdout), design.stdout
+    report = ashc("report", str(SPECS / "rc_ladder.yaml"), "--out", str(out), "--runs", "8", "--t-final", "2")
+    assert report.returncode == 0, report.stderr
+    assert re.search(r"p(&#x27;|')s PDE residual, rho_bar = [0-9.]+e-", (out / "report.html").read_text())

@@ -272,6 +272,7 @@ def render(spec_text: str, spec_name: str, arts: dict[str, Artefact], result, fi
         ev = b.get("evidence", {})
         sampled = "" if b.get("bound_evidence") == "proved" else f" <span class=\"sampled\">(sampled: {html.escape(str(b.get('bound_sampled', '')))})</span>"
         dist = f" + {b['gain_w']:.5g} ||w||_inf (disturbance, ebar = {b['ebar']:.5g})" if "gain_w" in b else ""
+        dist += f" + {b['residual_term']:.3g} (p's PDE residual, rho_bar = {b['rho_bar']:.3g})" if b.get("residual_term", 0.0) > 0 else ""
         parts.append(f"<tr><th>uniform gain G (eq. (38), paper form)</th><td>|psi - y| &lt;= {b['gain']:.5g}{sampled} ||v||_inf{dist} when W(xi0, x0) = 0</td></tr>"
                      f"<tr><th>how each number was established</th><td>{html.escape(', '.join(f'{k}: {v}' for k, v in ev.items()))}</td></tr>"
                      f"<tr><th>certified region</th><td>{region}</td></tr>"
