@@ -6,6 +6,7 @@ kappa(m) = y that sympy finds; without one, kappa^-1 as a (piecewise) Chebyshev 
 
 from __future__ import annotations
 
+import dataclasses
 from collections import namedtuple
 
 import numpy as np
@@ -446,8 +447,6 @@ def augment_outputs(model: Model, man: Artefact, kap: Artefact) -> tuple[Model, 
     added : list of Symbol
         The states x_J.
     """
-    import dataclasses
-
     xi_c = np.mean(np.asarray(model.V, dtype=float), axis=1)
     dp = np.asarray(dp_function(man, model)(*xi_c), dtype=float).reshape(model.n, model.n_hat)
     dk = np.asarray(model.numeric(kap.expr("dkappa_dxi"), list(model.xi))(*xi_c), dtype=float).reshape(model.p, model.n_hat)
@@ -455,15 +454,17 @@ def augment_outputs(model: Model, man: Artefact, kap: Artefact) -> tuple[Model, 
     def rows_normalised(A: np.ndarray) -> np.ndarray:
         return A / np.maximum(np.linalg.norm(A, axis=1, keepdims=True), 1e-300)
 
+    def smallest_sv(rows: list[int]) -> float:
+        return float(np.linalg.svd(rows_normalised(np.vstack([dk, dp[rows]])), compute_uv=False).min())
+
     chosen: list[int] = []
     for _ in range(model.n_hat - model.p):
-        scores = [(np.linalg.svd(rows_normalised(np.vstack([dk, dp[chosen + [j]]])), compute_uv=False).min(), -j) for j in range(model.n) if j not in chosen]
-        best, j = max(scores)
-        if not best > 1e-9:
+        j = max((k for k in range(model.n) if k not in chosen), key=lambda k: (smallest_sv(chosen + [k]), -k))   # ties: the first state
+        if not smallest_sv(chosen + [j]) > 1e-9:
             raise DesignError("abstract.states", f"no {model.n_hat - model.p} states complete the outputs' kappa to an invertible map at V's centre "
                               f"(xi = {xi_c.tolist()}): dkappa/dxi and dp/dxi have rank < n_hat there",
                               "a p injective on V (full-rank dp/dxi), or abstract.m written by hand (checked, not trusted)", check="left_inverse")
-        chosen.append(-j)
+        chosen.append(j)
     p_grid = np.asarray(man.value("p_grid"), dtype=float)
     added = [model.x[j] for j in chosen]
     p_expr = man.expr("p")

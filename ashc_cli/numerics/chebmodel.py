@@ -213,33 +213,21 @@ class ChebModel:
         return ChebModel(acc.c, _up(acc.r + radius + lagrange, 3))
 
 
+def _tanh(s: arb_series) -> arb_series:
+    return 1 - 2 / ((2 * s).exp() + 1)
+
+
+#: f of a power series in arb: the Taylor coefficients of f at the series' constant term.
+_SERIES = {"exp": arb_series.exp, "log": arb_series.log, "sin": arb_series.sin, "cos": arb_series.cos, "tan": arb_series.tan,
+           "atan": arb_series.atan, "sqrt": arb_series.sqrt, "inv": lambda s: 1 / s, "tanh": _tanh,
+           "sinh": lambda s: (s.exp() - 1 / s.exp()) / 2, "cosh": lambda s: (s.exp() + 1 / s.exp()) / 2}
+
+
 def _series_all(name: str, s: arb_series) -> arb_series:
-    """f of a power series in arb (the Taylor coefficients of f at s's constant term)."""
-    if name == "exp":
-        return s.exp()
-    if name == "log":
-        return s.log()
-    if name == "sin":
-        return s.sin()
-    if name == "cos":
-        return s.cos()
-    if name == "tan":
-        return s.tan()
-    if name == "atan":
-        return s.atan()
-    if name == "sqrt":
-        return s.sqrt()
-    if name == "inv":
-        return 1 / s
-    if name == "sinh":
-        e = s.exp()
-        return (e - 1 / e) / 2
-    if name == "cosh":
-        e = s.exp()
-        return (e + 1 / e) / 2
-    if name == "tanh":
-        return 1 - 2 / ((2 * s).exp() + 1)
-    raise UnsupportedExpression(sp.Symbol(name), f"{name} has no Chebyshev model")
+    """f of a power series in arb (:data:`_SERIES`)."""
+    if name not in _SERIES:
+        raise UnsupportedExpression(sp.Symbol(name), f"{name} has no Chebyshev model")
+    return _SERIES[name](s)
 
 
 def _taylor(name: str, at: arb, order: int) -> list[arb]:
