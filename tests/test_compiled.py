@@ -515,3 +515,33 @@ def test_second_process_loads_the_m_relation_loop_without_compiling(designs):
     assert names == "['kernels', 'link']"
     # every compiled function of the three modules came from the cache (17: core 10, kernels 2, link 5)
     assert used == "True" and int(misses) == 0 and int(hits) == int(compiled_functions) == 17
+
+
+def test_sums_over_L_keep_to_its_band_bit_for_bit():
+    # weighted_norm2 and lt_times sum over L's band only: on a banded Cholesky factor the sums are the full
+    # ones (the entries left out are exact zeros), and a band given too narrow changes them
+    from ashc_cli.closedloop.interface import lt_times
+    from ashc_cli.closedloop.laws import weighted_norm2
+    from ashc_cli.numerics.linalg import lower_bandwidth
+
+    rng = np.random.default_rng(11)
+    n = 9
+    for bw in (0, 1, 3, n - 1):
+        A = np.tril(np.triu(rng.normal(size=(n, n)), -bw), bw)
+        M = A @ A.T + n * np.eye(n)
+        L = np.ascontiguousarray(np.linalg.cholesky(M))
+        L[np.abs(L) < 1e-300] = 0.0
+        assert lower_bandwidth(L) <= 2 * bw
+        band = lower_bandwidth(L)
+        r, X = rng.normal(size=n), rng.normal(size=(n, 2))
+        full, out = np.empty((n, 2)), np.empty((n, 2))
+        lt_times(L, n - 1, X, full)
+        lt_times(L, band, X, out)
+        assert np.array_equal(out, full) and np.allclose(full, L.T @ X, rtol=1e-14, atol=1e-14)
+        assert weighted_norm2(L, band, r) == weighted_norm2(L, n - 1, r)
+        assert weighted_norm2(L, band, r) == pytest.approx(float(np.sum((L.T @ r) ** 2)), rel=1e-13)
+        if band > 0:
+            assert weighted_norm2(L, band - 1, r) != weighted_norm2(L, band, r)
+    with pytest.raises(ValueError, match="lower triangular"):
+        lower_bandwidth(np.array([[1.0, 1.0], [0.0, 1.0]]))
+    assert lower_bandwidth(np.eye(4)) == 0 and lower_bandwidth(np.zeros((3, 3))) == 0

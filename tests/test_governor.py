@@ -37,7 +37,7 @@ def test_compiled_scale_is_the_reference_scale(saturate, m):
         bound = float(rng.uniform(0.05, 1.5) * np.median(q2)) + 1e-3
         s_ref, u_ref, r_ref, ok_ref = reference.governor_scale(L, l, fb, qv, dv, g, U, saturate, bound)
         u, r = np.empty(m), np.empty(dv.size)
-        P = gov.Point(np.ascontiguousarray(L), l, fb, qv, dv, np.ascontiguousarray(g), np.ascontiguousarray(U), SAT[saturate])
+        P = gov.Point(np.ascontiguousarray(L), l, fb, qv, dv, np.ascontiguousarray(g), np.ascontiguousarray(U), SAT[saturate], L.shape[0] - 1)
         s, ok = gov.governor_scale(P, bound, _prm(), u, r)
         assert ok == ok_ref
         assert s == pytest.approx(s_ref, abs=1e-9)
@@ -54,7 +54,7 @@ def test_breakpoints_are_the_reference_breakpoints():
             L, l, fb, qv, dv, g, U = _random_interface(rng, 3, saturate)
             ends_ref, affine_ref = reference.breakpoints(l, fb, qv, U, saturate)
             ends = np.empty(7)
-            count, affine = gov.breakpoints(gov.Point(np.eye(3), l, fb, qv, dv, np.zeros((3, 3)), U, SAT[saturate]), ends)
+            count, affine = gov.breakpoints(gov.Point(np.eye(3), l, fb, qv, dv, np.zeros((3, 3)), U, SAT[saturate], 0), ends)
             assert affine == affine_ref and list(ends[:count]) == ends_ref
 
 

@@ -29,6 +29,7 @@ from ashc_cli.closedloop.terms import design_matrices
 from ashc_cli.errors import NumericalError, Unsupported
 from ashc_cli.closedloop.interface import SATURATE_CODES, interface_codes
 from ashc_cli.closedloop.laws import setpoint_law
+from ashc_cli.numerics.linalg import lower_bandwidth
 from ashc_cli.problem.model import almost_everywhere
 
 __all__ = ["Unsupported", "SATURATE_CODES", "interface_codes", "TrackingLoop", "TrackingRun", "tracking_loop", "abstract_signal", "MRelationLoop", "MRelationRun", "m_relation_loop", "cache_dir",
@@ -37,7 +38,7 @@ __all__ = ["Unsupported", "SATURATE_CODES", "interface_codes", "TrackingLoop", "
 
 #: Bump when the kernels' printing or the modules they import change (it is part of their cache key; numba keys the
 #: cached machine code of a generated module by its own file only).
-KERNEL_VERSION = 5
+KERNEL_VERSION = 6
 
 
 def available() -> bool:
@@ -495,8 +496,9 @@ class TrackingLoop:
     def __init__(self, core, kernels, model, up):
         self.core, self.kernels = core, kernels
         self.nh, self.n, self.m, self.mh, self.p = model.n_hat, model.n, model.m, model.m_hat, model.p
-        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p, int(model.affine), int(_run_disturbance(model) is not None)], dtype=np.int64)
         self.L = np.ascontiguousarray(np.asarray(up["bound"].value("L"), dtype=float).reshape(self.n, self.n))
+        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p, int(model.affine), int(_run_disturbance(model) is not None),
+                              lower_bandwidth(self.L)], dtype=np.int64)
         K = up["stabilise"].values.get("K", np.zeros((model.m, model.n)))
         self.K = np.ascontiguousarray(np.asarray(K, dtype=float).reshape(self.m, self.n))
         self.U = np.ascontiguousarray(np.asarray(model.U, dtype=float).reshape(self.m, 2))
@@ -703,7 +705,7 @@ class MRelationLoop:
     def __init__(self, core, kernels, link, model):
         self.core, self.kernels, self.link = core, kernels, link
         self.nh, self.n, self.m, self.mh, self.p = model.n_hat, model.n, model.m, model.m_hat, model.p
-        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p, int(model.affine), 0], dtype=np.int64)   # no disturbance
+        self.dims = np.array([self.nh, self.n, self.m, self.mh, self.p, int(model.affine), 0, 0], dtype=np.int64)   # no disturbance, no L
 
     def run(self, z0: np.ndarray, t_span: tuple[float, float], t_eval: np.ndarray, *, edges: Sequence[float] | None, rtol: float,
             atol: float, what: str = "m_relation") -> MRelationRun:

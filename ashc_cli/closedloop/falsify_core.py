@@ -45,7 +45,7 @@ O_PHI, O_DEL, O_L, O_DPD, O_KAP, O_PM, O_DP, O_FB, O_G, O_H, O_DH, O_KX, O_Q, O_
 
 #: What every run of a batch shares.  dims = [n_hat, n, m, m_hat, p, H (holds), S (reference segments), record,
 #: keep_v]; off: falsify_loop.layout; fprm = [dt (a hold), v_limit, lambda, eps, alpha_h, G, floor, rtol, divergence,
-#: lookahead (in holds)]; iprm = [q_ls, sat] (:mod:`~ashc_cli.closedloop.interface`); M, L, K, U: the metric, its
+#: lookahead (in holds)]; iprm = [q_ls, sat, bw] (:mod:`~ashc_cli.closedloop.interface`; bw: L's lower bandwidth); M, L, K, U: the metric, its
 #: Cholesky factor, the feedback gain, the input box; atol and scale per state (a run diverges where |z_i| >
 #: divergence scale_i); lo, hi, centre: V's bounds and centre; cand: the greedy adversary's unit inputs (C, m_hat);
 #: tgrid: the hold boundaries (H + 1,); lprm: the registered controller's parameters (CONTROLLER runs).
@@ -134,7 +134,7 @@ def _terms(exi, ex, z, x, A, B, T, D):
     exi(z, A)
     ex(z, B)
     feedback_of(D.K, x, T.pm, T.kx)
-    q_of(D.L, T.g, T.dpd, D.iprm[0], T.q, T.ltg, T.ltd, T.pg)
+    q_of(D.L, D.iprm[2], T.g, T.dpd, D.iprm[0], T.q, T.ltg, T.ltd, T.pg)
 
 
 @njit(inline="always", **OPTIONS)

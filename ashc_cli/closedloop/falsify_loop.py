@@ -23,12 +23,13 @@ import sympy as sp
 
 from ashc_cli.closedloop.compiled import Unsupported, emit_kernel, available, interface_codes, load_source
 from ashc_cli.closedloop.laws import no_law
+from ashc_cli.numerics.linalg import lower_bandwidth
 from ashc_cli.closedloop.terms import design_matrices
 
 __all__ = ["FalsifyLoop", "falsify_loop", "threads"]
 
 #: Bump when the kernels' printing changes (part of their cache key; the core is keyed by its text).
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 
 #: Both kernels: (z = [xi, x], the flat output buffer).
 KERNEL_SIGNATURE = "types.void(F1, F1)"
@@ -168,7 +169,7 @@ class FalsifyLoop:
         q = model.spec.interface.q
         sat = model.spec.interface.saturate
         try:
-            self.iprm = np.array(interface_codes(q, sat), dtype=np.int64)
+            self.iprm = np.array([*interface_codes(q, sat), lower_bandwidth(self.L)], dtype=np.int64)
         except ValueError as exc:
             raise Unsupported(str(exc)) from None
         self.threads = threads()

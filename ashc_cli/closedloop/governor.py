@@ -21,8 +21,8 @@ from ashc_cli.closedloop.tracking_core import F1, F2, LOOP, RHS_SIGNATURE, SAMPL
 
 OPTIONS = dict(cache=True, error_model="numpy")
 #: The interface at one point, all of u(s) and r(s) but the scale s: L (M = L L^T), l(xi), K e = K (x - p(xi)),
-#: q v_sp, dp/dxi delta v_sp, g(x), the input box U and the saturation code sat.
-Point = namedtuple("Point", "L l feedback qv dv g U sat")
+#: q v_sp, dp/dxi delta v_sp, g(x), the input box U, the saturation code sat and L's lower bandwidth bw.
+Point = namedtuple("Point", "L l feedback qv dv g U sat bw")
 
 
 @njit(**OPTIONS)
@@ -47,7 +47,7 @@ def interface_at(s, P, u, r, corr):
     """
     apply(P.l, P.feedback, P.qv, s, P.U, P.sat, corr, u)
     residual(P.dv, s, P.g, u, P.l, P.feedback, np.zeros(P.dv.size), r)
-    return weighted_norm2(P.L, r)
+    return weighted_norm2(P.L, P.bw, r)
 
 
 @njit(**OPTIONS)
@@ -228,7 +228,7 @@ def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
     q = np.empty((M, MH))
-    q_of(L, g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
+    q_of(L, dims[7], g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
     qv = np.empty(M)
     times(q, v_sp, qv)
     dv = np.empty(N)
@@ -239,11 +239,11 @@ def _governed_at(at, loop, z, xi_ref, v, u, dz, out):
     reach = math.sqrt(max(eps * room, 0.0)) - rho
     bound = eps * room if rho == 0.0 else (reach * reach if reach > 0.0 else 0.0)
     r = np.empty(N)
-    scale, _ = governor_scale(Point(L, l, feedback, qv, dv, g, U, sat), bound, prm, u, r)
+    scale, _ = governor_scale(Point(L, l, feedback, qv, dv, g, U, sat, dims[7]), bound, prm, u, r)
     for a in range(MH):
         v[a] = scale * v_sp[a]
     state_derivatives(phi, delta, v, fb, g, u, dz)
-    q2 = weighted_norm2(L, r)
+    q2 = weighted_norm2(L, dims[7], r)
     q = q2 if rho == 0.0 else (math.sqrt(q2) + rho) ** 2
     dz[NH + N] = -(lam - eps) * w + q / eps
     out[0] = scale

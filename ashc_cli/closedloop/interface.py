@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from ashc_cli.closedloop.laws import F1, F2, INLINE, pinv_into
+from ashc_cli.numerics.linalg import lower_bandwidth
 
 
 @njit(**INLINE)
@@ -84,12 +85,18 @@ def feedback_of(K: F2, x: F1, pm: F1, feedback: F1):
 
 
 @njit(**INLINE)
-def lt_times(L: F2, X: F2, out: F2):
+def lt_times(L: F2, bw: int, X: F2, out: F2):
     """out = L^T X (the sums over L's rows in order), for L^T g and L^T dp/dxi delta of eq. (43).
+
+    Only the band k = i .. i + bw of column i is summed: L is lower triangular with lower bandwidth ``bw`` (the
+    entries left out are exact zeros, so the sums are the full ones bit for bit), O(n bw) instead of O(n^2).
 
     Parameters
     ----------
     L : 2-D float array (n, n)
+        Lower triangular (the Cholesky factor of M).
+    bw : int
+        L's lower bandwidth (:func:`ashc_cli.numerics.linalg.lower_bandwidth`; n - 1 for a full L).
     X : 2-D float array (n, c)
     out : 2-D float array (n, c)
         Written.
@@ -97,13 +104,13 @@ def lt_times(L: F2, X: F2, out: F2):
     for i in range(out.shape[0]):
         for j in range(out.shape[1]):
             s = 0.0
-            for k in range(X.shape[0]):
+            for k in range(i, min(X.shape[0], i + bw + 1)):
                 s += L[k, i] * X[k, j]
             out[i, j] = s
 
 
 @njit(**INLINE)
-def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
+def q_of(L: F2, bw: int, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
     """q(xi, x) of u* = q v (eq. (20)) into ``q``: the least-squares q = pinv(L^T g) (L^T dp/dxi delta) of eq. (43)
     when ``q_ls`` is 1, else 0.
 
@@ -111,6 +118,8 @@ def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
     ----------
     L : 2-D float array (n, n)
         The Cholesky factor of M (M = L L^T).
+    bw : int
+        L's lower bandwidth (as :func:`lt_times`).
     g, dpd : 2-D float arrays (n, m), (n, m_hat)
         g(x) and dp/dxi delta(xi).
     q_ls : int
@@ -126,8 +135,8 @@ def q_of(L: F2, g: F2, dpd: F2, q_ls: int, q: F2, ltg: F2, ltd: F2, pg: F2):
             for a in range(MH):
                 q[j, a] = 0.0
         return
-    lt_times(L, g, ltg)
-    lt_times(L, dpd, ltd)
+    lt_times(L, bw, g, ltg)
+    lt_times(L, bw, dpd, ltd)
     pinv_into(ltg, pg)
     for j in range(M):
         for a in range(MH):
@@ -308,7 +317,8 @@ def interface_u(l: np.ndarray, K: np.ndarray | None, x: np.ndarray, pm: np.ndarr
         feedback_of(np.ascontiguousarray(K, dtype=float), x, pm, feedback)
     if q_ls == 1:
         q = np.empty((M, MH))
-        q_of(np.ascontiguousarray(L, dtype=float), np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(dpd, dtype=float), 1, q,
+        L = np.ascontiguousarray(L, dtype=float)
+        q_of(L, lower_bandwidth(L), np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(dpd, dtype=float), 1, q,
              np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
         times(q, v, qv)
     u = np.empty(M)

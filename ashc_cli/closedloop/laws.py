@@ -203,19 +203,22 @@ def state_derivatives(phi, delta, v, fb, g, u, dz):
 
 
 @njit(**INLINE)
-def weighted_norm2(L, r):
-    """|L^T r|^2 = |sqrt(M) r|^2 with M = L L^T (the comparison system's input).
+def weighted_norm2(L, bw, r):
+    """|L^T r|^2 = |sqrt(M) r|^2 with M = L L^T (the comparison system's input), over L's band only (as
+    :func:`ashc_cli.closedloop.interface.lt_times`: the same sum, O(n bw)).
 
     Parameters
     ----------
     L : 2-D float array (n, n)
-        The Cholesky factor of M.
+        The Cholesky factor of M (lower triangular).
+    bw : int
+        L's lower bandwidth (n - 1 for a full L).
     r : 1-D float array (n,)
     """
     q2 = 0.0
     for i in range(r.size):
         s = 0.0
-        for k in range(r.size):
+        for k in range(i, min(r.size, i + bw + 1)):
             s += L[k, i] * r[k]
         q2 += s * s
     return q2

@@ -26,8 +26,9 @@ U_KERNEL = types.FunctionType(types.void(F1, F1))
 LAW = types.FunctionType(LAW_SIGNATURE)
 OPTIONS = dict(cache=True, error_model='numpy')
 
-#: The closed loop's constants: dims = [n_hat, n, m, m_hat, p, affine, disturbed] (affine: 1 for x' = f_bar + g u,
-#: 0 for f(x, u); disturbed: 1 when the run applies its constant disturbance e(x) w0); prm = [gain, v_max, lambda,
+#: The closed loop's constants: dims = [n_hat, n, m, m_hat, p, affine, disturbed, bw] (affine: 1 for x' = f_bar + g u,
+#: 0 for f(x, u); disturbed: 1 when the run applies its constant disturbance e(x) w0; bw: L's lower bandwidth, which
+#: the sums over L keep to, :func:`ashc_cli.numerics.linalg.lower_bandwidth`); prm = [gain, v_max, lambda,
 #: eps] (then, for the governor, governor.py's entries); L, K, U: the Cholesky factor of M (M = L L^T), the feedback
 #: gain and the input box; q_ls = 1 for the least-squares q of eq. (43), 0 for q = 0; sat as
 #: :func:`~ashc_cli.closedloop.interface.saturate`; lprm: the abstract controller's parameters (its law's prm).
@@ -187,7 +188,7 @@ def _loop_at(eval_x, at, loop, z, v, u, dz):
     feedback = np.empty(M)
     feedback_of(K, x, pm, feedback)
     q = np.empty((M, MH))
-    q_of(L, g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
+    q_of(L, dims[7], g, dpd, q_ls, q, np.empty((N, M)), np.empty((N, MH)), np.empty((M, N)))
     qv = np.empty(M)
     times(q, v, qv)
     apply(l, feedback, qv, 1.0, U, sat, np.empty(M), u)
@@ -223,7 +224,7 @@ def _loop_at(eval_x, at, loop, z, v, u, dz):
     residual(dv, 1.0, g, u, l, feedback, shift, r)
     # w' = -(lambda - eps) w + (|L^T r| + rho_bar)^2 / eps (rho_bar: a fitted p's PDE residual, docs/guaranteed.md)
     rho = prm[4] if prm.size > 4 else 0.0
-    q2 = weighted_norm2(L, r)
+    q2 = weighted_norm2(L, dims[7], r)
     dz[NH + N] = -(lam - eps) * z[NH + N] + (q2 if rho == 0.0 else (math.sqrt(q2) + rho) ** 2) / eps
 
 

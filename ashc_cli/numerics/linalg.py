@@ -28,6 +28,31 @@ def pinv(a: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(a)
 
 
+def lower_bandwidth(L: np.ndarray) -> int:
+    """The lower bandwidth of a lower-triangular L: the largest i - k with L[i, k] != 0 (0 for a diagonal L, n - 1
+    at most).  The compiled loops sum L^T r over this band only; entries outside it are exact zeros, so nothing
+    is rounded differently.
+
+    Parameters
+    ----------
+    L : ndarray (n, n)
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ValueError
+        L has a nonzero above its diagonal (it is not a Cholesky factor).
+    """
+    L = np.asarray(L)
+    i, k = np.nonzero(L)
+    if np.any(k > i):
+        raise ValueError("L is not lower triangular")
+    return int((i - k).max()) if i.size else 0
+
+
 def least_squares_q(L: np.ndarray, g: np.ndarray, dpd: np.ndarray) -> np.ndarray:
     """The least-squares q(xi, x) = pinv(L^T g) (L^T dp/dxi delta) of eq. (43) (M = L L^T): the q that makes
     sqrt(M) (dp/dxi delta - g q) smallest; the numpy form of :func:`ashc_cli.closedloop.interface.q_of`, for one

@@ -24,6 +24,7 @@ from ashc_cli.closedloop.compiled import interface_codes
 from ashc_cli.closedloop.laws import held_law, pinv_into, setpoint, setpoint_direction, setpoint_law
 from ashc_cli.outputs import translate
 from ashc_cli.outputs.export_design import NEEDED, Design
+from ashc_cli.numerics.linalg import lower_bandwidth
 
 __all__ = ["c_sources", "python_source", "PINV_RCOND", "JACOBI_SWEEPS"]
 
@@ -535,7 +536,7 @@ def _c_interface(d: Design, interface_outputs, uses_x: bool) -> list[str]:
         lines += [f"    for (j = 0; j < {NI}; j++) feedback[j] = 0.0;   /* identity feedback: K = 0 */"]
     if ls:
         lines += ["    /* q = pinv(L^T g) (L^T dp/dxi delta), eq. (43) */",
-                  f"    q_of(&L[0][0], {NS}, {NS}, g, {NS}, {NI}, dpd, {NS}, {NAI}, {q_ls}, q, {NI}, {NAI}, ltg, {NS}, {NI}, ltd, {NS}, {NAI}, pg, {NI}, {NS});",
+                  f"    q_of(&L[0][0], {NS}, {NS}, {lower_bandwidth(d.L)}, g, {NS}, {NI}, dpd, {NS}, {NAI}, {q_ls}, q, {NI}, {NAI}, ltg, {NS}, {NI}, ltd, {NS}, {NAI}, pg, {NI}, {NS});",
                   f"    times(q, {NI}, {NAI}, v, {NAI}, qv, {NI});"]
     else:
         lines += [f"    for (j = 0; j < {NI}; j++) qv[j] = 0.0;   /* q = 0 */"]
@@ -568,7 +569,7 @@ def _py_laws(d: Design, controller, interface_outputs) -> list[str]:
         lines += ["    feedback_of(K, x, pm, feedback)  # K (x - p(xi)), eq. (15)"]
     if ls:
         lines += ["    q = numpy.empty((N_INPUTS, N_ABSTRACT_INPUTS))",
-                  f"    q_of(L, g, dpd, {q_ls}, q, numpy.empty((N_STATES, N_INPUTS)), numpy.empty((N_STATES, N_ABSTRACT_INPUTS)), "
+                  f"    q_of(L, {lower_bandwidth(d.L)}, g, dpd, {q_ls}, q, numpy.empty((N_STATES, N_INPUTS)), numpy.empty((N_STATES, N_ABSTRACT_INPUTS)), "
                   "numpy.empty((N_INPUTS, N_STATES)))  # eq. (43)", "    times(q, v, qv)"]
     lines += ["    u = numpy.empty(N_INPUTS)", f"    apply(l, feedback, qv, 1.0, INPUT_BOUNDS, {sat}, numpy.empty(N_INPUTS), u)  # eq. (44)",
               "    return u", "", ""]
