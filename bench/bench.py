@@ -86,10 +86,11 @@ def stage_time(text: str, stage: str) -> float:
     return float("nan")
 
 
-def ladder_spec(folder: Path, stages: int, maximise: bool = False) -> Path:
-    """`ashc example ladder` written to folder (with ``decay_rate: maximise`` when asked)."""
-    path = folder / f"ladder_{stages}{'_max' if maximise else ''}.yaml"
-    subprocess.run(ASHC + ["example", "ladder", "--stages", str(stages), "--output", str(path)], check=True, capture_output=True, cwd=ROOT)
+def ladder_spec(folder: Path, stages: int, maximise: bool = False, task: bool = False) -> Path:
+    """`ashc example ladder` written to folder (with ``decay_rate: maximise`` or its reach-avoid task when asked)."""
+    path = folder / f"ladder_{stages}{'_max' if maximise else ''}{'_task' if task else ''}.yaml"
+    subprocess.run(ASHC + ["example", "ladder", "--stages", str(stages), "--output", str(path)] + (["--task"] if task else []), check=True,
+                   capture_output=True, cwd=ROOT)
     if maximise:
         import yaml
 
@@ -143,6 +144,11 @@ def closed_loops(tmp: Path, timeout: float, runs: int) -> list[dict]:
     subprocess.run(ASHC + ["design", detour, "--out", str(ddir)], check=True, capture_output=True, cwd=ROOT, env=env)
     timed("detour `synthesize` (specs/two_output_detour.yaml): grid planner, 80 x 80 cells", ASHC + ["synthesize", detour, "--out", str(ddir)],
           "synthesize", "issue 42", "2 abstract states, 2 outputs, an avoid box to go around; proved")
+    for N in (8, 128):      # the ladder's reach-avoid task (`ashc example ladder --task`): a 160 s plant run at the end
+        path, folder = ladder_spec(tmp, N, task=True), tmp / f"task{N}"
+        subprocess.run(ASHC + ["design", str(path), "--out", str(folder)], check=True, capture_output=True, cwd=ROOT, env=env)
+        timed(f"ladder n = {4 * N} task `synthesize` (`ashc example ladder --stages {N} --task`): grid planner, 800 cells", ASHC + ["synthesize", str(path), "--out", str(folder)],
+              "synthesize", "issue 42", "1 abstract state; proved; includes the plant run over the task's 160 s")
     path = ladder_spec(tmp, 16, maximise=True)
     timed("`stabilise` with decay_rate: maximise, 64 states", ASHC + ["stabilise", str(path), "--out", str(tmp / "max16")], "stabilise", "<= 60 s")
     return out

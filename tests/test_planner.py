@@ -73,13 +73,10 @@ def test_the_detour_is_proved_and_met_on_the_plant_around_the_box(detour):
     assert (out / "plots" / "synthesize.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("which, spec", [("detour", DETOUR), ("oscillator", OSCILLATOR)])
-def test_rtamt_agrees_with_the_stored_run(which, spec, request):
-    # rtamt's discrete-time monitor on simulate's stored task run, read on a uniform 0.05 s grid (its unit steps; the
-    # run's own samples restart at every period of the table), equals ashc's monitor there, and both are the stored
-    # robustness to within what y moves between the grids' samples
-    _, _, _, sim = request.getfixturevalue(which)
-    task = load_spec(spec).task
+def _rtamt_agrees(task: Task, sim) -> None:
+    """rtamt's discrete-time monitor on simulate's stored task run, read on a uniform 0.05 s grid (its unit steps; the
+    run's own samples restart at every period of the table), equals ashc's monitor there, and both are the stored
+    robustness to within what y moves between the grids' samples."""
     t, y = np.asarray(sim.values["task/t"]), np.asarray(sim.values["task/y"])
     steps = np.arange(0, round(task.horizon / 0.05) + 1, dtype=float)
     ys = np.stack([np.interp(steps * 0.05, t, row) for row in y])
@@ -89,6 +86,54 @@ def test_rtamt_agrees_with_the_stored_run(which, spec, request):
     assert _rtamt(scaled, steps, ys) == pytest.approx(robustness(task, steps * 0.05, ys).robustness, abs=1e-12)
     moved = float(np.abs(np.diff(y, axis=1)).max()) * 0.05 / float(np.diff(t).min())
     assert _rtamt(scaled, steps, ys) == pytest.approx(float(sim.values["task/robustness"]), abs=max(moved, 1e-9))
+
+
+@pytest.mark.parametrize("which, spec", [("detour", DETOUR), ("oscillator", OSCILLATOR)])
+def test_rtamt_agrees_with_the_stored_run(which, spec, request):
+    _rtamt_agrees(load_spec(spec).task, request.getfixturevalue(which)[3])
+
+
+@pytest.fixture(scope="module")
+def ladder(tmp_path_factory):
+    # the ladder family's reach-avoid task at N = 8 (32 states; the same task, tool path and planner as the 512-state
+    # ladder of `ashc example ladder --stages 128 --task`, whose 160 s plant run takes minutes: docs/guide.md)
+    folder = tmp_path_factory.mktemp("ladder")
+    spec = folder / "ladder_8_task.yaml"
+    ashc("example", "ladder", "--stages", "8", "--task", "--output", str(spec), check=True)
+    return (spec, *_synthesized(spec, folder / "out"))
+
+
+@pytest.mark.slow
+def test_the_ladder_meets_its_reach_avoid_task_proved_and_rtamt_agrees(ladder):
+    spec, out, entry, art, sim = ladder
+    task = load_spec(spec).task
+    assert task.avoid and task.reach and entry["planner"] == "grid" and entry["margin_evidence"] == "proved"
+    assert art.checks["task_certified"].passed and art.checks["task_certified"].evidence == "proved"
+    assert entry["task"]["satisfied"] and entry["task"]["robustness"] >= 0
+    assert float(sim.values["task/proved"]) == 1.0 and float(sim.values["task/robustness"]) >= 0
+    v = art.values
+    for y in (np.asarray(v["run/y"]), np.asarray(sim.values["task/y"])):
+        assert _outside(y, task.avoid[0].set).min() > 0 and -_outside(y, task.always).max() >= 0
+    assert float(v["run/max_abs_error"]) <= float(v["tolerance"])
+    # y ends the reach's hold inside the reach set: the table carried the plant there, not the start
+    t, y = np.asarray(sim.values["task/t"]), np.asarray(sim.values["task/y"])
+    y0 = y[:, 0]
+    assert _outside(y0[:, None], task.reach[0].set)[0] > 0
+    held = (t >= task.reach[0].by) & (t <= task.reach[0].by + task.reach[0].hold)
+    assert held.any() and _outside(y[:, held], task.reach[0].set).max() <= 0
+    _rtamt_agrees(task, sim)
+
+
+@pytest.mark.slow
+def test_falsify_finds_no_run_that_breaks_the_ladders_plan(ladder):
+    # 20 runs of the ladder's 160 s task (about 2 s each at N = 8: its cells ring at 1,600 rad/s); 2000 measured by hand
+    # (docs/guide.md)
+    spec, out = ladder[0], ladder[1]
+    proc = ashc("falsify", str(spec), "--out", str(out), "--runs", "20", "--json", check=True, timeout=290)
+    data = json.loads(proc.stdout)
+    assert data["task_min_robustness"] >= 0 and data["task_runs"] == 20, data
+    f = read_artefact(out / "falsify.h5").values
+    assert _outside(np.atleast_2d(np.asarray(f["task/worst/y"])), load_spec(spec).task.avoid[0].set).min() > 0
 
 
 def test_a_box_that_closes_the_corridor_is_refused_naming_it(tmp_path):

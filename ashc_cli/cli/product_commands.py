@@ -366,6 +366,9 @@ def example(
     output: Annotated[Path | None, typer.Option("--output", help="Spec file to write [default: print to stdout].", show_default=False)] = None,
     list_them: Annotated[bool, typer.Option("--list", help="List the shipped specs and the families, one line each.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing --output file (else refused: it may hold your edits).")] = False,
+    task: Annotated[bool, typer.Option("--task", help=(
+        "With the ladder family: add a reach-avoid task on the output (from about 15.5 V into [17, 23] V by 140 s, held 15 s, never "
+        "above 23.5 V) for `ashc synthesize`, solved by the grid planner on the one abstract state."))] = False,
 ) -> None:
     """Write an example spec: one shipped with ashc (the paper's Cuk converter and a dozen other plants), or a
     scalable plant of N stages (for benchmarks and large designs).
@@ -392,8 +395,12 @@ def example(
             raise SpecError("--stages", f"{stages}", "at least 2 nodes for an RC ladder")
         if stages > most:
             raise SpecError("--stages", f"{stages}", f"at most {most} for the {kind} family")
-        text, what = make(stages), f"{stages}-stage {kind}, n = {states(stages)}"
+        if task and kind != "ladder":
+            raise SpecError("--task", f"with '{kind}'", "the ladder family (`ashc example ladder --stages N --task`)")
+        text, what = (make(stages, task=True) if task else make(stages)), f"{stages}-stage {kind}, n = {states(stages)}{' with a task' if task else ''}"
     else:
+        if task:
+            raise SpecError("--task", f"with '{kind}'", "the ladder family (`ashc example ladder --stages N --task`)")
         if stages is not None:
             raise SpecError("--stages", f"{stages}", f"no --stages for a shipped spec ('{kind}'): only the families ladder, rc_ladder, chain and ring take it")
         name, text = examples.shipped_spec(kind)
