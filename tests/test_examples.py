@@ -158,3 +158,16 @@ def test_ashc_example_lists_and_writes_a_shipped_spec(tmp_path):
                           (["cuk", "--stages", "2"], "error: --stages: 2; expected no --stages for a shipped spec")):
         proc = ashc("example", *args)
         assert proc.returncode == 2 and proc.stderr.startswith(message), (args, proc.stderr)
+
+
+def test_the_ladder_with_task_is_the_same_plant_with_the_task_and_other_families_refuse_it(tmp_path):
+    # --task appends LADDER_TASK to the same spec (every other key unchanged); with another family or a shipped spec
+    # it is refused, naming the option, before anything is written
+    plain, tasked = parse_spec_text(ladder(3)), parse_spec_text(ladder(3, task=True))
+    assert plain.task is None and tasked.task is not None
+    assert tasked.task.avoid[0].set == [[23.5, 30.0]] and tasked.task.planner.kind == "grid"
+    assert plain.concrete == tasked.concrete and plain.abstract == tasked.abstract
+    for args in (["chain", "--stages", "2"], ["cuk"]):
+        proc = ashc("example", *args, "--task", "--output", str(tmp_path / "x.yaml"))
+        assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: --task: with"), proc.stderr
+        assert not (tmp_path / "x.yaml").exists()
