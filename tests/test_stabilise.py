@@ -744,17 +744,34 @@ def test_the_precheck_refutes_nothing_a_certificate_exists_for():
         refute_rate(model, sparse_jacobian(model.f, model.x), 0.0)
 
 
-def test_a_refused_mode_outside_the_outputs_cone_is_named_with_its_states(tmp_path):
-    # Issue 43: a lag whose output y = x1 is tracked, with a state x2' = x1 (a position integrating it) that never acts
-    # on y: its mode s = 0 refutes every M; the refusal names x2 as the mode's state, says it cannot influence y, and
-    # says to leave it out; without x2 the same plant is certified.
-    from ashc_cli.design.pipeline import run
-    from ashc_cli.problem.influence import output_cone
+def test_a_state_outside_the_outputs_cone_is_left_out_and_integrated_beside(tmp_path):
+    # Issue 43: a lag whose output y = x is tracked, with a state q' = x (a position integrating it) that never acts
+    # on y: its mode s = 0 refutes every M of the whole plant (the precheck names q and says it cannot influence y);
+    # the design leaves q out (named on the stage's line and the design's), certifies the lag as without q, and
+    # simulate integrates q beside the loop (q(t) = the integral of x, exactly the trapezoid of the samples here)
+    from scipy.integrate import cumulative_trapezoid
+
+    from ashc_cli.design.pipeline import headline, run, STAGES
+    from ashc_cli.problem.influence import cone_model, output_cone
 
     from .bad_inputs import LAG_TASK
 
-    text = LAG_TASK.replace('states: [x], inputs: [u], f_bar: ["-2*x"], g: [["1"]]', 'states: [x, q], inputs: [u], f_bar: ["-2*x", "x"], g: [["1"], ["0"]]')
-    assert output_cone(build_model(parse_spec_text(text))) == ([0], [1])
+    plain = LAG_TASK.split("task:")[0]
+    text = plain.replace('states: [x], inputs: [u], f_bar: ["-2*x"], g: [["1"]]', 'states: [x, q], inputs: [u], f_bar: ["-2*x", "x"], g: [["1"], ["0"]]')
+    text += ("simulate:\n  tracking: {t_final: 4.0, xi0: [0.0], x0: on_manifold, reference_levels: [0.5, -0.5], dwell: 2.0,\n"
+             "             abstract_controller: {kind: setpoint, gain: 2.0, v_max: 0.5}}\n")
+    full = build_model(parse_spec_text(text))
+    assert output_cone(full) == ([0], [1])
     with pytest.raises(DesignError, match=r"the mode lives in q, which cannot influence y .* leave them out of concrete.states"):
-        run(parse_spec_text(text), tmp_path / "with_q", ("stabilise",))
-    assert run(parse_spec_text(LAG_TASK), tmp_path / "without", ("stabilise",))["stabilise"].values["lambda"] == 2.0
+        stabilise.run(full, {})
+    model = cone_model(parse_spec_text(text))
+    assert model.n == 1 and model.beside.names == ("q",) and model.beside.index == (1,)
+    arts = run(parse_spec_text(text), tmp_path / "with_q", ("simulate",))
+    st = arts["stabilise"]
+    assert st.values["lambda"] == 2.0 and st.meta["left_out"]["states"] == ["q"]
+    assert "left out q" in headline(STAGES["stabilise"], st)
+    assert run(parse_spec_text(plain), tmp_path / "without", ("stabilise",))["stabilise"].values["lambda"] == 2.0
+    v = arts["simulate"].values
+    t, x, q = (np.asarray(v[k]) for k in ("tracking/t", "tracking/x", "tracking/x_beside"))
+    assert x.shape == q.shape == (1, t.size) and q[0, 0] == 0.0 and abs(q[0, -1]) > 0.1
+    assert np.abs(q[0] - cumulative_trapezoid(x[0], t, initial=0.0)).max() < 1e-12

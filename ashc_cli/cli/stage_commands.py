@@ -71,7 +71,8 @@ def design(spec: SpecArg, out: OutOpt = None, force: ForceOpt = False, as_json: 
         b = arts["bound"].values
         result = verdict(arts)
         typer.echo(plain_text(f"design '{spec_obj.name}' in {folder.path}: {result.counts()}; "
-                              f"|psi - y| <= {gain_text(b)} ||v||_inf{disturbance_text(b)} {region_text(b)}"))
+                              f"|psi - y| <= {gain_text(b)} ||v||_inf{disturbance_text(b)} {region_text(b)}"
+                              + (f"; {arts['stabilise'].meta['left_out']['note']}" if "left_out" in arts["stabilise"].meta else "")))
     if failed:
         typer.echo("error: design: checks failed: " + "; ".join(failed), err=True)
         raise typer.Exit(3)

@@ -22,7 +22,7 @@ import numpy as np
 from ashc_cli.design.artefacts import SCHEMA_VERSION, Artefact, read_artefact, write_artefact
 from ashc_cli.errors import ArtefactError, DesignError
 from ashc_cli.numerics.boxsearch import work_budget
-from ashc_cli.problem.model import build_model
+from ashc_cli.problem.influence import cone_model
 from ashc_cli.problem.spec import Spec, keys_sha256
 from ashc_cli.design.stages import DESIGN, ORDER
 
@@ -435,7 +435,7 @@ def run(
     targets, folder = list(targets), as_folder(out)
     order = needed(targets, spec)
     fixed = frozen_stages(frozen, targets)
-    model = dataclasses.replace(build_model(spec), numeric_paths=numeric)
+    model = dataclasses.replace(cone_model(spec), numeric_paths=numeric)
     remove_leftovers(folder.path)
     arts: dict[str, Artefact] = {}
     for name in order:
@@ -460,7 +460,7 @@ def run(
             art = _computed(mod, model, {up: arts[up] for up in reads}, spec.proofs.max_boxes)
             write_artefact(artefact_path(folder.path, name), art, spec_sha256=spec.sha256, inputs_sha256=inputs_sha256(name, spec), spec_name=spec.name,
                            parameters=dict(spec.parameters), upstream={up: arts[up].provenance["sha256"] for up in reads},
-                           names=declared_names(spec))
+                           names=declared_names(model.spec))
             folder.wrote(name, art)
             status = "ran"
         arts[name] = art
@@ -476,6 +476,9 @@ def _computed(mod, model, upstream: dict, max_boxes: int) -> Artefact:
     with work_budget(max_boxes) as work:
         art = mod.run(model, upstream)
     art.meta["proof_work"] = {**work.as_meta(), **({"note": work.line()} if work.spent else {})}
+    if model.beside is not None and mod is STAGES["stabilise"]:
+        # the first box certifies the plant seen from y (issue 43): which states were left out, and why
+        art.meta["left_out"] = {"states": list(model.beside.names), "note": model.beside.line()}
     return art
 
 
@@ -494,7 +497,8 @@ def headline(mod, art: Artefact) -> str:
     str
     """
     note = (art.meta.get("proof_work") or {}).get("note")
-    return mod.headline(art) + (f"; {note}" if note else "")
+    left = (art.meta.get("left_out") or {}).get("note")
+    return mod.headline(art) + (f"; {left}" if left else "") + (f"; {note}" if note else "")
 
 
 def load_all(out: str | Path) -> dict[str, Artefact]:
@@ -544,7 +548,7 @@ def design_model(spec: Spec, arts: dict[str, Artefact]):
     -------
     Model
     """
-    return _with_domain(build_model(spec), arts["manifold"])
+    return _with_domain(cone_model(spec), arts["manifold"])
 
 
 def run_for_verdict(spec: Spec, out: str | Path | Folder, *, force: bool = False, frozen: bool = False,

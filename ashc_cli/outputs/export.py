@@ -58,7 +58,8 @@ from ashc_cli.closedloop import controllers
 from ashc_cli.closedloop.interface import interface_codes, interface_u
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.errors import DesignError, SpecError
-from ashc_cli.problem.model import build_model, lambdify
+from ashc_cli.problem.influence import cone_model
+from ashc_cli.problem.model import lambdify
 from ashc_cli.problem.spec import Spec
 
 from ashc_cli.outputs.export_design import Design, TaskPlanExport, gather, require_current
@@ -270,7 +271,7 @@ def interface_value(spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str
     require_current(spec, arts)
     d = gather(spec, arts)
     xi, x, v = interface_point(d, point)
-    model = build_model(spec)
+    model = cone_model(spec)
     values = model.values
 
     def at(matrix, args, arrays):

@@ -13,7 +13,7 @@ import sympy as sp
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.design.pipeline import made_from
 from ashc_cli.errors import ArtefactError
-from ashc_cli.problem.model import build_model
+from ashc_cli.problem.influence import cone_model
 from ashc_cli.problem.spec import Spec
 from ashc_cli.design.upstream import certified_set
 
@@ -216,7 +216,7 @@ def gather(spec: Spec, arts: Mapping[str, Artefact], plan: TaskPlanExport | None
     """
     for stage in NEEDED:
         _stage(arts, stage)
-    model = build_model(spec)
+    model = cone_model(spec)
     inverse = arts["inverse"]
     box, set_name, _ = certified_set(inverse)
     K = np.asarray(arts["stabilise"].values.get("K", np.zeros((model.m, model.n))), dtype=float).reshape(model.m, model.n)
@@ -225,7 +225,7 @@ def gather(spec: Spec, arts: Mapping[str, Artefact], plan: TaskPlanExport | None
     ctl = tracking.abstract_controller if tracking is not None and tracking.abstract_controller.kind == "setpoint" else None
     provenance = {"spec": spec.sha256, **{stage: str(arts[stage].provenance.get("sha256", "")) for stage in NEEDED}}
     design = Design(
-        name=spec.name, provenance=provenance, states=list(spec.concrete.states), inputs=list(spec.concrete.inputs),
+        name=spec.name, provenance=provenance, states=list(model.spec.concrete.states), inputs=list(spec.concrete.inputs),
         abstract_states=list(spec.abstract.states), abstract_inputs=list(spec.abstract.inputs), n_outputs=model.p,
         parameters={k: float(v) for k, v in spec.parameters.items()},
         phi_bar=model.phi_bar, l=model.l, delta=arts["delta"].expr("delta"), p=arts["manifold"].expr("p"),

@@ -8,9 +8,16 @@ tracked, but the first stage certifies every state of the spec, so such a state 
 
 from __future__ import annotations
 
-from ashc_cli.problem.model import Model
+import dataclasses
+from dataclasses import dataclass
 
-__all__ = ["output_cone"]
+import numpy as np
+import sympy as sp
+
+from ashc_cli.problem.model import Model, build_model
+from ashc_cli.problem.spec import Spec
+
+__all__ = ["output_cone", "on_the_cone", "cone_model", "Beside"]
 
 
 def output_cone(model: Model) -> tuple[list[int], list[int]]:
@@ -38,3 +45,120 @@ def output_cone(model: Model) -> tuple[list[int], list[int]]:
                 inside.add(j)
                 todo.append(j)
     return sorted(inside), [k for k in range(model.n) if k not in inside]
+
+
+@dataclass(frozen=True)
+class Beside:
+    """The states left out of the design (outside the output's cone): driven by the plant, integrated beside the
+    closed loop by ``simulate``, never acting on y.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The states left out, in the spec's order.
+    index, kept : tuple of int
+        Their indices into the spec's states, and those of the states designed on.
+    f : sympy Matrix
+        Their right-hand sides, in the full plant's symbols.
+    x, u : sympy Matrix
+        The full plant's states and inputs.
+    x0 : ndarray
+        Their start: the spec's tracking ``x0`` where it lists every state, else the centre of ``state_box`` (0
+        without one).
+    values : dict
+        The spec's parameters.
+    """
+
+    names: tuple[str, ...]
+    index: tuple[int, ...]
+    kept: tuple[int, ...]
+    f: sp.Matrix
+    x: sp.Matrix
+    u: sp.Matrix
+    x0: np.ndarray
+    values: dict
+
+    def line(self) -> str:
+        """The design line's note: which states were left out, and why."""
+        return f"left out {', '.join(self.names)} (no path of f leads from them to y: simulate integrates them beside the loop)"
+
+
+def _rows(seq, keep):
+    return None if seq is None else [seq[k] for k in keep]
+
+
+def _restrict(section: dict, keys, keep) -> None:
+    """The per-state lists of a spec section restricted to the kept states, where the spec gives them."""
+    for key in keys:
+        if isinstance(section.get(key), list):
+            section[key] = _rows(section[key], keep)
+
+
+def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
+    """The spec restricted to the output's cone (:func:`output_cone`), and the states left out; the spec itself and
+    None when every state influences y, or when the abstraction has more states than y has outputs (its extra
+    directions are the user's choice of what to plan on, and may be states y cannot see).
+
+    Every per-state entry of the spec is restricted to the kept states: concrete (states, f_bar, g, f, state_box, e),
+    stabilisability (M, K, linearise_at.x), abstract (manifold_guess, p) and the starts (tracking and task x0,
+    m_relation x0).  The kept states' f never reads a left-out state (that would be a path to y), so the
+    restricted plant is the plant seen from y.
+
+    Parameters
+    ----------
+    spec : Spec
+    model : Model
+        The spec's model (its f and h give the cone).
+
+    Returns
+    -------
+    Spec, Beside or None
+    """
+    keep, out = output_cone(model)
+    if not out or model.n_hat > model.p:
+        # with more abstract states than outputs the abstraction itself has directions y does not see, which may
+        # live in the states outside the cone (a bilinear plant's x2 in m = ((x1 + x3) / (1 + 2 x2), x2)): keep them
+        return spec, None
+    # exclude_unset: the restricted spec sets what the spec set, so defaults read from model_fields_set stay defaults
+    d = spec.model_dump(mode="python", exclude_unset=True)
+    _restrict(d.get("concrete", {}), ("states", "f_bar", "g", "f", "state_box", "e"), keep)
+    _restrict(d.get("abstract", {}), ("manifold_guess", "p"), keep)
+    s = d.get("stabilisability", {})
+    if isinstance(s.get("M"), list):
+        s["M"] = [[row[j] for j in keep] for row in _rows(s["M"], keep)]
+    if isinstance(s.get("K"), list):
+        s["K"] = [[row[j] for j in keep] for row in s["K"]]
+    if isinstance(s.get("linearise_at"), dict) and "x" in s["linearise_at"]:
+        s["linearise_at"]["x"] = _rows(s["linearise_at"]["x"], keep)
+    sim = d.get("simulate", {})
+    tracking = sim.get("tracking") or {}
+    full_x0 = tracking.get("x0") if isinstance(tracking.get("x0"), list) else None
+    for where in (tracking, sim.get("m_relation") or {}, d.get("task") or {}):
+        if isinstance(where.get("x0"), list) and len(where["x0"]) == model.n:
+            where["x0"] = _rows(where["x0"], keep)
+    reduced = type(spec).model_validate(d)
+    box = model.state_box
+    x0 = (np.asarray(full_x0, dtype=float)[out] if full_x0 is not None else
+          (np.mean(np.asarray(box, dtype=float)[out], axis=1) if box is not None else np.zeros(len(out))))
+    beside = Beside(tuple(str(model.x[k]) for k in out), tuple(out), tuple(keep), sp.Matrix([model.f[k] for k in out]),
+                    sp.Matrix(model.x), sp.Matrix(model.u), x0, dict(model.values))
+    return reduced, beside
+
+
+def cone_model(spec: Spec) -> Model:
+    """The model the design works on: the spec's, or the one of its output's cone with the states left out in
+    ``beside`` (:func:`on_the_cone`).
+
+    Parameters
+    ----------
+    spec : Spec
+
+    Returns
+    -------
+    Model
+    """
+    full = build_model(spec)
+    reduced, beside = on_the_cone(spec, full)
+    if beside is None:
+        return full
+    return dataclasses.replace(build_model(reduced), beside=beside)

@@ -479,6 +479,9 @@ class Model:
     w: sp.Matrix = field(default_factory=lambda: sp.zeros(0, 1))
     e: sp.Matrix | None = None
     W: np.ndarray | None = None
+    #: The spec's states left out of the design, outside the output's cone (:class:`ashc_cli.problem.influence.Beside`;
+    #: this model is then the plant seen from y), or None.
+    beside: object | None = None
 
     @property
     def n(self) -> int:

@@ -48,6 +48,7 @@ from ashc_cli.problem.model import Model
 from ashc_cli.problem.spec import TimedLevel
 from ashc_cli.design import task_plan
 from ashc_cli.design.task_plan import TASK_SAMPLE_DT, TASK_SAMPLES, task_run  # noqa: F401
+from ashc_cli.closedloop.beside import integrate_beside
 from ashc_cli.closedloop.runner import (MAX_RUN_SAMPLES, REACH_HORIZON_DWELLS, REACH_SAMPLE_DWELLS, SAMPLE_DT, SETTLE_RTOL, TRACKING_TOL,  # noqa: F401
                                         abstract_input, closed_loop_run, reach_time, reach_times, sample_dt, sample_times, tracking_loop_for,
                                         tracking_segments)
@@ -379,6 +380,9 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
             art.checks[f"{scenario}_ran_to_the_end"] = Check(np.nan, False, f"the {scenario} scenario ran to its end ({exc.line()})", SIMULATED)
             continue
         art.values.update(values)
+        if scenario == "tracking" and model.beside is not None:
+            # the states outside the output's cone, driven by the run (issue 43): the whole plant, y unaffected
+            art.values["tracking/x_beside"] = integrate_beside(model.beside, *(np.asarray(values[f"tracking/{k}"]) for k in ("t", "x", "u")))
         # Which DOP853 ran (the same method and tolerances either way).
         code = "ashc_cli.closedloop.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
         art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
