@@ -2,6 +2,7 @@
 the vertex argument when df/dx has few terms, else by the norm-bound test whose cost grows with the entries."""
 
 import numpy as np
+import sympy as sp
 import pytest
 import scipy.linalg as sla
 import yaml
@@ -108,3 +109,39 @@ def test_a_gain_from_lqr_on_the_norm_bound_route_is_proved_with_b_k_in_ball_arit
     art = stabilise.run(build_model(parse_spec_text(ring(8, feedback="linear_gain", K="lqr"))), {})
     assert art.meta["route"].startswith("the norm-bound test") and art.meta["K_source"].startswith("lqr")
     assert np.any(art.values["K"] != 0) and art.checks["lmi_margin"].evidence == proofs.PROVED
+
+
+def _mixed_network(N: int = 11) -> str:
+    """A chain of N nodes with three kinds of nonlinearity: a sine and a cubic damping at each node and a saturating
+    (tanh) coupling on each edge: 2 N + (N - 1) distinct nonlinear terms in df/dx (cos x_i, x_i^2, tanh^2 of each
+    edge), 32 at N = 11."""
+    f = []
+    for i in range(1, N + 1):
+        t = f"-a*x{i} - d*sin(x{i}) - e*x{i}**3"
+        t += f" - c*tanh(x{i} - x{i - 1})" if i > 1 else ""
+        t += f" - c*tanh(x{i} - x{i + 1})" if i < N else ""
+        f.append(f'"{t}"')
+    states = ", ".join(f"x{i}" for i in range(1, N + 1))
+    g = ", ".join(['["1"]'] + ['["0"]'] * (N - 1))
+    box = ", ".join(["[-1, 1]"] * N)
+    return (f"name: mixed_network\nparameters: {{a: 1.0, c: 0.5, d: 0.3, e: 0.2}}\n"
+            f"concrete: {{states: [{states}], inputs: [u], f_bar: [{', '.join(f)}], g: [{g}], h: [x{N}],\n"
+            f"           input_bounds: [[-1, 1]], output_set: [[-0.5, 0.5]], state_box: [{box}]}}\n"
+            "stabilisability: {method: polytopic_lmi, decay_rate: 1.0}\n"
+            'abstract: {states: [xi], inputs: [v], phi_bar: ["0"], l: ["xi"], domain: [[-0.5, 0.5]]}\n')
+
+
+def test_a_network_of_32_terms_of_three_kinds_is_proved_and_says_by_which_route():
+    # issue 43: sines, cubes and saturating couplings, 32 distinct terms: beyond the vertex enumeration, so the
+    # automatic route is the norm-bound test; the rate asked for is proved, and the stage's line names the route
+    from ashc_cli.design.contraction import terms as term_mod
+    from ashc_cli.design.pipeline import STAGES, headline
+    from ashc_cli.problem.model import sparse_jacobian
+
+    model = build_model(parse_spec_text(_mixed_network()))
+    found = term_mod.decompose(model, sparse_jacobian(model.f, model.x))
+    kinds = {type(t).__name__ for th in found.thetas for t in sp.preorder_traversal(th) if isinstance(t, sp.Function)}
+    assert len(found.thetas) == 32 and {"cos", "tanh"} <= kinds
+    art = stabilise.run(model, {})
+    assert art.values["lambda"] == 1.0 and art.checks["lmi_margin"].evidence == "proved" and art.values["lmi_margin_proved"] < 0
+    assert "norm-bound test" in art.meta["route"] and "norm-bound test" in headline(STAGES["stabilise"], art)
