@@ -72,6 +72,11 @@ def test_an_abstraction_with_more_states_than_outputs_keeps_every_state():
     assert output_cone(build_model(spec))[1] == [1, 3]
     reduced, beside = on_the_cone(spec, build_model(spec))
     assert reduced is spec and beside is None
+    # likewise one abstract state whose given m reads a state outside the cone (the user's m means it)
+    spec = parse_spec_text(SPEC.replace('domain: [[-0.5, 0.5]]}', 'domain: [[-0.5, 0.5]], m: ["x2 + px/100"]}'))
+    assert on_the_cone(spec, build_model(spec)) == (spec, None)
+    spec = parse_spec_text(SPEC.replace('domain: [[-0.5, 0.5]]}', 'domain: [[-0.5, 0.5]], m: ["x2"]}'))
+    assert on_the_cone(spec, build_model(spec))[1].names == ("px", "yaw")
 
 
 def test_a_plant_whose_states_all_reach_y_is_its_own_cone():

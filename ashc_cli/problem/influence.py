@@ -97,7 +97,8 @@ def _restrict(section: dict, keys, keep) -> None:
 def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
     """The spec restricted to the output's cone (:func:`output_cone`), and the states left out; the spec itself and
     None when every state influences y, or when the abstraction has more states than y has outputs (its extra
-    directions are the user's choice of what to plan on, and may be states y cannot see).
+    directions are the user's choice of what to plan on, and may be states y cannot see) or a given ``abstract.m``
+    reads a state outside the cone.
 
     Every per-state entry of the spec is restricted to the kept states: concrete (states, f_bar, g, f, state_box, e),
     stabilisability (M, K, linearise_at.x), abstract (manifold_guess, p) and the starts (tracking and task x0,
@@ -115,9 +116,11 @@ def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
     Spec, Beside or None
     """
     keep, out = output_cone(model)
-    if not out or model.n_hat > model.p:
+    outside = {model.x[k] for k in out}
+    if not out or model.n_hat > model.p or (model.m_given is not None and model.m_given.free_symbols & outside):
         # with more abstract states than outputs the abstraction itself has directions y does not see, which may
-        # live in the states outside the cone (a bilinear plant's x2 in m = ((x1 + x3) / (1 + 2 x2), x2)): keep them
+        # live in the states outside the cone (a bilinear plant's x2 in m = ((x1 + x3) / (1 + 2 x2), x2)); a given
+        # m that reads such a state means it too: keep them
         return spec, None
     # exclude_unset: the restricted spec sets what the spec set, so defaults read from model_fields_set stay defaults
     d = spec.model_dump(mode="python", exclude_unset=True)
