@@ -105,3 +105,30 @@ def test_the_aerial_vehicle_designs_on_its_cone_and_simulates_the_whole_plant(tm
     assert all(c.passed for c in sim.checks.values()), {k: c.value for k, c in sim.checks.items() if not c.passed}
     # no lateral thrust without tilt: the horizontal states stay near their start (tilts of at most 0.03 rad)
     assert np.abs(out).max() < 1.0
+
+
+def test_a_state_read_through_e_is_in_the_cone_and_a_constant_output_keeps_every_state():
+    # a disturbance's e(x) acts on x' as f does: px read by e's row of x1 reaches y (found by an independent attack,
+    # which had px left out and the spec refused); an output that reads no state leaves nothing to design on: the
+    # spec stays whole (the stages refuse it in their own words), never an empty one
+    text = SPEC.replace('  state_box:', '  disturbances: [w]\n  e: [["px/10"], ["0"], ["0"], ["0"]]\n  disturbance_bounds: [[-0.1, 0.1]]\n  state_box:')
+    spec = parse_spec_text(text)
+    assert output_cone(build_model(spec)) == ([0, 1, 2], [3])
+    assert cone_model(spec).beside.names == ("yaw",)
+    spec = parse_spec_text(SPEC.replace('h: ["x2"]', 'h: ["0.1"]'))
+    assert output_cone(build_model(spec)) == ([], [0, 1, 2, 3])
+    assert on_the_cone(spec, build_model(spec)) == (spec, None)
+
+
+def test_the_states_beside_carry_the_runs_constant_disturbance():
+    # x_out' = f_out + e_out w0 on the run's samples: with f_out = 0 and e_out = 2, x_out(t) = x_out(0) + 2 w0 t
+    from ashc_cli.closedloop.beside import integrate_beside
+
+    text = SPEC.replace('  state_box:', '  disturbances: [w]\n  e: [["0"], ["1"], ["0.5"], ["2"]]\n  disturbance_bounds: [[-0.1, 0.1]]\n  state_box:')
+    text = text.replace('f_bar: ["-x1", "x2", "x1 - 2*x2", "px"]', 'f_bar: ["-x1", "0", "x1 - 2*x2", "0"]')
+    model = cone_model(parse_spec_text(text))
+    assert model.beside.names == ("px", "yaw")
+    t = np.linspace(0.0, 4.0, 401)
+    X = integrate_beside(model.beside, t, np.zeros((2, t.size)), np.zeros((2, t.size)), w0=[0.1])
+    assert np.allclose(X[:, -1] - X[:, 0], [0.1 * 4.0, 0.2 * 4.0], rtol=1e-12, atol=1e-12)
+    assert np.allclose(integrate_beside(model.beside, t, np.zeros((2, t.size)), np.zeros((2, t.size)))[:, -1], X[:, 0])

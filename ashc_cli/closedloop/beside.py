@@ -6,6 +6,7 @@ loop reads, so a run of the loop drives them one way, and they are integrated af
 from __future__ import annotations
 
 import numpy as np
+import sympy as sp
 
 from ashc_cli.closedloop.rk import fixed_step
 from ashc_cli.problem.model import lambdify
@@ -13,7 +14,7 @@ from ashc_cli.problem.model import lambdify
 __all__ = ["integrate_beside"]
 
 
-def integrate_beside(beside, t: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+def integrate_beside(beside, t: np.ndarray, x: np.ndarray, u: np.ndarray, w0=None) -> np.ndarray:
     """The left-out states along a run: x_out' = f_out(x, u) from ``beside.x0``, by the classical Runge-Kutta step
     between the run's samples, the designed states and the input interpolated linearly within each step.
 
@@ -25,6 +26,8 @@ def integrate_beside(beside, t: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.
         The run's sample times (increasing).
     x, u : ndarray (n_kept, N), (m, N)
         The designed states and the input at the samples.
+    w0 : array_like (d,), optional
+        The run's constant disturbance: e_out(x) w0 is added to their right-hand sides (as the loop adds e(x) w0).
 
     Returns
     -------
@@ -32,7 +35,10 @@ def integrate_beside(beside, t: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.
         The left-out states at the samples (NaN from where they stop being finite).
     """
     n = len(beside.kept) + len(beside.index)
-    f = lambdify(beside.f, [*beside.x, *beside.u], beside.values)
+    drive = beside.f
+    if w0 is not None and beside.e is not None:
+        drive = beside.f + beside.e * sp.Matrix(np.asarray(w0, dtype=float).reshape(-1))
+    f = lambdify(drive, [*beside.x, *beside.u], beside.values)
     kept, out = np.asarray(beside.kept), np.asarray(beside.index)
     k = out.size
     X = np.empty((k, t.size))

@@ -31,11 +31,14 @@ def output_cone(model: Model) -> tuple[list[int], list[int]]:
     Returns
     -------
     inside, outside : list of int
-        The states from which a path of the dependency graph of f leads to a state h reads (h's states included), and
-        the rest.
+        The states from which a path of the dependency graph of f (and of a disturbance's e) leads to a state h reads
+        (h's states included), and the rest.
     """
     index = {s: k for k, s in enumerate(model.x)}
-    reads = [sorted(index[s] for s in e.free_symbols if s in index) for e in model.f]
+    # row i of f, and of e (a disturbance's input matrix acts on x_i' too): what x_i' reads
+    rows = [model.f[i].free_symbols | (set().union(*(e.free_symbols for e in model.e.row(i))) if model.e is not None else set())
+            for i in range(model.n)]
+    reads = [sorted(index[s] for s in r if s in index) for r in rows]
     inside = {index[s] for e in model.h for s in e.free_symbols if s in index}
     todo = list(inside)
     while todo:
@@ -67,6 +70,8 @@ class Beside:
         without one).
     values : dict
         The spec's parameters.
+    e : sympy Matrix or None
+        Their rows of e(x), for a run with a constant disturbance.
     """
 
     names: tuple[str, ...]
@@ -77,6 +82,8 @@ class Beside:
     u: sp.Matrix
     x0: np.ndarray
     values: dict
+    #: Their rows of the disturbance's input matrix e(x) (k x d), or None.
+    e: sp.Matrix | None = None
 
     def line(self) -> str:
         """The design line's note: which states were left out, and why."""
@@ -96,7 +103,7 @@ def _restrict(section: dict, keys, keep) -> None:
 
 def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
     """The spec restricted to the output's cone (:func:`output_cone`), and the states left out; the spec itself and
-    None when every state influences y, or when the abstraction has more states than y has outputs (its extra
+    None when every state influences y (or none does: an output that reads no state is refused by the stages), or when the abstraction has more states than y has outputs (its extra
     directions are the user's choice of what to plan on, and may be states y cannot see) or a given ``abstract.m``
     reads a state outside the cone.
 
@@ -117,7 +124,7 @@ def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
     """
     keep, out = output_cone(model)
     outside = {model.x[k] for k in out}
-    if not out or model.n_hat > model.p or (model.m_given is not None and model.m_given.free_symbols & outside):
+    if not out or not keep or model.n_hat > model.p or (model.m_given is not None and model.m_given.free_symbols & outside):
         # with more abstract states than outputs the abstraction itself has directions y does not see, which may
         # live in the states outside the cone (a bilinear plant's x2 in m = ((x1 + x3) / (1 + 2 x2), x2)); a given
         # m that reads such a state means it too: keep them
@@ -144,7 +151,8 @@ def on_the_cone(spec: Spec, model: Model) -> tuple[Spec, Beside | None]:
     x0 = (np.asarray(full_x0, dtype=float)[out] if full_x0 is not None else
           (np.mean(np.asarray(box, dtype=float)[out], axis=1) if box is not None else np.zeros(len(out))))
     beside = Beside(tuple(str(model.x[k]) for k in out), tuple(out), tuple(keep), sp.Matrix([model.f[k] for k in out]),
-                    sp.Matrix(model.x), sp.Matrix(model.u), x0, dict(model.values))
+                    sp.Matrix(model.x), sp.Matrix(model.u), x0, dict(model.values),
+                    None if model.e is None else sp.Matrix([list(model.e.row(k)) for k in out]))
     return reduced, beside
 
 

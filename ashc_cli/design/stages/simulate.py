@@ -382,7 +382,8 @@ def run(model: Model, upstream: dict[str, Artefact]) -> Artefact:
         art.values.update(values)
         if scenario == "tracking" and model.beside is not None:
             # the states outside the output's cone, driven by the run (issue 43): the whole plant, y unaffected
-            art.values["tracking/x_beside"] = integrate_beside(model.beside, *(np.asarray(values[f"tracking/{k}"]) for k in ("t", "x", "u")))
+            art.values["tracking/x_beside"] = integrate_beside(model.beside, *(np.asarray(values[f"tracking/{k}"]) for k in ("t", "x", "u")),
+                                                               w0=model.spec.simulate.tracking.disturbance)
         # Which DOP853 ran (the same method and tolerances either way).
         code = "ashc_cli.closedloop.compiled (numba)" if values[f"{scenario}/compiled"] else "scipy.integrate.solve_ivp"
         art.meta[f"{scenario}_integrator"] = {**art.meta[f"{scenario}_integrator"], "implementation": code}
