@@ -32,7 +32,8 @@ def integrate_beside(beside, t: np.ndarray, x: np.ndarray, u: np.ndarray, w0=Non
     Returns
     -------
     ndarray (k, N)
-        The left-out states at the samples (NaN from where they stop being finite).
+        The left-out states at the samples (not checked: a left-out state faster than the sampling interval
+        diverges, to inf or NaN, without a word; docs/guide.md).
     """
     n = len(beside.kept) + len(beside.index)
     drive = beside.f
