@@ -95,7 +95,7 @@ def _window_ends(t: np.ndarray, starts: np.ndarray, length: float) -> np.ndarray
     return np.searchsorted(t, t[starts] + length * (1 + 1e-12) + 1e-12, side="right")
 
 
-def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
+def robustness(task, t: np.ndarray, y: np.ndarray, margin: np.ndarray | None = None) -> TaskRobustness:
     """The task's robustness at t = 0 on the samples (t, y) of a run.
 
     Parameters
@@ -106,6 +106,9 @@ def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
         Sample times, increasing, from 0; they should cover the horizon.
     y : ndarray, shape (p, N)
         The output at those times.
+    margin : ndarray, shape (N,), optional
+        Taken off every predicate's robustness at each sample: the task on sets each deflated (reach, always) or
+        grown (avoid) by margin(t) (an error-aware plan's sqrt(w(t) / alpha_h)) [default: 0].
 
     Returns
     -------
@@ -113,13 +116,14 @@ def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
     """
     t = np.asarray(t, dtype=float)
     y = np.atleast_2d(np.asarray(y, dtype=float))
+    d = np.zeros(t.size) if margin is None else np.broadcast_to(np.asarray(margin, dtype=float), t.shape)
     within = t <= task.horizon * (1 + 1e-12) + 1e-12
     parts: dict[str, float] = {}
     if task.always is not None:
-        parts["always"] = float(box_margin(y[:, within], task.always).min())
+        parts["always"] = float((box_margin(y[:, within], task.always) - d[within]).min())
     times, best = [], []
     for k, reach in enumerate(task.reach):
-        inside = _RangeMin(box_margin(y, reach.set))
+        inside = _RangeMin(box_margin(y, reach.set) - d)
         starts = np.flatnonzero(t <= reach.by * (1 + 1e-12) + 1e-12)
         held = inside.query(starts, _window_ends(t, starts, reach.hold))
         parts[f"reach[{k}]"] = float(held.max())
@@ -129,5 +133,5 @@ def robustness(task, t: np.ndarray, y: np.ndarray) -> TaskRobustness:
     for k, avoid in enumerate(task.avoid):
         a, b = avoid.during
         sel = (t >= a - 1e-12) & (t <= b * (1 + 1e-12) + 1e-12)
-        parts[f"avoid[{k}]"] = float((-box_margin(y[:, sel], avoid.set)).min()) if sel.any() else float("inf")
+        parts[f"avoid[{k}]"] = float((-box_margin(y[:, sel], avoid.set) - d[sel]).min()) if sel.any() else float("inf")
     return TaskRobustness(min(parts.values()), parts, times, best)

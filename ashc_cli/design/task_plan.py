@@ -41,7 +41,7 @@ from ashc_cli.closedloop import runner
 from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
 from ashc_cli.closedloop.terms import DesignTerms
-from ashc_cli.design import grid_plan
+from ashc_cli.design import error_plan, grid_plan
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.numerics.grid_games import route
 from ashc_cli.errors import DesignError, SpecError
@@ -125,16 +125,26 @@ class TaskPlan:
     tau: float = 0.0
     game: grid_plan.GridGame | None = None
     route: object = None
+    w: np.ndarray | None = None
+    w_level: float = float("nan")
+    theta_how: str = ""
+    theta_evidence: str = ""
+    aims: list = field(default_factory=list)
 
     @property
     def proved(self) -> bool:
-        """Whether the margin is proved (the grid planner) rather than sampled in time (the set-point plan)."""
+        """Whether the margin is proved (the grid planner) rather than sampled in time (the set-point plans)."""
         return self.planner == "grid"
 
+    @property
+    def held(self) -> bool:
+        """Whether the plant runs a table of inputs held over periods (the grid planner, error-aware planning)."""
+        return self.planner in ("grid", "error_aware")
+
     def law(self) -> guaranteed.Law:
-        """The law the plan runs: the set-point law (budget mode: clipped at v_max), or the grid table's input held
-        over each period (the segment's reference)."""
-        if self.planner == "grid":
+        """The law the plan runs: the set-point law (budget mode: clipped at v_max), or the table's input held over
+        each period (the segment's reference: the grid planner, error-aware planning)."""
+        if self.held:
             return guaranteed.Law("held", 0.0, self.v_max)
         return guaranteed.Law("setpoint", self.gain, self.v_max)
 
@@ -310,6 +320,8 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
         return grid_plan_task(model, plant, up, start)
     if not task.reach:
         raise DesignError("task.reach", "empty: a set-point plan aims at the reach sets", "at least one reach set, or task.planner: {kind: grid}")
+    if kind == "error_aware":
+        return error_aware_plan(model, plant, up, start)
     if kind == "setpoint" or not deflate:
         return _setpoint_plan(model, plant, up, start, deflate)
     try:
@@ -352,6 +364,68 @@ def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
         best = _try(model, plant, up, start, refs, gain, kept.eps, deflate=False)
     best.tried = [(r.eps, r.certified) for r in tried]
     return best
+
+
+def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple) -> TaskPlan:
+    """The error-aware plan (:mod:`ashc_cli.design.error_plan`): the level W_lim = alpha_h EPS^2 searched over
+    EPS_CANDIDATES tolerances as for the set-point plan, the largest certified margin kept.
+
+    Parameters
+    ----------
+    model : Model
+        One abstract state, with a task with reach sets.
+    plant : DesignTerms
+    up : dict of str to Artefact
+    start : tuple
+        (xi0, x0, W0) of :func:`_start`.
+
+    Returns
+    -------
+    TaskPlan
+        ``planner`` "error_aware"; ``refs`` the held input of each period, ``switches`` the periods' starts; ``w`` the
+        comparison bound along the plan, ``w_level`` the level kept; ``certified`` psi's robustness against the sets
+        deflated by sqrt(w / alpha_h), less the sampling margin.
+
+    Raises
+    ------
+    DesignError
+        (exit 3) no level whose plan meets the task, naming the part that fails at the best and by how much.
+    """
+    task = model.spec.task
+    if model.n_hat != 1:
+        raise DesignError("task.planner.kind", f"error_aware plans on one abstract state, this design has {model.n_hat}", "task.planner: {kind: grid}")
+    xi0, x0, W0 = start
+    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
+    tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
+    gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
+    table, comp = error_plan.theta_table(model, up), error_plan.comparison(up)
+    half, tried, best = _half(task), [], None
+    for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES):
+        level = error_plan.level_for(float(e), comp)
+        if not error_plan.fits(level, W0, comp):
+            continue
+        run = error_plan.run_plan(model, plant, xi0, W0, refs, gain, level, table, comp)
+        certified, margin, rob, in_V = error_plan.certified_margin(model, run)
+        eps = float(np.sqrt(level / comp.alpha_h))
+        tried.append((eps, certified))
+        if best is None or certified > best[0]:
+            best = (certified, margin, rob, in_V, run, eps, level)
+    if best is None:
+        raise DesignError("task", f"no tolerance below {half:.4g} (half the narrowest set) is certified from this start (W0 = {W0:.4g})",
+                          "wider sets or a start nearer the manifold")
+    certified, margin, rob, in_V, run, eps, level = best
+    if certified < 0:
+        worst = min(rob.parts, key=rob.parts.get)
+        where = "xi leaves V on the plan" if not in_V else f"{worst} misses by {margin - rob.parts[worst]:.4g} (output units)"
+        raise DesignError(f"task.{worst}" if in_V else "task", f"no level makes the error-aware plan meet the task: at the best, EPS = {eps:.4g} "
+                          f"(w <= alpha_h EPS^2 = {level:.4g}), {where}", "a later deadline, a wider set or a shorter hold")
+    nh = model.n_hat
+    refs_held = [np.r_[v, np.zeros(nh - 1)] for v in run.inputs]
+    switches = [k * run.tau for k in range(len(run.inputs))]
+    v_max = float(np.max(np.abs(run.inputs))) if run.inputs.size else 0.0
+    return TaskPlan(xi0, x0, W0, refs_held, gain, eps, max(v_max, 1e-300), run.t, run.xi, run.psi, run.v, switches, rob, margin, certified, in_V,
+                    tried=tried, planner="error_aware", tau=run.tau, w=run.w, w_level=level, theta_how=table.how,
+                    theta_evidence=table.evidence, aims=list(run.switches))
 
 
 def _half(task) -> float:
@@ -540,6 +614,10 @@ def on_the_plant(model, plant: DesignTerms, plan: TaskPlan, res: dict) -> tuple[
               "robustness": on_y.robustness, "satisfied": on_y.satisfied, "reach_times": np.array(on_y.reach_times, dtype=float),
               "best_hold_starts": np.array(on_y.best_times, dtype=float)}
     values.update({f"parts/{part}": value for part, value in on_y.parts.items()})
+    if plan.w is not None:
+        # the plan's comparison bound against the run's own (the loop integrates w' = -(lambda - eps) w + |L^T r|^2 / eps)
+        values["w_plan"] = np.interp(t, plan.t, plan.w)
+        values["w_over_plan"] = float(np.max(res["w"] - values["w_plan"])) if "w" in res else float("nan")
     if plan.proved:
         # the proof is the table's: the held inputs are its law on the run's own xi when the run's xi at each period's
         # start is within ROUTE_SLACK of a cell of the route's state (each input was admissible from every such cell)
@@ -569,6 +647,13 @@ def start_region(plan: TaskPlan, up: dict[str, Artefact]) -> float:
     """
     bd = up["bound"].values
     alpha_h, G = float(bd["alpha_h"]), float(bd["gain"])
+    if plan.planner == "error_aware":
+        # W0' = W0 + D adds at most D e^(-(lambda - eps) t) to w (the comparison equation is affine in its start), so
+        # at most sqrt(D / alpha_h) to the deflation: the margin pays for it, within the certified region
+        if not plan.certified > 0:
+            return 0.0
+        room = min(alpha_h * plan.certified ** 2, float(bd.get("w0_max_certified", np.inf)) - float(np.max(plan.w)))
+        return float(plan.W0 + max(room, 0.0))
     # rho_psi - margin - deviation - G |v|_2 - G_w ||w||_inf (the disturbance's term at its bound, when the spec has one)
     room = plan.certified + plan.eps - G * plan.v_max * np.sqrt(plan.v.shape[0]) - float(bd.get("disturbance_term", 0.0)) - float(bd.get("residual_term", 0.0))
     if not room > 0:

@@ -320,7 +320,7 @@ def task_plan_export(spec: Spec, arts: Mapping[str, Artefact], stored: Artefact 
         switches = np.asarray(v["switch_times"], dtype=float).reshape(-1)
         refs = np.asarray(v["references"], dtype=float).reshape(len(spec.abstract.states), -1).T     # stored (n_hat, segments)
         return TaskPlanExport(switches, refs[:switches.size], float(v["gain"]), float(v["v_max"]), float(v["tolerance"]),
-                              np.asarray(v["xi0"], dtype=float).reshape(-1), "held" if stored.meta.get("planner") == "grid" else "setpoint")
+                              np.asarray(v["xi0"], dtype=float).reshape(-1), "held" if stored.meta.get("planner") in ("grid", "error_aware") else "setpoint")
     from ashc_cli.design import task_plan
     from ashc_cli.design.pipeline import design_model
 

@@ -554,7 +554,12 @@ def falsify_figure(spec: Spec, arts: dict[str, Artefact]):
 #: needs inside the simulate artefact)
 #: One task run to draw (:func:`draw_task`): the plant's output y at t; the abstraction's psi and xi at t_plan; the
 #: switching times, EPS, and per reach its reach time (first met, NaN: never) and the start of its deepest hold.
-TaskRun = namedtuple("TaskRun", "t y t_plan psi xi switches eps reach_times best_starts")
+#: ``bound`` (optional): an error-aware plan's sqrt(w(t) / alpha_h) on t_plan, drawn as a band around psi.
+TaskRun = namedtuple("TaskRun", "t y t_plan psi xi switches eps reach_times best_starts bound", defaults=(None,))
+
+
+#: draw_task marks at most this many switches below.
+MAX_SWITCH_LINES = 60
 
 
 def draw_task(task, run: TaskRun, unit: str | None = None, note: str | None = None):
@@ -605,12 +610,17 @@ def draw_task(task, run: TaskRun, unit: str | None = None, note: str | None = No
         lo, hi = a.set[0]
         ax.add_patch(Rectangle((a.during[0], lo), a.during[1] - a.during[0], hi - lo, facecolor="#d62728", alpha=0.2,
                                linewidth=0, label="avoid" if k == 0 else None))
+    if run.bound is not None:
+        band = np.asarray(run.bound, dtype=float)
+        ax.fill_between(tp, psi[0] - band, psi[0] + band, color=PSI_STYLE.get("color", "C0"), alpha=0.18, linewidth=0,
+                        label=r"$\psi \pm \sqrt{w/\alpha_h}$")
     ax.plot(tp, psi[0], label=r"$\psi$", **PSI_STYLE)
     ax.plot(t, y[0], label="$y$ (plant)", **Y_STYLE)
     ax.set_ylabel("$y$" + (f" ({unit})" if unit else ""))
     legend_above(ax, ncol=3)
     ax_xi.plot(tp, xi[0], color="0.2", linewidth=1.0)
-    for sw in np.asarray(run.switches)[1:]:
+    marks = np.asarray(run.switches)[1:]
+    for sw in marks if marks.size <= MAX_SWITCH_LINES else []:     # a held table switches every period: too many to mark
         ax_xi.axvline(float(sw), color="0.5", linestyle=":", linewidth=0.8)
     ax_xi.set_ylabel(r"$\xi$")
     ax_xi.set_xlabel("$t$ (s)")
@@ -662,8 +672,11 @@ def falsify_task_figure(spec: Spec, arts: dict[str, Artefact]):
 def _stored_task_run(spec: Spec, v, run: str, note: str | None = None):
     """:func:`draw_task` of a stored run (``<run>t``, ``y``, ``psi``, ``xi``, ``reach_times``, ``best_hold_starts``) with
     the plan's ``task/switch_times`` and ``task/tolerance``."""
+    band = None
+    if f"{run}w_plan" in v and "task/w_level" in v:         # an error-aware plan: its bound sqrt(w / alpha_h) around psi
+        band = float(v["task/tolerance"]) * np.sqrt(np.maximum(np.asarray(v[f"{run}w_plan"], dtype=float), 0.0) / float(v["task/w_level"]))
     stored = TaskRun(v[f"{run}t"], v[f"{run}y"], v[f"{run}t"], v[f"{run}psi"], v[f"{run}xi"], v["task/switch_times"], v["task/tolerance"],
-                     v[f"{run}reach_times"], v[f"{run}best_hold_starts"])
+                     v[f"{run}reach_times"], v[f"{run}best_hold_starts"], band)
     return draw_task(spec.task, stored, unit=spec.units.get("y1") or spec.units.get("y"), note=note)
 
 

@@ -190,6 +190,9 @@ def _margin_row(v: dict) -> str:
     if float(v.get("task/proved", 0.0)):
         how = ("the grid planner: the start's cell wins the task's game on a grid of V with every transition over-approximated "
                "and every set deflated by EPS over each period; proved")
+    elif str(v.get("task/planner", "")) == "error_aware":
+        how = ("error-aware planning: psi's robustness against the sets deflated by sqrt(w(t) / alpha_h), w the comparison bound the plan "
+               "carries (at most alpha_h EPS^2), less the sampling margin and the plan's deviation; sampled in time")
     else:
         how = "psi's robustness less EPS, the sampling margin and the plan's deviation; sampled in time"
     return f"<tr><th>certified margin of the plan</th><td>{readable(margin, 5)} ({how}) {_status(margin >= 0)}</td></tr>"

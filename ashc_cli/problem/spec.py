@@ -373,7 +373,7 @@ class TaskPlanner(_Strict):
     plan with one abstract state, the grid when that plan is refused for an avoid set (the grid can wait or go
     around) or there are more abstract states."""
 
-    kind: Literal["auto", "setpoint", "grid"] = "auto"
+    kind: Literal["auto", "setpoint", "grid", "error_aware"] = "auto"
     #: Cells of V per abstract state [default: 400, 80 x 80 or 24 x 24 x 24].
     cells: list[Annotated[int, Field(ge=2, le=2000)]] | None = None
     #: The sampling period (s) the table's input is held over [default: horizon / 100].

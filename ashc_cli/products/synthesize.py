@@ -95,6 +95,8 @@ def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artef
     art.meta["planner"] = plan.planner
     if plan.proved:
         _store_grid(art, plan, run)
+    elif plan.planner == "error_aware":
+        _store_error_aware(art, plan, run)
     else:
         art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
                                              f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38)), "
@@ -104,6 +106,23 @@ def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artef
                                                 f"the task's robustness on the plant's run of the plan (>= 0), max |psi - y| = "
                                                 f"{run['max_abs_error']:.3g} <= EPS = {plan.eps:.4g}", SIMULATED)
     return art
+
+
+def _store_error_aware(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> None:
+    """Error-aware planning (:mod:`ashc_cli.design.error_plan`): the comparison bound along the plan, its level, the
+    held table, and the checks: the margin (sampled in time, as the set-point plan's) and the plant run's own
+    comparison w below the plan's (simulated)."""
+    art.meta.update(theta_how=plan.theta_how, theta_evidence=plan.theta_evidence, plan_periods=len(plan.refs))
+    art.values.update({"plan/w": plan.w, "w_level": plan.w_level, "plan/deflation": plan.eps * np.sqrt(np.maximum(plan.w, 0.0) / plan.w_level),
+                       "tau": plan.tau, "aim_switch_times": np.array(plan.aims, dtype=float), "run/w": run.get("w", np.array([])), "run/w_plan": run["w_plan"], "w_over_plan": run["w_over_plan"]})
+    art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
+                                         f"psi's robustness on the plan against the sets deflated by sqrt(w(t) / alpha_h), w the comparison bound the "
+                                         f"plan carries (<= alpha_h EPS^2, EPS = {plan.eps:.4g}; theta: {plan.theta_how}), {plan.rob.robustness:.4g}, less "
+                                         f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction {run['deviation']:.2g} "
+                                         "(>= 0: every plant run from the start region meets the task; sampled in time)", SAMPLED)
+    art.checks["w_within_plan"] = Check(run["w_over_plan"], bool(run["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0)),
+                                        "the plant run's comparison w (its own |L^T r|) less the plan's bound at each sample (<= 0: the plan's "
+                                        "theta(xi) |v| bounds what the interface did)", SIMULATED)
 
 
 def _store_grid(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> None:
@@ -221,9 +240,11 @@ def plot(art: Artefact, task, path, unit: str | None = None):
         if np.atleast_2d(v["run/y"]).shape[0] == 2:
             return save(draw_plane(task, v["run/y"], v["plan/psi"], float(v["tolerance"]), view), Path(path))
         # a grid plan switches every period: mark where its holds begin instead
-        switches = np.r_[0.0, np.asarray(v["grid/hold_steps"], dtype=float) * float(v["grid/tau"])] if grid else v["switch_times"]
+        aware = art.meta.get("planner") == "error_aware"
+        switches = (np.r_[0.0, np.asarray(v["grid/hold_steps"], dtype=float) * float(v["grid/tau"])] if grid else
+                    v["aim_switch_times"] if aware else v["switch_times"])
         run = TaskRun(v["run/t"], v["run/y"], v["plan/t"], v["plan/psi"], v["plan/xi"], switches, v["tolerance"],
-                      v["task/reach_times"], v["task/best_hold_starts"])
+                      v["task/reach_times"], v["task/best_hold_starts"], v["plan/deflation"] if aware else None)
         path = save(draw_task(task, run, unit), Path(path))
         if view is not None:
             save(draw_plane(None, None, None, float(v["tolerance"]), view), Path(path).with_name(f"{NAME}_grid{Path(path).suffix}"))
@@ -267,6 +288,10 @@ def headline(art: Artefact) -> str:
     """
     v = art.values
     met = "met" if bool(v["task/satisfied"]) else "NOT met"
+    if art.meta.get("planner") == "error_aware":
+        return (f"EPS = {float(v['tolerance']):.4g} (error-aware: w <= {float(v['w_level']):.4g}, |v| <= {float(v['v_max']):.4g}, deflation "
+                f"sqrt(w(t) / alpha_h)): task certified with margin {float(v['certified_margin']):.4g} (sampled in time); on the plant {met}, "
+                f"robustness {float(v['task/robustness']):.4g}")
     if art.meta.get("planner") == "grid":
         proved = "proved" if art.checks["task_certified"].passed else "NOT proved"
         return (f"EPS = {float(v['tolerance']):.4g} (v_max = {float(v['v_max']):.4g}): the grid planner's table ({' x '.join(map(str, art.meta['grid_cells']))} "

@@ -315,7 +315,8 @@ def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple
     values : dict
         ``task/robustness``, ``task/satisfied``, ``task/reach_times`` (NaN: not reached), the run (``task/t``,
         ``task/y``, ``task/psi``, ``task/xi``, ``task/v``), ``task/tolerance`` (EPS), ``task/v_max``, ``task/certified_margin``,
-        ``task/proved`` (1: the grid planner's margin, proved; 0: the set-point plan's, sampled in time),
+        ``task/proved`` (1: the grid planner's margin, proved; 0: the set-point plans', sampled in time), ``task/planner``,
+        for an error-aware plan ``task/w_plan`` (its comparison bound at the run's samples), ``task/w_over_plan`` and ``task/w_level``,
         ``task/start_region_W0`` and each part's robustness (``task/parts/<part>``).
     checks : dict
         ``task_met_on_the_plant``.
@@ -326,7 +327,10 @@ def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple
     out = {f"task/{k}": v for k, v in values.items()}
     out.update({"task/tolerance": plan.eps, "task/v_max": plan.v_max, "task/certified_margin": plan.certified,
                 "task/start_region_W0": task_plan.start_region(plan, up), "task/switch_times": np.array(plan.switches),
-                "task/plan_robustness": plan.rob.robustness, "task/compiled": res["compiled"], "task/proved": float(plan.proved)})
+                "task/plan_robustness": plan.rob.robustness, "task/compiled": res["compiled"], "task/proved": float(plan.proved),
+                "task/planner": plan.planner})
+    if plan.w is not None:
+        out["task/w_level"] = plan.w_level
     checks = {"task_met_on_the_plant": Check(values["robustness"], bool(values["satisfied"]),
                                              f"the task's robustness on the plant's run of the synthesised plan (>= 0; max |psi - y| = "
                                              f"{values['max_abs_error']:.3g} <= EPS = {plan.eps:.4g})", SIMULATED)}

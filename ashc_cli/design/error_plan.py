@@ -1,0 +1,399 @@
+"""Error-aware planning (issue 45): a task's plan on one abstract state that carries the comparison state w of the
+a-posteriori bound (docs/guaranteed.md, "Error-aware planning") and deflates the task's sets by sqrt(w(t) / alpha_h)
+at each moment instead of by one uniform EPS.
+
+Along any run of the interface, e = p(xi) - x and W = e^T M e obey (C): W' <= -(lambda - eps) W + (|L^T r| + a0)^2 /
+eps, where r = dp/dxi delta v - g (u - l - K e) is what the interface does to the run and a0 = rho_bar + ebar w_max
+collects what is always there (the fitted p's PDE residual, the disturbance at its bound).  Where the bound stage's
+dbar is the q = 0 value (one input, ``saturate: scale`` or no saturation; a feedback design inside its region),
+|L^T r| <= theta(xi) |v| with theta(xi) = ||L^T dp/dxi delta(xi)||, a function of xi alone: so a plan on the
+abstraction can bound the plant's W without seeing the plant.  The plan holds v over each period of length tau;
+over period j xi moves monotonically (one abstract state, a constant input) between its ends, theta is bounded over
+the cells it crosses (:class:`ThetaTable`, proved in ball arithmetic per cell), and the comparison equation is solved
+in closed form:
+
+    w_(j+1) = B + (w_j - B) e^(-(lambda - eps) tau),   B = (theta_j |v_j| + a0)^2 / (eps (lambda - eps)),
+
+monotone between w_j and w_(j+1) within the period.  W(t) <= w(t) at every t (Gronwall, as for the governor), so
+|psi - y| <= sqrt(w(t) / alpha_h) (eq. (6)).  Each v_j is the set-point law scaled, as the governor scales it, so that
+w stays below the level W_lim = alpha_h EPS^2 (capped by the region where the bound is certified): the plan is the
+governor inside the plan, with theta(xi) in place of the measured r.  The plant runs the table of held inputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ashc_cli.closedloop import rk
+from ashc_cli.closedloop.task_monitor import robustness
+from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.design.artefacts import Artefact
+from ashc_cli.numerics import interval, proofs
+from ashc_cli.numerics.proofs import PROVED, SAMPLED
+
+__all__ = ["ThetaTable", "Comparison", "theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
+           "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "SEARCH_STEPS"]
+
+#: Periods of the plan over the task's horizon (the held table the plant runs has one input per period).
+PLAN_PERIODS = 1000
+#: RK4 steps per period (the abstraction under a held input is smooth).
+PLAN_SUB = 5
+#: Cells of V over which theta is bounded, one ball-arithmetic enclosure each.
+THETA_CELLS = 1000
+#: The plan keeps w below (1 - LEVEL_MARGIN) W_lim: room for the rounding of the closed-form steps.
+LEVEL_MARGIN = 1e-9
+
+
+@dataclass(frozen=True)
+class ThetaTable:
+    """An upper bound of theta(xi) = ||L^T dp/dxi delta(xi)|| over each cell of a uniform grid of V (one abstract
+    state), or the bound stage's dbar where no local bound holds.
+
+    Attributes
+    ----------
+    lo, eta : float
+        V's lower end and the cell width.
+    theta : ndarray (cells,)
+    dbar : float
+        The bound stage's dbar (taken outside V and where a cell's enclosure is not finite).
+    how : str
+        How the table was made (for the artefact and the docs).
+    evidence : str
+        ``proved`` when every cell's bound is a ball-arithmetic enclosure; else ``sampled`` (dbar's evidence).
+    """
+
+    lo: float
+    eta: float
+    theta: np.ndarray
+    dbar: float
+    how: str
+    evidence: str
+
+    def over(self, a: float, b: float) -> float:
+        """The largest bound over the cells that meet [a, b] widened by a cell each side (the RK4 ends of a period are
+        within far less of the exact flow's); dbar when that leaves V.
+
+        Parameters
+        ----------
+        a, b : float
+
+        Returns
+        -------
+        float
+        """
+        n = self.theta.size
+        if not np.isfinite(a + b):
+            return self.dbar
+        i = int(np.floor((min(a, b) - self.lo) / self.eta)) - 1
+        k = int(np.floor((max(a, b) - self.lo) / self.eta)) + 1
+        if i < -1 or k > n:
+            return self.dbar
+        return float(self.theta[max(i, 0):min(k, n - 1) + 1].max())
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The comparison equation of the a-posteriori bound, w' = -a w + (theta |v| + a0)^2 / eps with a = lambda - eps,
+    and the region where it is certified.
+
+    Attributes
+    ----------
+    a, eps, alpha_h : float
+        lambda - eps, eps and alpha_h of the bound stage.
+    a0 : float
+        rho_bar + ebar w_max: the fitted p's residual and the disturbance at its bound (0 without either).
+    w_cap, v_cap : float
+        w0_max_certified and v_max_certified (with the disturbance's share when there is one): inf for a global bound.
+    """
+
+    a: float
+    eps: float
+    alpha_h: float
+    a0: float
+    w_cap: float
+    v_cap: float
+
+    def step(self, w0: float, theta: float, v: float, tau: float) -> float:
+        """w at the end of a period of length tau from w0, with |L^T r| <= theta |v| throughout (rounded up)."""
+        B = (theta * abs(v) + self.a0) ** 2 / (self.eps * self.a)
+        E = np.exp(-self.a * tau)
+        return float((B + (w0 - B) * E) * (1 + 1e-12) + 1e-300)
+
+    def room(self, w0: float, theta: float, tau: float, level: float) -> float:
+        """The largest |v| with :meth:`step` <= level (0 when even v = 0 overshoots; inf when theta = 0)."""
+        E = np.exp(-self.a * tau)
+        B_max = (level * (1 - 1e-12) - w0 * E) / (1 - E)
+        reach = np.sqrt(max(B_max, 0.0) * self.eps * self.a) - self.a0
+        if reach <= 0:
+            return 0.0
+        return float(reach / theta * (1 - 1e-12)) if theta > 0 else np.inf
+
+    def deflation(self, w: np.ndarray) -> np.ndarray:
+        """sqrt(w / alpha_h): what |psi - y| may be where W <= w (eq. (6))."""
+        return np.sqrt(np.maximum(np.asarray(w, dtype=float), 0.0) / self.alpha_h)
+
+
+def comparison(up: dict[str, Artefact]) -> Comparison:
+    """The :class:`Comparison` of a design (its bound stage).
+
+    Parameters
+    ----------
+    up : dict of str to Artefact
+
+    Returns
+    -------
+    Comparison
+    """
+    bd = up["bound"].values
+    lam, eps = float(bd["lambda"]), float(bd["epsilon"])
+    a0 = float(bd.get("rho_bar", 0.0)) + float(bd.get("ebar", 0.0)) * float(bd.get("w_max", 0.0))
+    v_cap = float(bd.get("v_max_certified_with_w", bd.get("v_max_certified", np.inf))) if "disturbance_term" in bd else float(bd.get("v_max_certified", np.inf))
+    return Comparison(lam - eps, eps, float(bd["alpha_h"]), a0, float(bd.get("w0_max_certified", np.inf)), v_cap)
+
+
+def _dp_delta(model, up: dict[str, Artefact]):
+    """dp/dxi delta as a sympy matrix (the bound stage's formula, or its series' formula, built when read)."""
+    return up["bound"].expr("dp_delta")
+
+
+def theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) -> ThetaTable:
+    """:class:`ThetaTable` of a design with one abstract state.
+
+    theta bounds |L^T r| / |v| only where the bound stage's dbar is the q = 0 value (its ``dbar_how``: then the q = 0
+    norm bounds the least-squares q, every saturation factor of one input or of the scaled correction, and the
+    unsaturated region of a feedback design, pointwise in xi).  Otherwise (several inputs clipped channel by channel)
+    the table is dbar on every cell.  Each cell's bound is the upper end of a ball-arithmetic enclosure of
+    ||sqrt(M) dp/dxi delta|| over it (natural and mean-value forms), capped by dbar where dbar is proved.
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+    cells : int
+
+    Returns
+    -------
+    ThetaTable
+    """
+    bd = up["bound"].values
+    V = np.asarray(model.V, dtype=float)
+    lo, hi = float(V[0, 0]), float(V[0, 1])
+    eta = (hi - lo) / cells
+    dbar = float(bd["dbar"])
+    dbar_proved = str(bd.get("evidence_dbar", SAMPLED)) == PROVED
+    flat = np.full(cells, dbar)
+    if not dbar == float(bd["dbar_q0"]):
+        return ThetaTable(lo, eta, flat, dbar, "dbar on every cell (the interface's clipping patterns of several inputs: theta depends on x too)",
+                          PROVED if dbar_proved else SAMPLED)
+    M = np.asarray(up["bound"].value("M"), dtype=float)
+    try:
+        # the squared norm (the outer root taken on its upper end): a root of an enclosure that reaches below 0 would be nan
+        fun = proofs.compile_claims(model, [proofs.norm_expr(M, _dp_delta(model, up)).args[0]], list(model.xi))
+    except (interval.UnsupportedExpression, ValueError):
+        return ThetaTable(lo, eta, flat, dbar, "dbar on every cell (||sqrt(M) dp/dxi delta|| cannot be enclosed in ball arithmetic)",
+                          PROVED if dbar_proved else SAMPLED)
+    edges = lo + eta * np.arange(cells + 1)
+    edges[-1] = hi
+    squared = np.array([interval.enclose(fun, np.array([[edges[i], edges[i + 1]]]))[0][1] for i in range(cells)], dtype=float)
+    out = np.nextafter(np.sqrt(np.maximum(squared, 0.0)), np.inf)
+    finite = np.isfinite(out)
+    theta = np.where(finite, out, dbar)
+    if dbar_proved:
+        theta = np.minimum(theta, dbar)
+    evidence = PROVED if finite.all() else (PROVED if dbar_proved else SAMPLED)
+    return ThetaTable(lo, eta, theta, dbar, f"||sqrt(M) dp/dxi delta|| enclosed in ball arithmetic on each of {cells} cells of V "
+                      f"({int(finite.sum())} finite; dbar elsewhere)", evidence)
+
+
+@dataclass
+class ErrorRun:
+    """An error-aware plan on the abstraction, at one level.
+
+    Attributes
+    ----------
+    t, xi, psi, v, w : ndarray
+        On the plan's RK4 grid: (N,), (1, N), (p, N), (1, N), (N,); w is the comparison bound at each sample.
+    deflation : ndarray (N,)
+        sqrt(w / alpha_h) at each sample, the largest over its two neighbouring intervals (w is monotone within a
+        period).
+    inputs : ndarray (periods,)
+        The held input of each period.
+    switches : list of float
+        When the plan aims at each reach set.
+    tau : float
+        The period.
+    """
+
+    t: np.ndarray
+    xi: np.ndarray
+    psi: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    deflation: np.ndarray
+    inputs: np.ndarray
+    switches: list
+    tau: float
+
+
+def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, gain: float, level: float, table: ThetaTable,
+             comp: Comparison) -> ErrorRun:
+    """The plan at one level: per period the set-point law aimed at the current reach set's reference, scaled so
+    that the comparison bound stays below ``level``, held; the reach sets switched once psi has held the current one
+    deflated by sqrt(w / alpha_h) for its hold.
+
+    Parameters
+    ----------
+    model : Model
+        One abstract state, with a task.
+    plant : DesignTerms
+    xi0 : ndarray (1,)
+    w0 : float
+        The comparison state at the start (W(xi0, x0)).
+    refs : list of ndarray (1,)
+        The reach sets' reference states.
+    gain : float
+        The set-point gain (the law's gain is min(gain, 1 / tau): a held input that would overshoot the reference
+        within a period is not asked for).
+    level : float
+        w stays <= level.
+    table : ThetaTable
+    comp : Comparison
+
+    Returns
+    -------
+    ErrorRun
+    """
+    task = model.spec.task
+    P, sub = PLAN_PERIODS, PLAN_SUB
+    tau = task.horizon / P
+    h = tau / sub
+    N = P * sub + 1
+    t = np.linspace(0.0, task.horizon, N)
+    xi, psi, v_run, w_run = np.empty((1, N)), np.empty((model.p, N)), np.empty((1, N)), np.empty(N)
+    inputs = np.empty(P)
+    g_eff = min(float(gain), 1.0 / tau)
+    z, w = np.array(xi0, dtype=float), float(w0)
+    k, entered, switches = 0, None, [0.0]
+    offsets = np.arange(sub) * h
+
+    def flow(z0, v, record_from=None):
+        f = lambda y: (lambda a: a[0][:, 0] + a[1][:, 0] * v)(plant.abstraction(y))     # noqa: E731
+        y = z0
+        for s in range(sub):
+            phi, delta, kap = plant.abstraction(y)
+            if record_from is not None:
+                xi[:, record_from + s], psi[:, record_from + s] = y, kap[:, 0]
+            y = rk.fixed_step(f, y, h, phi[:, 0] + delta[:, 0] * v)
+        return y
+
+    for j in range(P):
+        ref = refs[min(k, len(refs) - 1)]
+        phi, delta, _ = plant.abstraction(z)
+        v_sp = float((g_eff * (ref[0] - z[0]) - phi[0, 0]) / delta[0, 0])
+        v_sp = float(np.clip(v_sp, -comp.v_cap, comp.v_cap))
+        # every s v_sp, s in [0, 1], keeps the period's path within the hull of the ends for s = 0 and s = 1 (a scalar
+        # flow is monotone in time and, delta of one sign on V, in the held input)
+        with np.errstate(over="ignore", invalid="ignore"):        # a v_sp that throws xi out of V ends in inf: theta is dbar then
+            e1, e0 = flow(z, v_sp), flow(z, 0.0)
+        theta = table.over(min(z[0], e0[0], e1[0]), max(z[0], e0[0], e1[0]))
+        v = float(np.sign(v_sp) * min(abs(v_sp), comp.room(w, theta, tau, level)))
+        if abs(v) < abs(v_sp):
+            theta, v = _largest_input(flow, z, e0, v, v_sp, w, tau, level, table, comp, theta)
+        end = flow(z, v, record_from=j * sub)
+        B = (theta * abs(v) + comp.a0) ** 2 / (comp.eps * comp.a)
+        w_run[j * sub:(j + 1) * sub] = B + (w - B) * np.exp(-comp.a * offsets)
+        v_run[:, j * sub:(j + 1) * sub] = v
+        inputs[j] = v
+        w = comp.step(w, theta, v, tau)
+        z = end
+        if k < len(refs) - 1:           # switch at the period's end once the current set has been held, deflated
+            box = np.asarray(task.reach[k].set, dtype=float)
+            for i in range(j * sub, (j + 1) * sub):
+                d = comp.deflation(w_run[i])
+                inside = bool(np.all(psi[:, i] >= box[:, 0] + d) and np.all(psi[:, i] <= box[:, 1] - d))
+                entered = (t[i] if entered is None else entered) if inside else None
+            if entered is not None and t[(j + 1) * sub] - entered >= task.reach[k].hold:
+                k, entered = k + 1, None
+                switches.append(float(t[(j + 1) * sub]))
+    phi, delta, kap = plant.abstraction(z)
+    xi[:, -1], psi[:, -1], v_run[:, -1], w_run[-1] = z, kap[:, 0], v_run[:, -2], w
+    wide = np.maximum(w_run, np.maximum(np.r_[w_run[1:], w_run[-1]], np.r_[w_run[0], w_run[:-1]]))
+    return ErrorRun(t, xi, psi, v_run, w_run, comp.deflation(wide), inputs, switches, tau)
+
+
+def _largest_input(flow, z, e0, v_ok: float, v_sp: float, w: float, tau: float, level: float, table: ThetaTable, comp: Comparison,
+                   theta_ok: float) -> tuple[float, float]:
+    """(theta, v) of a period: the largest s v_sp (by bisection on s, SEARCH_STEPS steps) whose own window's theta
+    leaves room for it, from v_ok (admissible with theta_ok, the window of v_sp).  The window of s v_sp shrinks with
+    s, so its theta does too and the room grows: the admissible s form an interval from 0."""
+    lo, hi = v_ok / v_sp, 1.0
+    best = (theta_ok, v_ok)
+    for _ in range(SEARCH_STEPS):
+        s = 0.5 * (lo + hi)
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = flow(z, s * v_sp)
+        theta = table.over(min(z[0], e0[0], e[0]), max(z[0], e0[0], e[0]))
+        if s * abs(v_sp) <= comp.room(w, theta, tau, level):
+            lo, best = s, (theta, s * v_sp)
+        else:
+            hi = s
+    return best
+
+
+#: Bisection steps of a period's input when the set-point law's is more than the comparison bound leaves room for.
+SEARCH_STEPS = 12
+
+
+def certified_margin(model, run: ErrorRun) -> tuple[float, float, object, bool]:
+    """psi's robustness on the plan against the sets deflated by sqrt(w / alpha_h) at each sample, less the sampling
+    margin (max |dpsi| between samples); -inf if xi leaves V.
+
+    Parameters
+    ----------
+    model : Model
+    run : ErrorRun
+
+    Returns
+    -------
+    certified, margin : float
+    rob : TaskRobustness
+        psi's robustness with the deflation (its parts).
+    in_V : bool
+    """
+    margin = float(np.abs(np.diff(run.psi, axis=1)).max()) if run.t.size > 1 else 0.0
+    rob = robustness(model.spec.task, run.t, run.psi, margin=run.deflation)
+    in_V = bool(np.all((run.xi >= model.V[:, :1] - 1e-12) & (run.xi <= model.V[:, 1:] + 1e-12)))
+    return (float(rob.robustness - margin) if in_V else -np.inf), margin, rob, in_V
+
+
+def level_for(tolerance: float, comp: Comparison) -> float:
+    """W_lim for a tolerance EPS: alpha_h EPS^2, capped by the region where the bound is certified, less LEVEL_MARGIN.
+
+    Parameters
+    ----------
+    tolerance : float
+    comp : Comparison
+
+    Returns
+    -------
+    float
+    """
+    return float(min(comp.alpha_h * tolerance ** 2, comp.w_cap) * (1 - LEVEL_MARGIN))
+
+
+def fits(level: float, w0: float, comp: Comparison) -> bool:
+    """Whether a plan at ``level`` can start: w0 below it, and v = 0 keeps w below it (a0^2 / (eps a) < level).
+
+    Parameters
+    ----------
+    level, w0 : float
+    comp : Comparison
+
+    Returns
+    -------
+    bool
+    """
+    return w0 < level and comp.a0 ** 2 / (comp.eps * comp.a) < level
+
