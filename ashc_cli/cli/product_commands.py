@@ -208,18 +208,22 @@ def synthesize(spec: SpecArg, out: OutOpt = None, as_json: JsonOpt = False,
                frozen: frozen_opt("Never rerun a design stage: fail (exit 5, naming the stage) if one is stale.") = False) -> None:
     """Solve the spec's task on the output (`task:` always, reach, avoid) on the abstraction, guaranteed on the plant.
 
-    Searches the tolerance EPS: the budget mode of the guaranteed controller keeps |psi - y| <= EPS for every
-    abstract input |v| <= (EPS - sqrt(W0 / alpha_h)) / G (eq. (38)); a plan of set-points on the abstraction,
-    aimed at the reach sets in order, is integrated and monitored, and kept when psi meets the task with
-    robustness >= EPS plus a sampling margin (then every plant run of the interface meets the task). The plan
-    then runs on the plant and the task's robustness of that run is reported (the signed distance, in output
-    units, to violating the task). Writes <out>/synthesize.h5 and prints EPS, the certified margin and the
-    plant run's robustness. Exit 3 when no EPS works, naming the part of the task that fails and by how much.
-    With two or three abstract states, or when the set-point plan is refused for an avoid set, the task is
-    solved as a game on a grid of V instead (`task.planner`: the grid planner; every transition over-approximated,
-    every set deflated by EPS over each sampling period: the margin is proved), and its table is run as the
-    abstract controller, its input held over each period. Figures: <out>/plots/synthesize.png (and
-    synthesize_grid.png: V's winning cells and the route, two abstract states).
+    With one abstract state (`task.planner: auto`) the plan is error-aware first: set-points on the abstraction,
+    aimed at the reach sets in order, the input of each of 1000 held periods scaled so that the comparison bound
+    w of the plant's error, carried along the plan (w' <= -(lambda - eps) w + (theta(xi) |v|)^2 / eps, theta proved
+    per cell of V), stays below alpha_h EPS^2; the sets are deflated by sqrt(w(t) / alpha_h) at each moment, so the
+    plan moves fast where theta is small and the error room is free. Failing that, the budget mode of the
+    guaranteed controller: one v_max = (EPS - sqrt(W0 / alpha_h)) / G for the horizon (eq. (38)). EPS is searched;
+    a plan is kept when psi meets the deflated task with robustness >= a sampling margin (then every plant run of
+    the interface from the start region meets the task). The plan then runs on the plant and the task's
+    robustness of that run is reported (the signed distance, in output units, to violating the task). Writes
+    <out>/synthesize.h5 and prints EPS, the certified margin and the plant run's robustness. Exit 3 when no EPS
+    works, naming the part of the task that fails and by how much. With two or three abstract states, or when the
+    set-point plans are refused for an avoid set, the task is solved as a game on a grid of V instead (the grid
+    planner; every transition over-approximated, every set deflated by EPS over each sampling period: the margin
+    is proved). Error-aware and grid plans are tables of inputs held over periods, which the plant runs. Figures:
+    <out>/plots/synthesize.png (psi with its error band, y of the plant; and synthesize_grid.png: V's winning cells
+    and the route, two abstract states).
     """
     from ashc_cli.outputs.query import summary
     from ashc_cli.products.synthesize import NAME, run_synthesize

@@ -628,6 +628,13 @@ def fixed_step(f, y: np.ndarray, h: float, k1: np.ndarray, tab=RK4) -> np.ndarra
     1-D array
         The state after the step.
     """
+    if tab is RK4:
+        # the classic tableau written out, the same operations in the same order as the loop below (bit for bit), at a
+        # third of its cost: the plans take hundreds of thousands of these steps
+        k2 = f(y + h * (0.5 * k1))
+        k3 = f(y + h * (0.5 * k2))
+        k4 = f(y + h * (1.0 * k3))
+        return y + h / 6.0 * (1.0 * k1 + 2.0 * k2 + 2.0 * k3 + 1.0 * k4)
     A, w, divisor = tab
     ks = [k1]
     for s in range(1, w.size):

@@ -25,16 +25,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import sympy as sp
 
 from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import robustness
-from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.closedloop.terms import DesignTerms, design_matrices
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.numerics import interval, proofs
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
+from ashc_cli.problem.model import compile_flat
 
 __all__ = ["ThetaTable", "Comparison", "theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
-           "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "SEARCH_STEPS"]
+           "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
 
 #: Periods of the plan over the task's horizon (the held table the plant runs has one input per period).
 PLAN_PERIODS = 1000
@@ -70,6 +72,37 @@ class ThetaTable:
     dbar: float
     how: str
     evidence: str
+
+    def over_many(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """:meth:`over` of each pair (a_i, b_i) at once (a sparse table of maxima over ranges of cells)."""
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+        n = self.theta.size
+        out = np.full(a.shape, self.dbar)
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        good = np.isfinite(lo) & np.isfinite(hi)
+        with np.errstate(invalid="ignore"):
+            i = np.where(good, np.floor((lo - self.lo) / self.eta), 0).astype(np.int64) - 1
+            k = np.where(good, np.floor((hi - self.lo) / self.eta), 0).astype(np.int64) + 1
+        good &= (i >= -1) & (k <= n)
+        i, k = np.clip(i, 0, n - 1), np.clip(k, 0, n - 1)
+        levels = self._levels()
+        span = k - i + 1
+        lev = np.floor(np.log2(np.maximum(span, 1))).astype(np.int64)
+        for L in np.unique(lev[good]):
+            sel = good & (lev == L)
+            table = levels[L]
+            out[sel] = np.maximum(table[i[sel]], table[k[sel] + 1 - (1 << L)])
+        return out
+
+    def _levels(self) -> list:
+        """The sparse table: level L holds the maxima over 2^L consecutive cells."""
+        if not hasattr(self, "_cache"):
+            levels, width = [np.asarray(self.theta, dtype=float)], 1
+            while 2 * width <= self.theta.size:
+                levels.append(np.maximum(levels[-1][:-width], levels[-1][width:]))
+                width *= 2
+            object.__setattr__(self, "_cache", levels)
+        return self._cache
 
     def over(self, a: float, b: float) -> float:
         """The largest bound over the cells that meet [a, b] widened by a cell each side (the RK4 ends of a period are
@@ -129,6 +162,17 @@ class Comparison:
         if reach <= 0:
             return 0.0
         return float(reach / theta * (1 - 1e-12)) if theta > 0 else np.inf
+
+    def room_many(self, w0: float, theta: np.ndarray, tau: float, level: float) -> np.ndarray:
+        """:meth:`room` for each theta at once."""
+        E = np.exp(-self.a * tau)
+        B_max = (level * (1 - 1e-12) - w0 * E) / (1 - E)
+        reach = np.sqrt(max(B_max, 0.0) * self.eps * self.a) - self.a0
+        theta = np.asarray(theta, dtype=float)
+        if reach <= 0:
+            return np.zeros(theta.shape)
+        with np.errstate(divide="ignore"):
+            return np.where(theta > 0, reach / np.where(theta > 0, theta, 1.0) * (1 - 1e-12), np.inf)
 
     def deflation(self, w: np.ndarray) -> np.ndarray:
         """sqrt(w / alpha_h): what |psi - y| may be where W <= w (eq. (6))."""
@@ -190,13 +234,16 @@ def theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) -> The
     M = np.asarray(up["bound"].value("M"), dtype=float)
     try:
         # the squared norm (the outer root taken on its upper end): a root of an enclosure that reaches below 0 would be nan
-        fun = proofs.compile_claims(model, [proofs.norm_expr(M, _dp_delta(model, up)).args[0]], list(model.xi))
+        norm = proofs.norm_expr(M, _dp_delta(model, up))
+        squared = norm.base if norm.is_Pow and norm.exp == sp.Rational(1, 2) else norm ** 2      # a constant norm is a number
+        fun = proofs.compile_claims(model, [squared], list(model.xi))
     except (interval.UnsupportedExpression, ValueError):
         return ThetaTable(lo, eta, flat, dbar, "dbar on every cell (||sqrt(M) dp/dxi delta|| cannot be enclosed in ball arithmetic)",
                           PROVED if dbar_proved else SAMPLED)
     edges = lo + eta * np.arange(cells + 1)
     edges[-1] = hi
-    squared = np.array([interval.enclose(fun, np.array([[edges[i], edges[i + 1]]]))[0][1] for i in range(cells)], dtype=float)
+    sampled = model.numeric(sp.Matrix([[squared]]), list(model.xi))
+    squared = np.array([_refined_upper(fun, sampled, edges[i], edges[i + 1], REFINE_DEPTH) for i in range(cells)], dtype=float)
     out = np.nextafter(np.sqrt(np.maximum(squared, 0.0)), np.inf)
     finite = np.isfinite(out)
     theta = np.where(finite, out, dbar)
@@ -205,6 +252,25 @@ def theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) -> The
     evidence = PROVED if finite.all() else (PROVED if dbar_proved else SAMPLED)
     return ThetaTable(lo, eta, theta, dbar, f"||sqrt(M) dp/dxi delta|| enclosed in ball arithmetic on each of {cells} cells of V "
                       f"({int(finite.sum())} finite; dbar elsewhere)", evidence)
+
+
+#: A cell whose enclosure is more than REFINE_SLACK above theta^2 sampled at its ends and centre is cut in REFINE_SPLIT
+#: pieces, down to REFINE_DEPTH times (the mean-value form tightens on narrower boxes where terms cancel).
+REFINE_SLACK, REFINE_SPLIT, REFINE_DEPTH = 0.02, 4, 2
+
+
+def _refined_upper(fun, sampled, a: float, b: float, depth: int) -> float:
+    """An upper bound of the squared norm over [a, b]: the enclosure's upper end, or the largest over REFINE_SPLIT
+    pieces where it is loose (still an upper bound: the pieces cover [a, b])."""
+    upper = interval.enclose(fun, np.array([[a, b]]))[0][1]
+    if depth == 0 or not np.isfinite(upper):
+        return upper
+    seen = float(np.max(np.ravel(sampled(np.array([a, 0.5 * (a + b), b])))))
+    if upper <= seen * (1 + REFINE_SLACK) + 1e-300:
+        return upper
+    cuts = np.linspace(a, b, REFINE_SPLIT + 1)
+    cuts[-1] = b
+    return min(upper, max(_refined_upper(fun, sampled, cuts[k], cuts[k + 1], depth - 1) for k in range(REFINE_SPLIT)))
 
 
 @dataclass
@@ -237,7 +303,7 @@ class ErrorRun:
     tau: float
 
 
-def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, gain: float, level: float, table: ThetaTable,
+def run_plan(model, plant: DesignTerms, up: dict[str, Artefact], xi0: np.ndarray, w0: float, refs: list, gain: float, level: float, table: ThetaTable,
              comp: Comparison) -> ErrorRun:
     """The plan at one level: per period the set-point law aimed at the current reach set's reference, scaled so
     that the comparison bound stays below ``level``, held; the reach sets switched once psi has held the current one
@@ -248,6 +314,8 @@ def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, 
     model : Model
         One abstract state, with a task.
     plant : DesignTerms
+    up : dict of str to Artefact
+        The design (phi_bar and delta for the batches of trial inputs).
     xi0 : ndarray (1,)
     w0 : float
         The comparison state at the start (W(xi0, x0)).
@@ -277,6 +345,7 @@ def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, 
     z, w = np.array(xi0, dtype=float), float(w0)
     k, entered, switches = 0, None, [0.0]
     offsets = np.arange(sub) * h
+    field = _abstract_field(model, up)
 
     def flow(z0, v, record_from=None):
         f = lambda y: (lambda a: a[0][:, 0] + a[1][:, 0] * v)(plant.abstraction(y))     # noqa: E731
@@ -293,14 +362,7 @@ def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, 
         phi, delta, _ = plant.abstraction(z)
         v_sp = float((g_eff * (ref[0] - z[0]) - phi[0, 0]) / delta[0, 0])
         v_sp = float(np.clip(v_sp, -comp.v_cap, comp.v_cap))
-        # every s v_sp, s in [0, 1], keeps the period's path within the hull of the ends for s = 0 and s = 1 (a scalar
-        # flow is monotone in time and, delta of one sign on V, in the held input)
-        with np.errstate(over="ignore", invalid="ignore"):        # a v_sp that throws xi out of V ends in inf: theta is dbar then
-            e1, e0 = flow(z, v_sp), flow(z, 0.0)
-        theta = table.over(min(z[0], e0[0], e1[0]), max(z[0], e0[0], e1[0]))
-        v = float(np.sign(v_sp) * min(abs(v_sp), comp.room(w, theta, tau, level)))
-        if abs(v) < abs(v_sp):
-            theta, v = _largest_input(flow, z, e0, v, v_sp, w, tau, level, table, comp, theta)
+        theta, v = _period_input(field, z, v_sp, w, (h, sub), level, table, comp)
         end = flow(z, v, record_from=j * sub)
         B = (theta * abs(v) + comp.a0) ** 2 / (comp.eps * comp.a)
         w_run[j * sub:(j + 1) * sub] = B + (w - B) * np.exp(-comp.a * offsets)
@@ -323,27 +385,56 @@ def run_plan(model, plant: DesignTerms, xi0: np.ndarray, w0: float, refs: list, 
     return ErrorRun(t, xi, psi, v_run, w_run, comp.deflation(wide), inputs, switches, tau)
 
 
-def _largest_input(flow, z, e0, v_ok: float, v_sp: float, w: float, tau: float, level: float, table: ThetaTable, comp: Comparison,
-                   theta_ok: float) -> tuple[float, float]:
-    """(theta, v) of a period: the largest s v_sp (by bisection on s, SEARCH_STEPS steps) whose own window's theta
-    leaves room for it, from v_ok (admissible with theta_ok, the window of v_sp).  The window of s v_sp shrinks with
-    s, so its theta does too and the room grows: the admissible s form an interval from 0."""
-    lo, hi = v_ok / v_sp, 1.0
-    best = (theta_ok, v_ok)
-    for _ in range(SEARCH_STEPS):
-        s = 0.5 * (lo + hi)
-        with np.errstate(over="ignore", invalid="ignore"):
-            e = flow(z, s * v_sp)
-        theta = table.over(min(z[0], e0[0], e[0]), max(z[0], e0[0], e[0]))
-        if s * abs(v_sp) <= comp.room(w, theta, tau, level):
-            lo, best = s, (theta, s * v_sp)
-        else:
-            hi = s
-    return best
+def _abstract_field(model, up: dict[str, Artefact]):
+    """(xi, v) -> phi_bar(xi) + delta(xi) v on arrays of one abstract state (a batch of trial inputs at once)."""
+    T = design_matrices(model, up, ("phi", "delta"))
+    fun = compile_flat([T["phi"][0, 0], T["delta"][0, 0]], list(model.xi), model.values)
+
+    def field(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        phi, delta = fun(x)
+        return phi + delta * v
+    return field
 
 
-#: Bisection steps of a period's input when the set-point law's is more than the comparison bound leaves room for.
-SEARCH_STEPS = 12
+def _period_input(field, z: np.ndarray, v_sp: float, w: float, steps: tuple, level: float, table: ThetaTable,
+                  comp: Comparison) -> tuple[float, float]:
+    """(theta, v) of one period: v = s v_sp with the largest s in [0, 1] whose period leaves room for it, theta the
+    bound over that period's path.
+
+    The path of a held v lies between the period's start and its end; for s v_sp, s in [0, 1], between the start and
+    the ends for 0 and for s (a scalar flow is monotone in time and, delta of one sign on V, in the held input).  The
+    window grows with s, so its theta does and the room (:meth:`Comparison.room`) shrinks: the admissible s form an
+    interval from 0, found on S_COARSE geometric trial scales, then S_FINE between the last admissible and the next,
+    each batch integrated at once (RK4, the plan's substeps)."""
+    h, sub = steps
+    tau = h * sub
+
+    def judge(scales: np.ndarray):
+        vs = scales * v_sp
+        x = np.full(vs.shape, float(z[0]))
+        with np.errstate(over="ignore", invalid="ignore"):      # a trial that throws xi out of V ends in inf: dbar there
+            for _ in range(sub):
+                x = rk.fixed_step(lambda y: field(y, vs), x, h, field(x, vs))
+        lo, hi = np.minimum(np.minimum(x, x[0]), z[0]), np.maximum(np.maximum(x, x[0]), z[0])
+        thetas = table.over_many(lo, hi)
+        ok = np.abs(vs) <= comp.room_many(w, thetas, tau, level)
+        return thetas, ok
+
+    coarse = np.r_[0.0, np.geomspace(S_MIN, 1.0, S_COARSE)]     # scale 0 first: the ends of v = 0 for every window
+    thetas, ok = judge(coarse)
+    i = int(np.flatnonzero(ok).max())       # s = 0 is admissible (room >= 0)
+    if i + 1 < coarse.size:
+        fine = np.r_[0.0, np.linspace(coarse[i], coarse[i + 1], S_FINE + 2)[1:-1]]
+        th_f, ok_f = judge(fine)
+        k = int(np.flatnonzero(ok_f).max())
+        if k > 0 and fine[k] > coarse[i]:
+            return float(th_f[k]), float(fine[k] * v_sp)
+    return float(thetas[i]), float(coarse[i] * v_sp)
+
+
+#: A period's input: S_COARSE trial scales of the set-point law's, geometric from S_MIN to 1, then S_FINE between the
+#: largest admissible and the next.
+S_MIN, S_COARSE, S_FINE = 1e-6, 24, 16
 
 
 def certified_margin(model, run: ErrorRun) -> tuple[float, float, object, bool]:

@@ -130,6 +130,7 @@ class TaskPlan:
     theta_how: str = ""
     theta_evidence: str = ""
     aims: list = field(default_factory=list)
+    theta_cell: float = float("nan")
 
     @property
     def proved(self) -> bool:
@@ -324,6 +325,19 @@ def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: De
         return error_aware_plan(model, plant, up, start)
     if kind == "setpoint" or not deflate:
         return _setpoint_plan(model, plant, up, start, deflate)
+    try:        # auto: error-aware planning first (never slower than the budget's), the budget's plan the fallback
+        return error_aware_plan(model, plant, up, start)
+    except DesignError as aware_exc:
+        try:
+            return _budget_then_grid(model, plant, up, start)
+        except DesignError as exc:
+            if (exc.where, exc.what) == (aware_exc.where, aware_exc.what):       # a fact of the task (a set off kappa(V)): said once
+                raise
+            raise DesignError(exc.where, f"{exc.what} (and error-aware planning: {aware_exc.where}: {aware_exc.what})", exc.expected) from exc
+
+
+def _budget_then_grid(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple) -> TaskPlan:
+    """auto's fallback: the budget's set-point plan, and the grid planner when that plan is refused for an avoid set."""
     try:
         return _setpoint_plan(model, plant, up, start, True)
     except DesignError as exc:
@@ -404,7 +418,7 @@ def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: 
         level = error_plan.level_for(float(e), comp)
         if not error_plan.fits(level, W0, comp):
             continue
-        run = error_plan.run_plan(model, plant, xi0, W0, refs, gain, level, table, comp)
+        run = error_plan.run_plan(model, plant, up, xi0, W0, refs, gain, level, table, comp)
         certified, margin, rob, in_V = error_plan.certified_margin(model, run)
         eps = float(np.sqrt(level / comp.alpha_h))
         tried.append((eps, certified))
@@ -425,7 +439,7 @@ def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: 
     v_max = float(np.max(np.abs(run.inputs))) if run.inputs.size else 0.0
     return TaskPlan(xi0, x0, W0, refs_held, gain, eps, max(v_max, 1e-300), run.t, run.xi, run.psi, run.v, switches, rob, margin, certified, in_V,
                     tried=tried, planner="error_aware", tau=run.tau, w=run.w, w_level=level, theta_how=table.how,
-                    theta_evidence=table.evidence, aims=list(run.switches))
+                    theta_evidence=table.evidence, aims=list(run.switches), theta_cell=table.eta)
 
 
 def _half(task) -> float:
@@ -616,8 +630,13 @@ def on_the_plant(model, plant: DesignTerms, plan: TaskPlan, res: dict) -> tuple[
     values.update({f"parts/{part}": value for part, value in on_y.parts.items()})
     if plan.w is not None:
         # the plan's comparison bound against the run's own (the loop integrates w' = -(lambda - eps) w + |L^T r|^2 / eps)
-        values["w_plan"] = np.interp(t, plan.t, plan.w)
-        values["w_over_plan"] = float(np.max(res["w"] - values["w_plan"])) if "w" in res else float("nan")
+        # w is monotone between the plan's samples (on each period, B + (w_j - B) e^(-a s)): the larger neighbour bounds it there
+        i = np.clip(np.searchsorted(plan.t, t, side="right") - 1, 0, plan.t.size - 2)
+        values["w_plan"] = np.maximum(plan.w[i], plan.w[i + 1])
+        values["w"] = res["w"]
+        values["w_over_plan"] = float(np.max(res["w"] - values["w_plan"]))
+        # the plan's theta covers each period's path widened by a cell: the run's xi must keep within a cell of the plan's
+        values["xi_deviation"] = float(np.max(np.abs(res["xi"] - np.stack([np.interp(t, plan.t, row) for row in plan.xi]))))
     if plan.proved:
         # the proof is the table's: the held inputs are its law on the run's own xi when the run's xi at each period's
         # start is within ROUTE_SLACK of a cell of the route's state (each input was admissible from every such cell)

@@ -368,10 +368,12 @@ class TaskAvoid(_Strict):
 class TaskPlanner(_Strict):
     """Which planner ``ashc synthesize`` runs on the abstraction (docs/guide.md, "The planner on the abstraction").
 
-    ``setpoint`` aims the set-point law at each reach set in turn (one abstract state); ``grid`` solves the task as a
-    game on a uniform grid of V with the input held over ``tau`` (proved); ``auto`` (the default) runs the set-point
-    plan with one abstract state, the grid when that plan is refused for an avoid set (the grid can wait or go
-    around) or there are more abstract states."""
+    ``setpoint`` aims the set-point law at each reach set in turn, in the budget mode (one abstract state);
+    ``error_aware`` does too, with the comparison bound w carried along the plan and each period's input scaled to
+    keep it below alpha_h EPS^2, the sets deflated by sqrt(w(t) / alpha_h) (one abstract state; docs/guaranteed.md);
+    ``grid`` solves the task as a game on a uniform grid of V with the input held over ``tau`` (proved); ``auto`` (the
+    default) runs error-aware planning with one abstract state, then the budget's set-point plan, then the grid when
+    that plan is refused for an avoid set (the grid can wait or go around); the grid with more abstract states."""
 
     kind: Literal["auto", "setpoint", "grid", "error_aware"] = "auto"
     #: Cells of V per abstract state [default: 400, 80 x 80 or 24 x 24 x 24].

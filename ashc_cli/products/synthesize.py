@@ -114,15 +114,18 @@ def _store_error_aware(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> No
     comparison w below the plan's (simulated)."""
     art.meta.update(theta_how=plan.theta_how, theta_evidence=plan.theta_evidence, plan_periods=len(plan.refs))
     art.values.update({"plan/w": plan.w, "w_level": plan.w_level, "plan/deflation": plan.eps * np.sqrt(np.maximum(plan.w, 0.0) / plan.w_level),
-                       "tau": plan.tau, "aim_switch_times": np.array(plan.aims, dtype=float), "run/w": run.get("w", np.array([])), "run/w_plan": run["w_plan"], "w_over_plan": run["w_over_plan"]})
+                       "tau": plan.tau, "aim_switch_times": np.array(plan.aims, dtype=float), "run/w": run["w"], "run/w_plan": run["w_plan"], "w_over_plan": run["w_over_plan"]})
     art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
                                          f"psi's robustness on the plan against the sets deflated by sqrt(w(t) / alpha_h), w the comparison bound the "
                                          f"plan carries (<= alpha_h EPS^2, EPS = {plan.eps:.4g}; theta: {plan.theta_how}), {plan.rob.robustness:.4g}, less "
                                          f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction {run['deviation']:.2g} "
                                          "(>= 0: every plant run from the start region meets the task; sampled in time)", SAMPLED)
-    art.checks["w_within_plan"] = Check(run["w_over_plan"], bool(run["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0)),
+    ok = bool(run["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0) and run["xi_deviation"] <= plan.theta_cell)
+    art.values["xi_deviation"] = run["xi_deviation"]
+    art.checks["w_within_plan"] = Check(run["w_over_plan"], ok,
                                         "the plant run's comparison w (its own |L^T r|) less the plan's bound at each sample (<= 0: the plan's "
-                                        "theta(xi) |v| bounds what the interface did)", SIMULATED)
+                                        f"theta(xi) |v| bounds what the interface did), with the run's xi within {run['xi_deviation']:.2g} of the "
+                                        f"plan's (<= a cell of theta's table, {plan.theta_cell:.3g}: the plan's theta covers the run's path)", SIMULATED)
 
 
 def _store_grid(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> None:
