@@ -13,7 +13,9 @@ tables (Markdown, ready for README):
    an ill-conditioned ladder, the CSTR and the inverted pendulum, and the objectives rate and min_gain
    (with the falsified error over the bound);
 4. large plants fast and proved (issue 44): T0, the bare import of the dependencies, and the switched ladder at
-   n = 16..512 and three small nonlinear plants in multiples of T0, with their verdicts and the growth exponent.
+   n = 16..512 and three small nonlinear plants in multiples of T0, with their verdicts and the growth exponent;
+5. tasks at the plant's speed (issue 45): for three tasks, when y is in each reach set with the budget, the governor
+   and error-aware planning, and the abstraction's lower bound under the guarantee (bench/task_times.py).
 
 With ``--against REV`` (``make bench BENCH_AGAINST=REV``) it prints only the closed loops of this tree and of the
 git revision REV side by side (issue 40: a restructuring of the loops must keep their speed): Cuk ``simulate``,
@@ -22,7 +24,7 @@ in turn (A B A B ...) on the same design folder, the median of ``--pairs`` runs 
 ratios pair by pair (a ratio holds when the machine's speed drifts).
 
     python bench/bench.py [--stages 1 2 4 8 16 32] [--timeout 900] [--runs 10000] [--no-closed-loops]
-                          [--no-certificates | --only-certificates | --only-large] [--against REV [--pairs 5]]
+                          [--no-certificates | --only-certificates | --only-large | --only-tasks] [--against REV [--pairs 5]]
 """
 
 from __future__ import annotations
@@ -199,6 +201,34 @@ def task_split(folder: Path, spec: str, timeout: float, env: dict) -> str:
     except subprocess.TimeoutExpired:
         return "split timed out"
     return proc.stdout.strip().splitlines()[-1] if proc.returncode == 0 and proc.stdout.strip() else "split failed"
+
+
+#: Issue 45's tasks: the plan's time with the budget, the governor and error-aware planning, and the lower bound.
+TASKS = ("specs/cuk_deadlines.yaml", "specs/hover_vehicle.yaml", "tests/specs/boost_task.yaml")
+
+
+def task_rows(tmp: Path, timeout: float) -> list[dict]:
+    """The rows of bench/task_times.py (a fresh process; one JSON line per task)."""
+    try:
+        proc = subprocess.run([sys.executable, str(ROOT / "bench" / "task_times.py"), str(tmp), *TASKS], capture_output=True, text=True,
+                              timeout=timeout, cwd=ROOT)
+    except subprocess.TimeoutExpired:
+        return []
+    return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+
+
+def print_tasks(rows: list[dict]) -> None:
+    """The table of :func:`task_rows`: per task, when y is in each reach set (s, the sets in order)."""
+    def cell(x):
+        return x if isinstance(x, str) else " / ".join("-" if not np.isfinite(v) else f"{v:.4g}" for v in x)
+    print("\n| task (issue 45): y in each reach set at (s) | deadlines | EPS | budget | governor | error-aware | lower bound |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['task']} | {cell(r['deadlines'])} | {r['eps']:.4g} | {cell(r['budget'])} | {cell(r['governor'])} | {cell(r['error_aware'])} | "
+              f"{cell(r['lower_bound'])} |")
+    print("(all at the error-aware plan's EPS; budget and governor: the tracking scenario's guaranteed controller aimed at each "
+          "set's reference, each leg from the last set's reference; lower bound: no input certified at EPS by the comparison bound "
+          "has psi in the set earlier, the sets in order)")
 
 
 def example_spec(folder: Path, kind: str, stages: int, edit=None) -> Path:
@@ -442,6 +472,7 @@ def main() -> int:
     ap.add_argument("--no-certificates", action="store_true", help="leave out the contraction-certificate table (issue 20)")
     ap.add_argument("--only-certificates", action="store_true", help="only the contraction-certificate table")
     ap.add_argument("--only-large", action="store_true", help="only the large-plant table (issue 44: ladder n = 16..512, small plants, in T0)")
+    ap.add_argument("--only-tasks", action="store_true", help="only the task table (issue 45: budget, governor, error-aware, lower bound)")
     ap.add_argument("--against", metavar="REV", help="only the closed loops, this tree against git revision REV, paired")
     ap.add_argument("--pairs", type=int, default=5, help="counted pairs of --against (after one warm-up pair)")
     args = ap.parse_args()
@@ -457,6 +488,10 @@ def main() -> int:
         return 0
 
     rows = []
+    if args.only_tasks:
+        with tempfile.TemporaryDirectory() as tmp:
+            print_tasks(task_rows(Path(tmp), args.timeout))
+        return 0
     if args.only_large:
         with tempfile.TemporaryDirectory() as tmp:
             print_large(*large_plants(Path(tmp), args.timeout))
@@ -519,9 +554,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         t0, large = large_plants(Path(tmp), args.timeout)
         terms = terms_rows(Path(tmp), args.timeout)
+        tasks = task_rows(Path(tmp), args.timeout)
     print_large(t0, large)
     print_terms(terms)
-    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs, "large": large, "t0": t0, "terms": terms}) + "\n")
+    print_tasks(tasks)
+    (ROOT / "bench" / "last.json").write_text(json.dumps({"rows": rows, "closed_loops": loops, "certificates": certs, "large": large, "t0": t0, "terms": terms,
+                                                         "tasks": tasks}) + "\n")
     return 0
 
 

@@ -117,3 +117,40 @@ def test_falsify_attacks_the_error_aware_plan_across_its_start_region(synthesize
     proc = ashc("falsify", str(SPEC), "--out", str(out), "--runs", "24", "--json", check=True)
     found = json.loads(proc.stdout)
     assert found["task_min_robustness"] >= 0 and found["task_start_region_W0"] > 0
+
+
+def test_the_lower_bound_lies_below_the_plans_entry_times(synthesized):
+    # psi of the plan enters each set (in order) no earlier than the abstraction's lower bound under the guarantee
+    _, entry, art = synthesized
+    v = art.values
+    lower = np.asarray(v["lower_bound_reach_times"], dtype=float)
+    assert entry["lower_bound_reach_times"] == pytest.approx(lower.tolist())
+    t, psi = np.asarray(v["plan/t"]), np.asarray(v["plan/psi"])[0]
+    start = 0.0
+    for k, r in enumerate(load_task().reach):
+        lo, hi = r.set[0]
+        entered = t[np.flatnonzero((psi >= lo) & (psi <= hi) & (t >= start))[0]]
+        assert 0 < lower[k] <= entered
+        start = entered + r.hold
+    # a longer leg or a tighter level takes longer
+    comp = error_plan.Comparison(a=1.0, eps=1.0, alpha_h=1.0, a0=0.0, w_cap=np.inf, v_cap=np.inf)
+    assert error_plan._time_for(2.0, comp, 1.0) > error_plan._time_for(1.0, comp, 1.0) > error_plan._time_for(1.0, comp, 4.0) > 0
+
+
+def load_task():
+    from ashc_cli.problem.spec import load_spec
+
+    return load_spec(SPEC).task
+
+
+HOVER = SPEC.with_name("hover_vehicle.yaml")
+
+
+def test_the_hover_vehicle_reaches_its_band_within_ten_seconds_certified(tmp_path):
+    proc = ashc("synthesize", str(HOVER), "--out", str(tmp_path / "o"), "--json", check=True)
+    entry = json.loads(proc.stdout)
+    assert entry["planner"] == "error_aware" and entry["certified_margin"] > 0 and entry["task"]["satisfied"]
+    assert entry["task"]["reach_times"][0] <= 10.0 and entry["lower_bound_reach_times"][0] <= entry["task"]["reach_times"][0]
+    budget = edited(HOVER, tmp_path, ("  xi0: [1.0]\n  always", "  xi0: [1.0]\n  planner: {kind: setpoint}\n  always"))
+    proc = ashc("synthesize", str(budget), "--out", str(tmp_path / "b"))
+    assert proc.returncode == 3 and "task.reach[0]: no tolerance makes the plan meet the task" in proc.stderr

@@ -36,7 +36,7 @@ from ashc_cli.numerics.proofs import PROVED, SAMPLED
 from ashc_cli.problem.model import compile_flat
 
 __all__ = ["ThetaTable", "Comparison", "theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
-           "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
+           "reach_lower_bounds", "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
 
 #: Periods of the plan over the task's horizon (the held table the plant runs has one input per period).
 PLAN_PERIODS = 1000
@@ -488,3 +488,90 @@ def fits(level: float, w0: float, comp: Comparison) -> bool:
     """
     return w0 < level and comp.a0 ** 2 / (comp.eps * comp.a) < level
 
+
+
+def reach_lower_bounds(model, up: dict[str, Artefact], table: ThetaTable, comp: Comparison, level: float, xi0: np.ndarray) -> np.ndarray:
+    """Per reach set, a time before which psi cannot enter it under any abstract input whose comparison bound stays below
+    ``level`` (every plan certified at EPS = sqrt(level / alpha_h) by this bound: the error-aware plans, and the budget's,
+    whose |v| <= v_max keeps (theta |v|)^2 / (eps a) <= alpha_h EPS^2), the reach sets met in order.
+
+    With phi_bar = 0, zeta(xi) = integral of theta(s) / |delta(s)| ds grows along a run at most as theta |v|, and over any
+    window of length s, (integral of theta |v|)^2 <= s integral of theta^2 v^2 <= s e^(a s) eps w <= s e^(a s) eps level
+    (Cauchy-Schwarz, and w >= the integral of e^(-a (t - r)) theta^2 v^2 / eps); so zeta moves at most ceil(T / s) D(s) in
+    a time T, D(s) = sqrt(s e^(a s) eps level), for every s.  With |v| <= v_max_certified as well, xi moves at most
+    |delta| v_max_certified.  Leg k runs from where leg k - 1's set is nearest (after its hold) to set k; the bounds add.
+    theta and delta are taken on the table's cells (theta the cell's bound, delta at its centre).
+
+    Parameters
+    ----------
+    model : Model
+        One abstract state, with a task.
+    up : dict of str to Artefact
+    table : ThetaTable
+    comp : Comparison
+    level : float
+    xi0 : ndarray (1,)
+
+    Returns
+    -------
+    ndarray (reaches,)
+        Seconds from the start; NaN where phi_bar is not 0 on V (a drift moves xi for free) or a set has no cell.
+    """
+    task = model.spec.task
+    n = table.theta.size
+    centres = table.lo + table.eta * (np.arange(n) + 0.5)
+    T = design_matrices(model, up, ("phi", "delta", "kappa"))
+    phi, delta, kappa = (_on_cells(model.numeric(T[k], list(model.xi))(centres), n) for k in ("phi", "delta", "kappa"))
+    out = np.full(len(task.reach), np.nan)
+    if np.any(np.abs(np.ravel(phi)) > 0):
+        return out
+    speed = np.abs(delta[0, 0])
+    zeta = np.r_[0.0, np.cumsum(table.theta / speed * table.eta)]         # at the cells' edges
+    xi_len = np.r_[0.0, np.cumsum(np.full(n, table.eta) / (speed * comp.v_cap))] if np.isfinite(comp.v_cap) else None
+    psi = kappa[:, 0, :]
+    at = int(np.clip(np.floor((float(xi0[0]) - table.lo) / table.eta), 0, n - 1))
+    here, now = np.array([at]), 0.0
+    for k, r in enumerate(task.reach):
+        box = np.asarray(r.set, dtype=float)
+        inside = np.flatnonzero(np.all((psi >= box[:, :1]) & (psi <= box[:, 1:]), axis=0))
+        if inside.size == 0:
+            return out
+        need = min(max(_time_for(_between(zeta, i, inside), comp, level), _between(xi_len, i, inside) if xi_len is not None else 0.0)
+                   for i in here)
+        now += need
+        out[k] = now
+        here, now = inside[[0, -1]], now + r.hold
+    return out
+
+
+def _on_cells(values, n: int) -> np.ndarray:
+    """A compiled matrix's values at n points as (rows, cols, n) (a constant entry comes back without the points' axis)."""
+    arr = np.asarray(values, dtype=float)
+    return np.broadcast_to(arr if arr.ndim == 3 and arr.shape[-1] == n else arr.reshape(arr.shape[:2] + (1,)), arr.shape[:2] + (n,))
+
+
+def _between(cum: np.ndarray, i: int, cells: np.ndarray) -> float:
+    """The distance (by the cumulative measure ``cum`` at the cells' edges) from cell i to the nearest of ``cells``, edge
+    to edge: 0 when i is one of them (no more than the distance between any of their points)."""
+    lo, hi = int(cells.min()), int(cells.max())
+    if i < lo:
+        return float(cum[lo] - cum[i + 1])
+    if i > hi:
+        return float(cum[i] - cum[hi + 1])
+    return 0.0
+
+
+def _time_for(distance: float, comp: Comparison, level: float) -> float:
+    """The least T with distance <= min over s of ceil(T / s) D(s), D(s) = sqrt(s e^(a s) eps level) (bisection)."""
+    if distance <= 0:
+        return 0.0
+    s = np.geomspace(1e-4, 20.0, 400) / comp.a
+    D = np.sqrt(s * np.exp(comp.a * s) * comp.eps * level)
+    reach = lambda T: float(np.min(np.ceil(T / s) * D))      # noqa: E731 (nondecreasing in T)
+    lo, hi = 0.0, 1.0
+    while reach(hi) < distance:
+        hi *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if reach(mid) < distance else (lo, mid)
+    return lo

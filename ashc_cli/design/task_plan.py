@@ -46,7 +46,8 @@ from ashc_cli.design.artefacts import Artefact
 from ashc_cli.numerics.grid_games import route
 from ashc_cli.errors import DesignError, SpecError
 
-__all__ = ["TaskPlan", "plan_task", "start_region", "segments", "on_the_plant", "task_run", "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
+__all__ = ["TaskPlan", "plan_task", "reach_references", "error_aware_plan", "start_region", "segments", "on_the_plant", "task_run",
+           "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
 
 #: Tolerances EPS tried, spread geometrically below the largest that leaves every reach set non-empty.
 EPS_CANDIDATES = 12
@@ -189,6 +190,27 @@ def _reference(model, plant: DesignTerms, box, where: str) -> np.ndarray:
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
     deep = minimize_scalar(lambda x: -_depth(plant, box, x), bounds=(a, b), method="bounded", options={"xatol": 1e-12})
     return np.array([deep.x if -deep.fun >= depth[k] else grid[k]])
+
+
+def reach_references(model, plant: DesignTerms) -> list[np.ndarray]:
+    """The reference state of each reach set of the task (one abstract state): where kappa is the set's centre, or the
+    point of the curve psi = kappa(xi) deepest in it.
+
+    Parameters
+    ----------
+    model : Model
+    plant : DesignTerms
+
+    Returns
+    -------
+    list of ndarray (1,)
+
+    Raises
+    ------
+    DesignError
+        Naming ``task.reach[k].set`` when no output of the abstraction meets it.
+    """
+    return [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(model.spec.task.reach)]
 
 
 def _depth(plant: DesignTerms, box, x: float) -> float:
@@ -354,7 +376,7 @@ def _budget_then_grid(model, plant: DesignTerms, up: dict[str, Artefact], start:
 def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple, deflate: bool) -> TaskPlan:
     """The set-point plan (the module's docstring): EPS searched, the largest certified margin kept."""
     task = model.spec.task
-    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
+    refs = reach_references(model, plant)
     tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
     gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
     half = _half(task)
@@ -409,7 +431,7 @@ def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: 
     if model.n_hat != 1:
         raise DesignError("task.planner.kind", f"error_aware plans on one abstract state, this design has {model.n_hat}", "task.planner: {kind: grid}")
     xi0, x0, W0 = start
-    refs = [_reference(model, plant, r.set, f"task.reach[{k}].set") for k, r in enumerate(task.reach)]
+    refs = reach_references(model, plant)
     tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
     gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
     table, comp = error_plan.theta_table(model, up), error_plan.comparison(up)

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ashc_cli.closedloop.terms import DesignTerms
-from ashc_cli.design import task_plan
+from ashc_cli.design import error_plan, task_plan
 from ashc_cli.design.artefacts import Artefact, Check, write_artefact
 from ashc_cli.errors import SpecError
 from ashc_cli.numerics.grid_games import ROUTE_SLACK
@@ -54,7 +54,12 @@ def synthesize(model, up: dict[str, Artefact]) -> Artefact:
     plan = task_plan.plan_task(model, up, plant=plant)
     res = task_plan.task_run(model, plant, up, plan)
     plan, run = task_plan.on_the_plant(model, plant, plan, res)
-    return store(plan, run, up)
+    art = store(plan, run, up)
+    if model.n_hat == 1:
+        comp = error_plan.comparison(up)
+        level = comp.alpha_h * plan.eps ** 2
+        art.values["lower_bound_reach_times"] = error_plan.reach_lower_bounds(model, up, error_plan.theta_table(model, up), comp, level, plan.xi0)
+    return art
 
 
 def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artefact:
@@ -274,6 +279,7 @@ def summarise(art: Artefact) -> dict:
     return {"tolerance": float(v["tolerance"]), "v_max": float(v["v_max"]), "certified_margin": float(v["certified_margin"]),
             "planner": art.meta.get("planner", "setpoint"), "margin_evidence": art.checks["task_certified"].evidence,
             "plan_robustness": float(v["plan_robustness"]), "switch_times": np.asarray(v["switch_times"]).tolist(),
+            "lower_bound_reach_times": np.asarray(v.get("lower_bound_reach_times", []), dtype=float).tolist(),
             "task": {"robustness": float(v["task/robustness"]), "satisfied": bool(v["task/satisfied"]),
                      "reach_times": np.asarray(v["task/reach_times"]).tolist(), "parts": parts}}
 
