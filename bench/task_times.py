@@ -5,7 +5,7 @@ lower bound under the guarantee, all at the error-aware plan's tolerance EPS.
 * error-aware: the plan of `ashc synthesize` (task.planner: error_aware) run on the plant; the time from which y stays
   in reach[k] for its hold (the task monitor's reach time);
 * budget and governor: the guaranteed controller of the tracking scenario at the same EPS (budget: v_max =
-  (EPS - sqrt(W0 / alpha_h)) / G; governor: w <= alpha_h EPS^2), aimed at each set's reference and held until y is
+  (EPS - sqrt(W0 / alpha_h)) / G with G fitted to the task as synthesize fits it; governor: w <= alpha_h EPS^2), aimed at each set's reference and held until y is
   within the set's half-width of its centre (``runner.reach_times``); a leg starts on the manifold at the previous
   set's reference (settled), the hold added between legs;
 * lower bound: :func:`ashc_cli.design.error_plan.reach_lower_bounds` (no input certified at EPS by the comparison
@@ -55,9 +55,10 @@ def times(spec_path: Path, folder: Path) -> dict:
     bd, lam = arts["bound"].values, float(arts["stabilise"].value("lambda"))
     gain = float(getattr(getattr(spec.simulate.tracking, "abstract_controller", None), "gain", task_plan.DEFAULT_GAIN) or task_plan.DEFAULT_GAIN) \
         if spec.simulate is not None and spec.simulate.tracking is not None else task_plan.DEFAULT_GAIN
+    fit = task_plan.fitted_gain(model, arts, plan.xi0, refs)       # the budget's G on the part of V the task keeps to, as synthesize's
     for mode in ("budget", "governor"):
         try:
-            g = guaranteed.guaranteed_plan(plan.eps, mode, plan.W0, arts)
+            g = guaranteed.guaranteed_plan(plan.eps, mode, plan.W0, arts, gain=fit[0] if fit is not None and mode == "budget" else None)
         except DesignError as exc:
             row[mode] = f"refused: {exc.what}"
             continue

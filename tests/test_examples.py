@@ -154,7 +154,7 @@ def test_ashc_example_lists_and_writes_a_shipped_spec(tmp_path):
     # rc_ladder without --stages is the shipped 5-node spec; with it, the family
     assert "name: rc_ladder\n" in ashc("example", "rc_ladder", check=True).stdout
     assert "rc_ladder_3" in ashc("example", "rc_ladder", "--stages", "3", check=True).stdout
-    for args, message in ((["cu"], "error: KIND: 'cu' names 3 shipped specs"), (["nothing"], "error: KIND: 'nothing' is no example"),
+    for args, message in ((["cu"], "error: KIND: 'cu' names 4 shipped specs"), (["nothing"], "error: KIND: 'nothing' is no example"),
                           (["cuk", "--stages", "2"], "error: --stages: 2; expected no --stages for a shipped spec")):
         proc = ashc("example", *args)
         assert proc.returncode == 2 and proc.stderr.startswith(message), (args, proc.stderr)

@@ -37,7 +37,11 @@ def test_the_cuk_task_is_certified_and_met_on_the_plant(synthesized):
     # Theorem 2 in the budget mode: the plant's output stays within EPS of psi, so its robustness is at least psi's less EPS
     assert v["run/max_abs_error"] <= eps
     assert entry["task"]["robustness"] >= entry["plan_robustness"] - eps - float(v["plan_deviation"]) - float(v["sampling_margin"])
-    assert entry["v_max"] == pytest.approx(eps / float(read_artefact(synthesized[0] / "bound.h5").value("gain")), rel=1e-9)
+    # the budget's G is fitted to the part of V the plan keeps to (dbar over it, from theta's proved table): below the bound's
+    G, G_V = float(v["gain_G"]), float(read_artefact(synthesized[0] / "bound.h5").value("gain"))
+    assert entry["v_max"] == pytest.approx(eps / G, rel=1e-9) and G < G_V
+    lo, hi = v["fitted_V"]
+    assert np.all((np.asarray(v["plan/xi"]) >= lo) & (np.asarray(v["plan/xi"]) <= hi))
     # each reach's deepest hold window lies within its deadline, and the figure is drawn
     assert all(s <= r.by for s, r in zip(v["task/best_hold_starts"], load_spec(TASK_SPEC).task.reach))
     assert (synthesized[0] / "plots" / "synthesize.png").stat().st_size > 10_000
@@ -60,7 +64,7 @@ def test_rtamt_agrees_with_the_stored_runs_robustness(synthesized):
 
 
 def test_a_deadline_no_admissible_v_meets_is_refused_with_the_part(tmp_path):
-    late = edited(TASK_SPEC, tmp_path, ("by: 250.0", "by: 60.0"))
+    late = edited(TASK_SPEC, tmp_path, ("by: 250.0", "by: 8.0"))
     proc = ashc("synthesize", str(late), "--out", str(tmp_path / "o"))
     assert proc.returncode == 3
     line = proc.stderr.strip().splitlines()[-1]
@@ -104,6 +108,7 @@ task:
   reach:
     - {set: [[LO, HI]], by: 8.0, hold: 2.0}
   xi0: [0.0]
+  planner: {kind: setpoint}
 """
 
 
@@ -157,7 +162,8 @@ def test_a_task_certified_with_its_disturbance_holds_with_w_at_the_vertices(tmp_
     spec, arts, art = _synthesized(_task_spec(0.05, 0.5, 1.3), tmp_path)
     term = float(arts["bound"].values["disturbance_term"])
     assert art.checks["task_certified"].passed and art.values["tolerance"] >= term > 0
-    assert art.values["v_max"] == pytest.approx((art.values["tolerance"] - term) / float(arts["bound"].values["gain"]), rel=1e-9)
+    G = float(art.values.get("gain_G", arts["bound"].values["gain"]))
+    assert art.values["v_max"] == pytest.approx((art.values["tolerance"] - term) / G, rel=1e-9)
     worst = min(_plan_on_the_disturbed_plant(spec, art, w) for w in (-0.05, 0.0, 0.05))
     assert worst >= float(art.values["certified_margin"]) >= 0
 
@@ -175,9 +181,9 @@ def test_falsify_attacks_the_task_with_the_disturbance_at_its_vertices(tmp_path,
 
     honest = guaranteed.guaranteed_plan
 
-    def without_disturbance(tolerance, mode, W0, up):
+    def without_disturbance(tolerance, mode, W0, up, gain=None):
         values = {k: v for k, v in up["bound"].values.items() if k not in ("disturbance_term", "v_max_certified_with_w")}
-        return honest(tolerance, mode, W0, {**up, "bound": SimpleNamespace(values=values)})
+        return honest(tolerance, mode, W0, {**up, "bound": SimpleNamespace(values=values)}, gain=gain)
 
     monkeypatch.setattr(guaranteed, "guaranteed_plan", without_disturbance)
     _, art = run_falsify(parse_spec_text(_task_spec(0.3, 0.1, 0.3)), tmp_path / "faulty", 4, 0, 2.0)

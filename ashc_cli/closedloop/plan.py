@@ -125,7 +125,7 @@ class GuaranteedPlan:
         return Law("governor", gain, v_certified / root, self.governor_level, GOVERNOR_RATE * (lam - eps))
 
 
-def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> GuaranteedPlan:
+def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict, gain: float | None = None) -> GuaranteedPlan:
     """Budget and governor of a guaranteed controller for a start with W(xi0, x0) = W0.
 
     Budget (eq. (9) with the uniform bound of Theorem 2, eqs. (8) and (38)): the largest v_max with
@@ -148,6 +148,9 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
         W(xi0, x0).
     up : dict
         The design's artefacts (``bound`` is read).
+    gain : float, optional
+        G to use instead of the bound stage's: G with dbar taken over the part of V a plan keeps to (a task's plan,
+        :func:`ashc_cli.design.task_plan.plan_task`) [default: ``bound.gain``].
 
     Returns
     -------
@@ -160,7 +163,7 @@ def guaranteed_plan(tolerance: float, mode: str, W0: float, up: dict) -> Guarant
         can be met, when the mode asked for (``auto``: either) cannot certify EPS from this start.
     """
     bd = up["bound"].values
-    alpha_h, G = float(bd["alpha_h"]), float(bd["gain"])
+    alpha_h, G = float(bd["alpha_h"]), float(bd["gain"]) if gain is None else float(gain)
     w0_max = float(bd.get("w0_max_certified", np.inf))
     v_cert = float(bd.get("v_max_certified", np.inf))
     start = float(np.sqrt(max(W0, 0.0) / alpha_h))          # sqrt(W0 / alpha_h), the first term of eq. (9) at t = 0

@@ -40,13 +40,13 @@ from ashc_cli.closedloop import plan as guaranteed
 from ashc_cli.closedloop import runner
 from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
-from ashc_cli.closedloop.terms import DesignTerms
+from ashc_cli.closedloop.terms import DesignTerms, design_matrices
 from ashc_cli.design import error_plan, grid_plan
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.numerics.grid_games import route
 from ashc_cli.errors import DesignError, SpecError
 
-__all__ = ["TaskPlan", "plan_task", "reach_references", "error_aware_plan", "start_region", "segments", "on_the_plant", "task_run",
+__all__ = ["TaskPlan", "plan_task", "reach_references", "fitted_gain", "error_aware_plan", "start_region", "segments", "on_the_plant", "task_run",
            "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
 
 #: Tolerances EPS tried, spread geometrically below the largest that leaves every reach set non-empty.
@@ -102,6 +102,14 @@ class TaskPlan:
         tests and ``falsify``'s self-check).
     tried : list of (float, float)
         (EPS, certified margin) of each tolerance tried.
+    planner : str
+        ``setpoint`` (the budget), ``error_aware`` or ``grid``.
+    gain_G : float
+        The budget's G (the set-point plan): with dbar over ``fitted`` when that is set, else the bound stage's.
+    fitted : tuple
+        (lo, hi): the part of V the set-point plan keeps to and over which its G's dbar is taken; () for all of V.
+    w, w_level : ndarray (N,), float
+        Error-aware planning: the comparison bound along the plan and the level it keeps below (alpha_h EPS^2).
     """
 
     xi0: np.ndarray
@@ -132,6 +140,8 @@ class TaskPlan:
     theta_evidence: str = ""
     aims: list = field(default_factory=list)
     theta_cell: float = float("nan")
+    gain_G: float = float("nan")
+    fitted: tuple = ()
 
     @property
     def proved(self) -> bool:
@@ -281,12 +291,13 @@ def _integrate(model, plant: DesignTerms, task, xi0: np.ndarray, refs: list[np.n
     return t, xi, psi, v_run, switches
 
 
-def _try(model, plant, up, start, refs, gain, eps, deflate: bool) -> TaskPlan | None:
-    """One tolerance: the budget's v_max, the plan, psi's robustness and the certified margin (None if refused)."""
+def _try(model, plant, up, start, refs, gain, eps, deflate: bool, fit: tuple | None = None) -> TaskPlan | None:
+    """One tolerance: the budget's v_max, the plan, psi's robustness and the certified margin (None if refused).
+    ``fit`` = (G, lo, hi): the budget's G with dbar over [lo, hi] only, the plan then kept to that interval."""
     task = model.spec.task
     xi0, x0, W0 = start
     try:
-        budget = guaranteed.guaranteed_plan(float(eps), "budget", W0, up)
+        budget = guaranteed.guaranteed_plan(float(eps), "budget", W0, up, gain=None if fit is None else fit[0])
     except DesignError:
         return None
     v_max = budget.budget_v_max / np.sqrt(model.m_hat)        # elementwise clip within the 2-norm budget
@@ -295,8 +306,11 @@ def _try(model, plant, up, start, refs, gain, eps, deflate: bool) -> TaskPlan | 
     margin = float(np.abs(np.diff(psi, axis=1)).max()) if t.size > 1 else 0.0     # max |dpsi/dt| times dt
     rob = robustness(task, t, psi)
     in_V = bool(np.all((xi >= model.V[:, :1] - 1e-12) & (xi <= model.V[:, 1:] + 1e-12)))
+    if fit is not None:         # G's dbar holds on [lo, hi] (its table's cells, a cell more each side): the plan must keep to it
+        in_V = in_V and bool(np.all((xi >= fit[1]) & (xi <= fit[2])))
     certified = float(rob.robustness - eps - margin) if in_V else -np.inf
-    return TaskPlan(xi0, x0, W0, refs, gain, eps, float(v_max), t, xi, psi, v, switches, rob, margin, certified, in_V, deflate)
+    return TaskPlan(xi0, x0, W0, refs, gain, eps, float(v_max), t, xi, psi, v, switches, rob, margin, certified, in_V, deflate,
+                    gain_G=float(budget.gain_G), fitted=() if fit is None else (float(fit[1]), float(fit[2])))
 
 
 def plan_task(model, up: dict[str, Artefact], *, deflate: bool = True, plant: DesignTerms | None = None) -> TaskPlan:
@@ -379,8 +393,12 @@ def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
     refs = reach_references(model, plant)
     tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
     gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
+    # the plan's RK4 resolves the law only while gain * step <= 1 (beyond, xi chatters about the reference, and the
+    # plant's loop, which integrates the same law adaptively, drifts from the plan): the plan and the loop use that gain
+    gain = min(gain, PLAN_STEPS / task.horizon)
     half = _half(task)
-    tried = [_try(model, plant, up, start, refs, gain, e, deflate) for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES)]
+    fit = fitted_gain(model, up, start[0], refs)
+    tried = [_try(model, plant, up, start, refs, gain, e, deflate, fit) for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES)]
     tried = [r for r in tried if r is not None]
     if not tried:
         raise DesignError("task", f"no tolerance below {half:.4g} (half the narrowest set) is certified from this start (W0 = {start[2]:.4g})",
@@ -397,9 +415,40 @@ def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
     if not deflate:
         # the planted controller keeps the synthesised one's tolerance and v_max: only its switches differ
         kept = _setpoint_plan(model, plant, up, start, True)
-        best = _try(model, plant, up, start, refs, gain, kept.eps, deflate=False)
+        best = _try(model, plant, up, start, refs, gain, kept.eps, False, fit)
     best.tried = [(r.eps, r.certified) for r in tried]
     return best
+
+
+def fitted_gain(model, up: dict[str, Artefact], xi0: np.ndarray, refs: list) -> tuple | None:
+    """The budget's gain fitted to the task: G with dbar over the part of V between the start and the reach sets'
+    references (the set-point law aimed at them keeps xi there when phi_bar = 0), from theta's proved table
+    (:func:`ashc_cli.design.error_plan.theta_table`: each cell's bound, a cell more each side).
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+    xi0 : ndarray (1,)
+    refs : list of ndarray (1,)
+        The reach sets' references (:func:`reach_references`).
+
+    Returns
+    -------
+    tuple or None
+        (G, lo, hi); None with a drift (phi_bar != 0) or where that G is no smaller than the bound stage's.
+    """
+    bd = up["bound"].values
+    dbar, G = float(bd["dbar"]), float(bd["gain"])
+    if any(e != 0 for e in design_matrices(model, up, ("phi",))["phi"]):        # a drift can carry xi past the references
+        return None
+    table = error_plan.theta_table(model, up)
+    points = [float(xi0[0])] + [float(r[0]) for r in refs]
+    lo, hi = max(min(points), table.lo), min(max(points), table.lo + table.eta * table.theta.size)
+    local = table.over(lo, hi)
+    if not (dbar > 0 and local < dbar):
+        return None
+    return G * local / dbar, lo, hi
 
 
 def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple) -> TaskPlan:
@@ -696,6 +745,7 @@ def start_region(plan: TaskPlan, up: dict[str, Artefact]) -> float:
         room = min(alpha_h * plan.certified ** 2, float(bd.get("w0_max_certified", np.inf)) - float(np.max(plan.w)))
         return float(plan.W0 + max(room, 0.0))
     # rho_psi - margin - deviation - G |v|_2 - G_w ||w||_inf (the disturbance's term at its bound, when the spec has one)
+    G = plan.gain_G if np.isfinite(plan.gain_G) else G         # the plan's G (dbar over the part of V it keeps to)
     room = plan.certified + plan.eps - G * plan.v_max * np.sqrt(plan.v.shape[0]) - float(bd.get("disturbance_term", 0.0)) - float(bd.get("residual_term", 0.0))
     if not room > 0:
         return 0.0

@@ -103,8 +103,12 @@ def store(plan: task_plan.TaskPlan, run: dict, up: dict[str, Artefact]) -> Artef
     elif plan.planner == "error_aware":
         _store_error_aware(art, plan, run)
     else:
+        fitted = (f", G = {plan.gain_G:.5g} with dbar over xi in [{plan.fitted[0]:.6g}, {plan.fitted[1]:.6g}], the part of V the plan keeps to"
+                  if plan.fitted else "")
+        if plan.fitted:
+            art.values.update({"gain_G": plan.gain_G, "fitted_V": np.array(plan.fitted, dtype=float)})
         art.checks["task_certified"] = Check(plan.certified, plan.certified >= 0,
-                                             f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38)), "
+                                             f"psi's robustness on the plan {plan.rob.robustness:.4g} less EPS = {plan.eps:.4g} (budget mode, eq. (38){fitted}), "
                                              f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction "
                                              f"{run['deviation']:.2g} (>= 0: every plant run meets the task; sampled in time)", SAMPLED)
     art.checks["task_met_on_the_plant"] = Check(run["robustness"], bool(run["satisfied"]),
@@ -305,5 +309,7 @@ def headline(art: Artefact) -> str:
         proved = "proved" if art.checks["task_certified"].passed else "NOT proved"
         return (f"EPS = {float(v['tolerance']):.4g} (v_max = {float(v['v_max']):.4g}): the grid planner's table ({' x '.join(map(str, art.meta['grid_cells']))} "
                 f"cells, tau = {float(v['grid/tau']):.4g} s) wins from the start, margin >= 0 {proved}; on the plant {met}, robustness {float(v['task/robustness']):.4g}")
-    return (f"EPS = {float(v['tolerance']):.4g} (v_max = {float(v['v_max']):.4g}): task certified with margin "
+    fitted = (f", G = {float(v['gain_G']):.4g} on xi in [{float(v['fitted_V'][0]):.4g}, {float(v['fitted_V'][1]):.4g}], where the plan goes"
+              if "gain_G" in v else "")
+    return (f"EPS = {float(v['tolerance']):.4g} (budget: v_max = {float(v['v_max']):.4g}{fitted}): task certified with margin "
             f"{float(v['certified_margin']):.4g}; on the plant {met}, robustness {float(v['task/robustness']):.4g}")
