@@ -209,9 +209,10 @@ def _task_section(task, arts: dict[str, Artefact]) -> str:
     parts = {k.split("/", 2)[2]: float(x) for k, x in v.items() if k.startswith("task/parts/")}
     reach = ", ".join(f"reach[{k}] {'never' if not np.isfinite(x) else readable(float(x), 5) + ' s'}"
                       for k, x in enumerate(np.atleast_1d(v["task/reach_times"])))
-    out = ["<p>Not part of Problem 1's verdict: the task is solved on the abstraction by the synthesised plan (the set-point "
-           "law or the grid planner's table, in the budget mode of the guaranteed controller, eq. (38)), which keeps |psi - y| &lt;= EPS, so a psi that meets "
-           "the task deflated by EPS is a plant that meets it as stated.</p>",
+    out = ["<p>Not part of Problem 1's verdict: the task is solved on the abstraction by the synthesised plan (error-aware planning, "
+           "the set-point law in the budget mode of the guaranteed controller, eq. (38), or the grid planner's table), which keeps |psi - y| &lt;= EPS "
+           "(error-aware: &lt;= sqrt(w(t) / alpha_h) &lt;= EPS, w the comparison bound it carries), so a psi that meets "
+           "the task deflated so is a plant that meets it as stated.</p>",
            "<table class='wide'><tr><th>part</th><th>as stated</th><th>as deflated by EPS (psi's task)</th></tr>",
            *_task_rows(task, eps), "</table><table class='wide'>",
            f"<tr><th>EPS (tolerance), v_max</th><td>{readable(eps, 5)}, {readable(float(v['task/v_max']), 5)}</td></tr>",
