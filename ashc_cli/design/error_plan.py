@@ -35,7 +35,7 @@ from ashc_cli.numerics import interval, proofs
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
 from ashc_cli.problem.model import compile_flat
 
-__all__ = ["ThetaTable", "Comparison", "theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
+__all__ = ["ThetaTable", "Comparison", "theta_table", "build_theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
            "reach_lower_bounds", "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
 
 #: Periods of the plan over the task's horizon (the held table the plant runs has one input per period).
@@ -202,7 +202,36 @@ def _dp_delta(model, up: dict[str, Artefact]):
     return up["bound"].expr("dp_delta")
 
 
+#: Tables already built in this process, by (bound artefact, cells): a plan, its fallback and synthesize's lower bound
+#: read the same one (at hundreds of states a table takes a minute of ball arithmetic).
+_TABLES: dict = {}
+
+
 def theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) -> ThetaTable:
+    """:func:`build_theta_table`, kept per bound artefact (by its sha256, once it was read or written).
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+    cells : int
+
+    Returns
+    -------
+    ThetaTable
+    """
+    sha = up["bound"].provenance.get("sha256")
+    if not sha:                 # an artefact never written has no name to keep its table by
+        return build_theta_table(model, up, cells)
+    key = (sha, cells, tuple(np.asarray(model.V, dtype=float).ravel()))
+    if key not in _TABLES:
+        if len(_TABLES) >= 8:
+            _TABLES.clear()
+        _TABLES[key] = build_theta_table(model, up, cells)
+    return _TABLES[key]
+
+
+def build_theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) -> ThetaTable:
     """:class:`ThetaTable` of a design with one abstract state.
 
     theta bounds |L^T r| / |v| only where the bound stage's dbar is the q = 0 value (its ``dbar_how``: then the q = 0
