@@ -169,3 +169,51 @@ def test_an_error_aware_plan_counts_the_disturbance_and_holds_with_w_at_the_vert
     comp = error_plan.comparison(arts)
     assert comp.a0 == pytest.approx(float(arts["bound"].values["ebar"]) * 0.05) and comp.a0 > 0
     assert min(_plan_on_the_disturbed_plant(spec, art, w) for w in (-0.05, 0.0, 0.05)) >= 0
+
+
+PATTERN = """
+name: two_inputs_clipped
+concrete:
+  states: [x1, x2]
+  inputs: [u1, u2]
+  f_bar: ["-3*x1 - 3*x2", "-x1 - 2*x2"]
+  g: [["1", "0"], ["0", "1"]]
+  h: ["x2"]
+  input_bounds: [[0, 0.8], [-5, 5]]
+  output_set: [[0, 1]]
+stabilisability:
+  method: given
+  decay_rate: 0.55
+  feedback: identity
+  M: [[1.0, 0.9], [0.9, 1.0]]
+abstract:
+  states: [xi]
+  inputs: [v]
+  phi_bar: ["0"]
+  l: ["0.75*xi**8", "xi + 0.25*xi**8"]
+  p: ["-xi + 0.25*xi**8", "xi"]
+  domain: [[0, 1]]
+  delta: identity
+interface: {q: least_squares, saturate: true}
+task:
+  horizon: 300.0
+  xi0: [0.02]
+  always: [[-0.5, 1.5]]
+  reach:
+    - {set: [[0.45, 0.95]], by: 250.0, hold: 1.0}
+"""
+
+
+def test_two_inputs_clipped_channel_by_channel_keep_dbar_on_every_cell(tmp_path):
+    # An attack found this: l1 sits on U1's lower edge, so q1 v is clipped for the whole climb, and with one channel
+    # clipped |L^T r| / |v| is 1.0 where the q = 0 value is 0.447 (while the patterns' sup equals dbar_q0, so the bound
+    # stage's dbar is dbar_q0).  theta's table is dbar on every cell there, and the plant run's own w stays below the plan's.
+    from .test_synthesize import _synthesized
+
+    spec, arts, art = _synthesized(PATTERN, tmp_path)
+    from ashc_cli.design.pipeline import design_model
+
+    table = error_plan.build_theta_table(design_model(spec, arts), arts)
+    assert np.all(table.theta == float(arts["bound"].values["dbar"])) and "clipping patterns" in table.how
+    assert art.meta["planner"] == "error_aware" and art.checks["task_certified"].passed
+    assert art.checks["w_within_plan"].passed and float(art.values["w_over_plan"]) <= 0.0

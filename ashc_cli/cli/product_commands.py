@@ -243,8 +243,8 @@ def synthesize(spec: SpecArg, out: OutOpt = None, as_json: JsonOpt = False,
                f"{'met' if task['satisfied'] else 'NOT met'}, robustness {number_text(task['robustness'], '.4g')}, reach times [{times}] s")
     lower = entry.get("lower_bound_reach_times") or []
     if lower and np.all(np.isfinite(lower)):
-        typer.echo(f"  no input certified at this EPS by the comparison bound reaches the sets before [{', '.join(f'{x:.4g}' for x in lower)}] s "
-                   "(the abstraction's speed under the guarantee)")
+        typer.echo(f"  no input certified at this EPS by the comparison bound meets the reach sets in order before [{', '.join(f'{x:.4g}' for x in lower)}] s "
+                   "(the abstraction's speed under the guarantee; the plan meets them in order)")
 
 
 @app.command(short_help=SHORT_HELP["report"])

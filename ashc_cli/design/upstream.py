@@ -17,6 +17,26 @@ from ashc_cli.problem.expr import parse_expression
 from ashc_cli.problem.model import TIME, Model
 
 
+def theta_is_pointwise(model: Model) -> bool:
+    """Whether ||L^T dp/dxi delta(xi)|| (theta with q = 0) bounds |L^T r| / |v| at every xi, state and factor the
+    interface applies: q = 0; no channel-by-channel clipping of several inputs (one input, ``saturate: scale`` or
+    ``false``), where the least-squares q never does worse than q = 0 and the factor enters affinely; or a feedback
+    design, inside its region where nothing clips.  Otherwise (several inputs clipped channel by channel) theta of a
+    clipping pattern can exceed it, and the bound stage's dbar is the sup over the patterns (the bound stage and the
+    error-aware plan both read this).
+
+    Parameters
+    ----------
+    model : Model
+
+    Returns
+    -------
+    bool
+    """
+    itf = model.spec.interface
+    return itf.q == "zero" or itf.saturate is not True or model.m == 1 or model.spec.stabilisability.feedback == "linear_gain"
+
+
 def p_function(man: Artefact, model: Model):
     """p(xi) for numpy, like :func:`ashc_cli.problem.model.lambdify` (one array per abstract state, values (n, 1, ...)):
     the stored series when p was kept numeric, else p's formula compiled.

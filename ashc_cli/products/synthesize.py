@@ -17,7 +17,7 @@ import numpy as np
 from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design import error_plan, task_plan
 from ashc_cli.design.artefacts import Artefact, Check, write_artefact
-from ashc_cli.errors import SpecError
+from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.numerics.grid_games import ROUTE_SLACK
 from ashc_cli.numerics.proofs import PROVED, SAMPLED, SIMULATED
 from ashc_cli.problem.spec import Spec
@@ -55,6 +55,11 @@ def synthesize(model, up: dict[str, Artefact]) -> Artefact:
     res = task_plan.task_run(model, plant, up, plan)
     plan, run = task_plan.on_the_plant(model, plant, plan, res)
     art = store(plan, run, up)
+    if "w_within_plan" in art.checks and not art.checks["w_within_plan"].passed:
+        # the claim's hypothesis failed on the plan's own run: no certificate (exit 3, nothing written)
+        raise DesignError("task", f"the plant run of the error-aware plan breaks its hypothesis: its comparison w exceeds the plan's bound by "
+                          f"{run['w_over_plan']:.3g} (or its xi left the plan's by {run['xi_deviation']:.3g}, more than a cell of theta's table): "
+                          "theta(xi) |v| does not bound what the interface did", "task.planner: {kind: setpoint} (the budget's plan)")
     if model.n_hat == 1 and plan.planner != "grid":       # (the grid's table is its own proof; theta's table costs a minute at n = 512)
         comp = error_plan.comparison(up)
         level = comp.alpha_h * plan.eps ** 2

@@ -49,7 +49,7 @@ from ashc_cli.numerics.proofs import PROVED, SAMPLED
 from ashc_cli.errors import DesignError, SpecError
 from ashc_cli.problem.grids import domain_grid, maximise_on_box
 from ashc_cli.problem.model import Model
-from ashc_cli.design.upstream import dp_function, p_function
+from ashc_cli.design.upstream import dp_function, p_function, theta_is_pointwise
 from ashc_cli.numerics.linalg import least_squares_q, sqrt_M_times
 
 #: The most inputs whose 2^m clipping patterns are enumerated for ``saturate: true``.
@@ -191,9 +191,7 @@ def _interface_dbar(model: Model, L: np.ndarray, dpd_grid: np.ndarray, dbar_q0: 
     how : str
         Why (shown in the artefact and by ``ashc check``).
     """
-    itf = model.spec.interface
-    feedback = model.spec.stabilisability.feedback
-    if itf.q == "zero" or itf.saturate is not True or model.m == 1 or feedback == "linear_gain":
+    if theta_is_pointwise(model):
         return dbar_q0, ("q = 0 value: bounds the least-squares q pointwise and every saturation factor of one input, "
                          "of the scaled correction (saturate: scale) and of the unsaturated region of a feedback design")
     g = _constant_g(model)

@@ -334,6 +334,11 @@ def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple
     checks = {"task_met_on_the_plant": Check(values["robustness"], bool(values["satisfied"]),
                                              f"the task's robustness on the plant's run of the synthesised plan (>= 0; max |psi - y| = "
                                              f"{values['max_abs_error']:.3g} <= EPS = {plan.eps:.4g})", SIMULATED)}
+    if plan.w is not None:          # error-aware planning: the claim's hypothesis on this run (docs/guaranteed.md)
+        ok = bool(values["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0) and values["xi_deviation"] <= plan.theta_cell)
+        checks["task_w_within_plan"] = Check(values["w_over_plan"], ok, "the run's comparison w less the error-aware plan's bound at each sample "
+                                             f"(<= 0), its xi within {values['xi_deviation']:.2g} of the plan's (<= a cell of theta's table, "
+                                             f"{plan.theta_cell:.3g})", SIMULATED)
     return out, checks
 
 
