@@ -75,7 +75,8 @@ class ThetaTable:
     evidence: str
 
     def over_many(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """:meth:`over` of each pair (a_i, b_i) at once (a sparse table of maxima over ranges of cells)."""
+        """:meth:`over` of each pair (a_i, b_i) at once (a sparse table of maxima over ranges of cells; dbar where a pair
+        is not finite or its widened range leaves V by more than the one cell of widening)."""
         a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
         n = self.theta.size
         out = np.full(a.shape, self.dbar)
@@ -117,14 +118,7 @@ class ThetaTable:
         -------
         float
         """
-        n = self.theta.size
-        if not np.isfinite(a + b):
-            return self.dbar
-        i = int(np.floor((min(a, b) - self.lo) / self.eta)) - 1
-        k = int(np.floor((max(a, b) - self.lo) / self.eta)) + 1
-        if i < -1 or k > n:
-            return self.dbar
-        return float(self.theta[max(i, 0):min(k, n - 1) + 1].max())
+        return float(self.over_many(np.array([a], dtype=float), np.array([b], dtype=float))[0])
 
 
 @dataclass(frozen=True)
