@@ -330,7 +330,7 @@ def task_plan_export(spec: Spec, arts: Mapping[str, Artefact], stored: Artefact 
 def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], point: Mapping[str, float]) -> tuple[str, list[float]]:
     """The plan at a point, with the tool's own numerics (``ashc eval DIR plan``): its reference xi_ref(t) at ``t``
     alone; with the abstract state too, the abstract input v(t, xi) of its set-point law (the exported
-    ``ashc_plan_controller``).
+    ``ashc_plan_controller``); a table of held inputs (law ``held``) gives the period's input v_held(t) either way.
 
     Parameters
     ----------
@@ -343,7 +343,7 @@ def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], p
     Returns
     -------
     what : str
-        ``xi_ref`` or ``v``.
+        ``xi_ref``, ``v`` or ``v_held``.
     values : list of float
 
     Raises
@@ -360,6 +360,9 @@ def plan_value(plan: TaskPlanExport, spec: Spec, arts: Mapping[str, Artefact], p
     if extra or (set(names) & set(point) and not set(names) <= set(point)):
         raise SpecError("--at", f"{given}: " + (f"unknown {', '.join(extra)}" if extra else "some abstract states but not all"), want)
     ref = plan.reference(point["t"])
+    if plan.law == "held":      # a table of held inputs (the grid planner, error-aware planning): the period's input, whatever xi is
+        m_hat = len(spec.abstract.inputs)
+        return "v_held", [float(r) for r in np.ravel(ref)[:m_hat]]
     if not set(names) <= set(point):
         return "xi_ref", [float(r) for r in ref]
     from ashc_cli.closedloop.laws import held_law, setpoint_law
