@@ -53,9 +53,8 @@ def times(spec_path: Path, folder: Path) -> dict:
                                                        plan.xi0).tolist()
     refs = task_plan.reach_references(model, plant)
     bd, lam = arts["bound"].values, float(arts["stabilise"].value("lambda"))
-    gain = float(getattr(getattr(spec.simulate.tracking, "abstract_controller", None), "gain", task_plan.DEFAULT_GAIN) or task_plan.DEFAULT_GAIN) \
-        if spec.simulate is not None and spec.simulate.tracking is not None else task_plan.DEFAULT_GAIN
-    fit = task_plan.fitted_gain(model, arts, plan.xi0, refs)       # the budget's G on the part of V the task keeps to, as synthesize's
+    gain = task_plan.plan_gain(model)
+    fit = error_plan.fitted_gain(model, arts, plan.xi0, refs)       # the budget's G on the part of V the task keeps to, as synthesize's
     for mode in ("budget", "governor"):
         try:
             g = guaranteed.guaranteed_plan(plan.eps, mode, plan.W0, arts, gain=fit[0] if fit is not None and mode == "budget" else None)

@@ -36,8 +36,8 @@ from ashc_cli.numerics import interval, proofs
 from ashc_cli.numerics.proofs import PROVED, SAMPLED
 from ashc_cli.problem.model import compile_flat
 
-__all__ = ["ThetaTable", "Comparison", "theta_table", "build_theta_table", "comparison", "ErrorRun", "run_plan", "certified_margin", "level_for", "fits",
-           "reach_lower_bounds", "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
+__all__ = ["ThetaTable", "Comparison", "theta_table", "build_theta_table", "comparison", "ErrorRun", "abstract_field", "run_plan", "certified_margin", "level_for", "fits",
+           "reach_lower_bounds", "fitted_gain", "within_plan", "PLAN_PERIODS", "PLAN_SUB", "THETA_CELLS", "LEVEL_MARGIN", "S_MIN", "S_COARSE", "S_FINE"]
 
 #: Periods of the plan over the task's horizon (the held table the plant runs has one input per period).
 PLAN_PERIODS = 1000
@@ -192,11 +192,6 @@ def comparison(up: dict[str, Artefact]) -> Comparison:
     return Comparison(lam - eps, eps, float(bd["alpha_h"]), a0, float(bd.get("w0_max_certified", np.inf)), v_cap)
 
 
-def _dp_delta(model, up: dict[str, Artefact]):
-    """dp/dxi delta as a sympy matrix (the bound stage's formula, or its series' formula, built when read)."""
-    return up["bound"].expr("dp_delta")
-
-
 #: Tables already built in this process, by (bound artefact, cells): a plan, its fallback and synthesize's lower bound
 #: read the same one (at hundreds of states a table takes a minute of ball arithmetic).
 _TABLES: dict = {}
@@ -250,21 +245,22 @@ def build_theta_table(model, up: dict[str, Artefact], cells: int = THETA_CELLS) 
     eta = (hi - lo) / cells
     dbar = float(bd["dbar"])
     dbar_proved = str(bd.get("evidence_dbar", SAMPLED)) == PROVED
-    flat = np.full(cells, dbar)
+
+    def flat(why: str) -> ThetaTable:
+        return ThetaTable(lo, eta, np.full(cells, dbar), dbar, f"dbar on every cell ({why})", PROVED if dbar_proved else SAMPLED)
+
     if not theta_is_pointwise(model):
         # several inputs clipped channel by channel: a clipping pattern's theta can exceed the q = 0 value, even where the
         # bound stage's dbar (their sup, at least dbar_q0) equals dbar_q0 (found by an attack: 2.2 times at some xi)
-        return ThetaTable(lo, eta, flat, dbar, "dbar on every cell (the interface's clipping patterns of several inputs: theta depends on x too)",
-                          PROVED if dbar_proved else SAMPLED)
+        return flat("the interface's clipping patterns of several inputs: theta depends on x too")
     M = np.asarray(up["bound"].value("M"), dtype=float)
     try:
         # the squared norm (the outer root taken on its upper end): a root of an enclosure that reaches below 0 would be nan
-        norm = proofs.norm_expr(M, _dp_delta(model, up))
+        norm = proofs.norm_expr(M, up["bound"].expr("dp_delta"))
         squared = norm.base if norm.is_Pow and norm.exp == sp.Rational(1, 2) else norm ** 2      # a constant norm is a number
         fun = proofs.compile_claims(model, [squared], list(model.xi))
     except (interval.UnsupportedExpression, ValueError):
-        return ThetaTable(lo, eta, flat, dbar, "dbar on every cell (||sqrt(M) dp/dxi delta|| cannot be enclosed in ball arithmetic)",
-                          PROVED if dbar_proved else SAMPLED)
+        return flat("||sqrt(M) dp/dxi delta|| cannot be enclosed in ball arithmetic")
     edges = lo + eta * np.arange(cells + 1)
     edges[-1] = hi
     sampled = model.numeric(sp.Matrix([[squared]]), list(model.xi))
@@ -328,7 +324,7 @@ class ErrorRun:
     tau: float
 
 
-def run_plan(model, plant: DesignTerms, up: dict[str, Artefact], xi0: np.ndarray, w0: float, refs: list, gain: float, level: float, table: ThetaTable,
+def run_plan(model, plant: DesignTerms, field, xi0: np.ndarray, w0: float, refs: list, gain: float, level: float, table: ThetaTable,
              comp: Comparison) -> ErrorRun:
     """The plan at one level: per period the set-point law aimed at the current reach set's reference, scaled so
     that the comparison bound stays below ``level``, held; the reach sets switched once psi has held the current one
@@ -339,8 +335,8 @@ def run_plan(model, plant: DesignTerms, up: dict[str, Artefact], xi0: np.ndarray
     model : Model
         One abstract state, with a task.
     plant : DesignTerms
-    up : dict of str to Artefact
-        The design (phi_bar and delta for the batches of trial inputs).
+    field : callable
+        (xi, v) -> phi_bar(xi) + delta(xi) v on arrays (:func:`abstract_field`), for the batches of trial inputs.
     xi0 : ndarray (1,)
     w0 : float
         The comparison state at the start (W(xi0, x0)).
@@ -370,7 +366,6 @@ def run_plan(model, plant: DesignTerms, up: dict[str, Artefact], xi0: np.ndarray
     z, w = np.array(xi0, dtype=float), float(w0)
     k, entered, switches = 0, None, [0.0]
     offsets = np.arange(sub) * h
-    field = _abstract_field(model, up)
 
     def flow(z0, v, record_from=None):
         f = lambda y: (lambda a: a[0][:, 0] + a[1][:, 0] * v)(plant.abstraction(y))     # noqa: E731
@@ -410,8 +405,18 @@ def run_plan(model, plant: DesignTerms, up: dict[str, Artefact], xi0: np.ndarray
     return ErrorRun(t, xi, psi, v_run, w_run, comp.deflation(wide), inputs, switches, tau)
 
 
-def _abstract_field(model, up: dict[str, Artefact]):
-    """(xi, v) -> phi_bar(xi) + delta(xi) v on arrays of one abstract state (a batch of trial inputs at once)."""
+def abstract_field(model, up: dict[str, Artefact]):
+    """(xi, v) -> phi_bar(xi) + delta(xi) v on arrays of one abstract state (a batch of trial inputs at once).
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+
+    Returns
+    -------
+    callable
+    """
     T = design_matrices(model, up, ("phi", "delta"))
     fun = compile_flat([T["phi"][0, 0], T["delta"][0, 0]], list(model.xi), model.values)
 
@@ -513,6 +518,55 @@ def fits(level: float, w0: float, comp: Comparison) -> bool:
     """
     return w0 < level and comp.a0 ** 2 / (comp.eps * comp.a) < level
 
+
+
+def fitted_gain(model, up: dict[str, Artefact], xi0: np.ndarray, refs: list) -> tuple | None:
+    """The budget's gain fitted to the task: G with dbar over the part of V between the start and the reach sets'
+    references (the set-point law aimed at them keeps xi there when phi_bar = 0), from theta's proved table
+    (:func:`theta_table`: each cell's bound, a cell more each side).
+
+    Parameters
+    ----------
+    model : Model
+    up : dict of str to Artefact
+    xi0 : ndarray (1,)
+    refs : list of ndarray (1,)
+        The reach sets' references (:func:`ashc_cli.design.task_plan.reach_references`).
+
+    Returns
+    -------
+    tuple or None
+        (G, lo, hi); None with a drift (phi_bar != 0) or where that G is no smaller than the bound stage's.
+    """
+    bd = up["bound"].values
+    dbar, G = float(bd["dbar"]), float(bd["gain"])
+    if any(e != 0 for e in design_matrices(model, up, ("phi",))["phi"]):        # a drift can carry xi past the references
+        return None
+    table = theta_table(model, up)
+    points = [float(xi0[0])] + [float(r[0]) for r in refs]
+    lo, hi = max(min(points), table.lo), min(max(points), table.lo + table.eta * table.theta.size)
+    local = table.over(lo, hi)
+    if not (dbar > 0 and local < dbar):
+        return None
+    return G * local / dbar, lo, hi
+
+
+def within_plan(plan, values: dict) -> bool:
+    """Whether a plant run of an error-aware plan keeps to the plan's claim (docs/guaranteed.md): its own comparison w
+    nowhere above the plan's bound (to 1e-9 of the level) and its xi within a cell of theta's table of the plan's.
+
+    Parameters
+    ----------
+    plan : TaskPlan
+        Error-aware (its ``w_level`` and ``theta_cell`` are read).
+    values : dict
+        Of :func:`ashc_cli.design.task_plan.on_the_plant` (``w_over_plan``, ``xi_deviation``).
+
+    Returns
+    -------
+    bool
+    """
+    return bool(values["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0) and values["xi_deviation"] <= plan.theta_cell)
 
 
 def reach_lower_bounds(model, up: dict[str, Artefact], table: ThetaTable, comp: Comparison, level: float, xi0: np.ndarray) -> np.ndarray:

@@ -40,13 +40,13 @@ from ashc_cli.closedloop import plan as guaranteed
 from ashc_cli.closedloop import runner
 from ashc_cli.closedloop import rk
 from ashc_cli.closedloop.task_monitor import TaskRobustness, robustness
-from ashc_cli.closedloop.terms import DesignTerms, design_matrices
+from ashc_cli.closedloop.terms import DesignTerms
 from ashc_cli.design import error_plan, grid_plan
 from ashc_cli.design.artefacts import Artefact
 from ashc_cli.numerics.grid_games import route
 from ashc_cli.errors import DesignError, SpecError
 
-__all__ = ["TaskPlan", "plan_task", "reach_references", "fitted_gain", "error_aware_plan", "start_region", "segments", "on_the_plant", "task_run",
+__all__ = ["TaskPlan", "plan_task", "plan_gain", "reach_references", "error_aware_plan", "start_region", "segments", "on_the_plant", "task_run",
            "TASK_SAMPLE_DT", "TASK_SAMPLES", "EPS_CANDIDATES", "PLAN_STEPS", "DEFAULT_GAIN"]
 
 #: Tolerances EPS tried, spread geometrically below the largest that leaves every reach set non-empty.
@@ -200,6 +200,21 @@ def _reference(model, plant: DesignTerms, box, where: str) -> np.ndarray:
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
     deep = minimize_scalar(lambda x: -_depth(plant, box, x), bounds=(a, b), method="bounded", options={"xatol": 1e-12})
     return np.array([deep.x if -deep.fun >= depth[k] else grid[k]])
+
+
+def plan_gain(model) -> float:
+    """The set-point gain of a task's plan: the tracking scenario's abstract controller's, else DEFAULT_GAIN.
+
+    Parameters
+    ----------
+    model : Model
+
+    Returns
+    -------
+    float
+    """
+    tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
+    return float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
 
 
 def reach_references(model, plant: DesignTerms) -> list[np.ndarray]:
@@ -391,13 +406,12 @@ def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
     """The set-point plan (the module's docstring): EPS searched, the largest certified margin kept."""
     task = model.spec.task
     refs = reach_references(model, plant)
-    tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
-    gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
+    gain = plan_gain(model)
     # the plan's RK4 resolves the law only while gain * step <= 1 (beyond, xi chatters about the reference, and the
     # plant's loop, which integrates the same law adaptively, drifts from the plan): the plan and the loop use that gain
     gain = min(gain, PLAN_STEPS / task.horizon)
     half = _half(task)
-    fit = fitted_gain(model, up, start[0], refs)
+    fit = error_plan.fitted_gain(model, up, start[0], refs)
     tried = [_try(model, plant, up, start, refs, gain, e, deflate, fit) for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES)]
     tried = [r for r in tried if r is not None]
     if not tried:
@@ -418,37 +432,6 @@ def _setpoint_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tu
         best = _try(model, plant, up, start, refs, gain, kept.eps, False, fit)
     best.tried = [(r.eps, r.certified) for r in tried]
     return best
-
-
-def fitted_gain(model, up: dict[str, Artefact], xi0: np.ndarray, refs: list) -> tuple | None:
-    """The budget's gain fitted to the task: G with dbar over the part of V between the start and the reach sets'
-    references (the set-point law aimed at them keeps xi there when phi_bar = 0), from theta's proved table
-    (:func:`ashc_cli.design.error_plan.theta_table`: each cell's bound, a cell more each side).
-
-    Parameters
-    ----------
-    model : Model
-    up : dict of str to Artefact
-    xi0 : ndarray (1,)
-    refs : list of ndarray (1,)
-        The reach sets' references (:func:`reach_references`).
-
-    Returns
-    -------
-    tuple or None
-        (G, lo, hi); None with a drift (phi_bar != 0) or where that G is no smaller than the bound stage's.
-    """
-    bd = up["bound"].values
-    dbar, G = float(bd["dbar"]), float(bd["gain"])
-    if any(e != 0 for e in design_matrices(model, up, ("phi",))["phi"]):        # a drift can carry xi past the references
-        return None
-    table = error_plan.theta_table(model, up)
-    points = [float(xi0[0])] + [float(r[0]) for r in refs]
-    lo, hi = max(min(points), table.lo), min(max(points), table.lo + table.eta * table.theta.size)
-    local = table.over(lo, hi)
-    if not (dbar > 0 and local < dbar):
-        return None
-    return G * local / dbar, lo, hi
 
 
 def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: tuple) -> TaskPlan:
@@ -481,15 +464,14 @@ def error_aware_plan(model, plant: DesignTerms, up: dict[str, Artefact], start: 
         raise DesignError("task.planner.kind", f"error_aware plans on one abstract state, this design has {model.n_hat}", "task.planner: {kind: grid}")
     xi0, x0, W0 = start
     refs = reach_references(model, plant)
-    tr = model.spec.simulate.tracking if model.spec.simulate is not None else None
-    gain = float(getattr(tr.abstract_controller, "gain", DEFAULT_GAIN) or DEFAULT_GAIN) if tr is not None else DEFAULT_GAIN
-    table, comp = error_plan.theta_table(model, up), error_plan.comparison(up)
+    gain = plan_gain(model)
+    table, comp, field = error_plan.theta_table(model, up), error_plan.comparison(up), error_plan.abstract_field(model, up)
     half, tried, best = _half(task), [], None
     for e in np.geomspace(half * 1e-3, half * 0.999, EPS_CANDIDATES):
         level = error_plan.level_for(float(e), comp)
         if not error_plan.fits(level, W0, comp):
             continue
-        run = error_plan.run_plan(model, plant, up, xi0, W0, refs, gain, level, table, comp)
+        run = error_plan.run_plan(model, plant, field, xi0, W0, refs, gain, level, table, comp)
         certified, margin, rob, in_V = error_plan.certified_margin(model, run)
         eps = float(np.sqrt(level / comp.alpha_h))
         tried.append((eps, certified))

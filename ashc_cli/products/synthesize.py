@@ -134,7 +134,7 @@ def _store_error_aware(art: Artefact, plan: task_plan.TaskPlan, run: dict) -> No
                                          f"plan carries (<= alpha_h EPS^2, EPS = {plan.eps:.4g}; theta: {plan.theta_how}), {plan.rob.robustness:.4g}, less "
                                          f"the sampling margin {plan.margin:.3g} and the plan's deviation from the run's abstraction {run['deviation']:.2g} "
                                          "(>= 0: every plant run from the start region meets the task; sampled in time)", SAMPLED)
-    ok = bool(run["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0) and run["xi_deviation"] <= plan.theta_cell)
+    ok = error_plan.within_plan(plan, run)
     art.values["xi_deviation"] = run["xi_deviation"]
     art.checks["w_within_plan"] = Check(run["w_over_plan"], ok,
                                         "the plant run's comparison w (its own |L^T r|) less the plan's bound at each sample (<= 0: the plan's "

@@ -46,7 +46,7 @@ from ashc_cli.numerics.proofs import SIMULATED
 from ashc_cli.errors import DesignError, ScenarioStopped
 from ashc_cli.problem.model import Model
 from ashc_cli.problem.spec import TimedLevel
-from ashc_cli.design import task_plan
+from ashc_cli.design import error_plan, task_plan
 from ashc_cli.design.task_plan import TASK_SAMPLE_DT, TASK_SAMPLES, task_run  # noqa: F401
 from ashc_cli.closedloop.beside import integrate_beside
 from ashc_cli.closedloop.runner import (MAX_RUN_SAMPLES, REACH_HORIZON_DWELLS, REACH_SAMPLE_DWELLS, SAMPLE_DT, SETTLE_RTOL, TRACKING_TOL,  # noqa: F401
@@ -335,7 +335,7 @@ def run_task(model: Model, plant: DesignTerms, up: dict[str, Artefact]) -> tuple
                                              f"the task's robustness on the plant's run of the synthesised plan (>= 0; max |psi - y| = "
                                              f"{values['max_abs_error']:.3g} <= EPS = {plan.eps:.4g})", SIMULATED)}
     if plan.w is not None:          # error-aware planning: the claim's hypothesis on this run (docs/guaranteed.md)
-        ok = bool(values["w_over_plan"] <= 1e-9 * max(plan.w_level, 1.0) and values["xi_deviation"] <= plan.theta_cell)
+        ok = error_plan.within_plan(plan, values)
         checks["task_w_within_plan"] = Check(values["w_over_plan"], ok, "the run's comparison w less the error-aware plan's bound at each sample "
                                              f"(<= 0), its xi within {values['xi_deviation']:.2g} of the plan's (<= a cell of theta's table, "
                                              f"{plan.theta_cell:.3g})", SIMULATED)
